@@ -1,0 +1,30 @@
+"""hbvm-md: the backend facade.
+
+HBVM(k, s) as an ASE ``MolecularDynamics`` class (:class:`HBVMDynamics`), as an integrator
+driven by REBOUND (:class:`HBVMIntegrator`), conservation checks against the hosts' own
+integrators (:func:`compare_md`, :func:`compare_rebound`) and the ``hbvm-md`` command line.
+
+Names are imported lazily so that ``import hbvm_md`` does not pull in ASE or REBOUND.
+"""
+from importlib import import_module
+
+from integrators import HBVM, ConvergenceError, integrate
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "HBVMDynamics": "hbvm_md.ase_dynamics",
+    "compare_md": "hbvm_md.compare_md",
+    "MDComparison": "hbvm_md.compare_md",
+    "HBVMIntegrator": "hbvm_md.rebound_driver",
+    "compare_rebound": "hbvm_md.compare_rebound",
+    "ReboundComparison": "hbvm_md.compare_rebound",
+}
+
+__all__ = ["HBVM", "ConvergenceError", "integrate", *_LAZY]
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'hbvm_md' has no attribute {name!r}")

@@ -1,0 +1,10 @@
+"""The mathematics of HBVM(k, s): tableau, spectra, the stepping engine, nonlinear solvers.
+
+No ASE, no REBOUND here.
+"""
+from .engine import IntegrationResult, Stepper, integrate
+from .errors import ConvergenceError
+from .tableau import HBVM, gauss_collocation_tableau, gauss_matrix, gauss_spectrum
+
+__all__ = ["HBVM", "Stepper", "integrate", "IntegrationResult", "ConvergenceError",
+           "gauss_spectrum", "gauss_matrix", "gauss_collocation_tableau"]

@@ -1,0 +1,161 @@
+"""Compiled fast path for separable Hamiltonians (numba, ``cache=True``).
+
+The whole integration loop of :class:`integrators.forms.SeparableForm` with fixed-point
+iteration runs in one compiled function.  The force and potential are numba ``cfunc`` kernels
+(signatures in :mod:`systems.base`), passed as first-class function values: the compiled loop is
+typed by the kernels' signature, not their identity, so it is compiled once and cached on disk
+for every system.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+EPS = np.finfo(float).eps
+
+# status codes of the compiled loop
+OK, DIVERGED, NOT_FINITE = 0, 1, 2
+
+
+@njit(cache=True)
+def _kahan(x, c, inc):
+    for i in range(x.shape[0]):
+        yk = inc[i] - c[i]
+        t = x[i] + yk
+        c[i] = (t - x[i]) - yk
+        x[i] = t
+
+
+@njit(cache=True)
+def _energy(potential, params, q, p, minv):
+    ke = 0.0
+    for i in range(p.shape[0]):
+        ke += 0.5 * p[i] * p[i] * minv[i]
+    return ke + potential(q, params)
+
+
+@njit(cache=True)
+def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps, sample_every,
+                        t0, tau, W, W_lo, C2, C2_lo, X0, E, max_iter, plateau, tol,
+                        out_t, out_q, out_p, out_e, counters, gamma):
+    """Integrate ``nsteps`` steps in place.
+
+    q, p, cq, cp : state and Kahan compensations (updated in place, left at the last completed
+    step on failure).  gamma (s, m): the momentum coefficients of the previous step, or all
+    zero to start from f(q0).  counters: [steps done, iterations, stage evaluations, status,
+    last increment].  Samples at steps 0, sample_every, 2 sample_every, ... go to out_*.
+    """
+    n, s = W.shape[1], W.shape[0]
+    m = q.shape[0]
+    Q = np.empty((n, m))
+    F = np.empty((n, m))
+    g = np.empty((s, m))
+    a = np.empty((s, m))
+    dq = np.empty(m)
+    dp = np.empty(m)
+    t, ct = t0, 0.0
+    isample = 0
+    if sample_every > 0:
+        out_t[0] = t
+        out_q[0] = q
+        out_p[0] = p
+        out_e[0] = _energy(potential, params, q, p, minv)
+        isample = 1
+    started = False
+    for i in range(s):
+        for j in range(m):
+            if gamma[i, j] != 0.0:
+                started = True
+    if not started:
+        for i in range(n):
+            Q[i] = q
+        force(Q, params, F)
+        counters[2] += n
+        gamma[0] = F[0]
+    for step in range(nsteps):
+        # initial guess: the previous polynomial extrapolated over the new step
+        for i in range(s):
+            for j in range(m):
+                acc = 0.0
+                for l in range(s):
+                    acc += E[i, l] * gamma[l, j]
+                g[i, j] = acc
+        prev = np.inf
+        bad = 0
+        converged = False
+        it = 0
+        delta = 0.0
+        while it < max_iter:
+            it += 1
+            for i in range(s):
+                for j in range(m):
+                    a[i, j] = g[i, j] * minv[j]
+            for i in range(n):
+                for j in range(m):
+                    acc = 0.0
+                    acc_lo = 0.0
+                    for l in range(s):
+                        acc += C2[i, l] * a[l, j]
+                        acc_lo += C2_lo[i, l] * a[l, j]
+                    Q[i, j] = q[j] + h * tau[i] * p[j] * minv[j] + h * h * (acc + acc_lo)
+            force(Q, params, F)
+            counters[2] += n
+            delta = 0.0
+            scale = 0.0
+            for i in range(s):
+                for j in range(m):
+                    acc = 0.0
+                    acc_lo = 0.0
+                    for l in range(n):
+                        acc += W[i, l] * F[l, j]
+                        acc_lo += W_lo[i, l] * F[l, j]
+                    v = acc + acc_lo
+                    d = abs(v - g[i, j])
+                    if d > delta or d != d:
+                        delta = d
+                    if abs(v) > scale:
+                        scale = abs(v)
+                    g[i, j] = v
+            if not np.isfinite(delta):
+                counters[3] = NOT_FINITE
+                counters[4] = delta
+                return
+            if delta <= 2.0 * EPS * scale or delta <= tol * scale:
+                converged = True
+                break
+            if delta >= prev:
+                if delta <= plateau * scale:
+                    converged = True
+                    break
+                bad += 1
+                if bad >= 2:
+                    break
+            prev = delta
+        counters[1] += it
+        if not converged:
+            counters[3] = DIVERGED
+            counters[4] = delta
+            return
+        for j in range(m):
+            xg = 0.0
+            for l in range(s):
+                xg += X0[l] * g[l, j]
+            dq[j] = h * (p[j] + h * xg) * minv[j]
+            dp[j] = h * g[0, j]
+        for i in range(s):
+            for j in range(m):
+                gamma[i, j] = g[i, j]
+        _kahan(q, cq, dq)
+        _kahan(p, cp, dp)
+        yk = h - ct
+        tn = t + yk
+        ct = (tn - t) - yk
+        t = tn
+        counters[0] += 1
+        if sample_every > 0 and (step + 1) % sample_every == 0:
+            out_t[isample] = t
+            out_q[isample] = q
+            out_p[isample] = p
+            out_e[isample] = _energy(potential, params, q, p, minv)
+            isample += 1
+    counters[3] = OK

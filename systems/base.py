@@ -1,0 +1,87 @@
+"""The Hamiltonian-system protocol that the integrators understand.
+
+A system is any object with
+
+``dim``
+    Number of degrees of freedom m; states are y = (q, p) flat, shape (2m,).
+``energy(y)``
+    H(y) for y of shape (2m,) (a float) or a stack (n, 2m) (shape (n,)).
+``gradient(y)``
+    grad H(y), same shape as y; must accept a stack (n, 2m) of states (the k stages of a
+    step are evaluated in one call).
+
+and optionally
+
+``polynomial_degree``
+    Degree of H as a polynomial in y, or None when H is not a polynomial.  Used to choose the
+    smallest k that conserves H exactly.
+``hessian(y)``
+    The (2m, 2m) Hessian of H at one state; otherwise the Newton solver uses finite differences
+    of ``gradient``.
+``initial_state()``
+    A default starting state.
+Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of
+freedom), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
+engine then iterates on the momentum coefficients only.
+``separable_kernels()``
+    Returns ``(force, potential, params)`` for the compiled fast path: ``force`` a numba
+    ``cfunc`` of signature :data:`FORCE_SIGNATURE` writing -grad V at each row of Q (n, m) into
+    ``out``; ``potential`` a ``cfunc`` of signature :data:`POTENTIAL_SIGNATURE`; ``params`` a
+    float64 array handed to both.
+
+Writing your own is a small class; see :class:`HamiltonianSystem` and :class:`SeparableSystem`.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import types
+
+FORCE_SIGNATURE = types.void(types.float64[:, ::1], types.float64[::1], types.float64[:, ::1])
+POTENTIAL_SIGNATURE = types.float64(types.float64[::1], types.float64[::1])
+
+
+class HamiltonianSystem:
+    """Base class: subclasses define ``dim``, ``energy`` and ``gradient`` (batched)."""
+
+    dim: int
+    polynomial_degree: int | None = None
+
+    def energy(self, y: np.ndarray):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def gradient(self, y: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def vector_field(self, y: np.ndarray) -> np.ndarray:
+        """f(y) = J grad H(y) with J = [[0, I], [-I, 0]]: (dH/dp, -dH/dq); y may be a stack."""
+        g = self.gradient(y)
+        m = self.dim
+        return np.concatenate([g[..., m:], -g[..., :m]], axis=-1)
+
+    def split(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        y = np.asarray(y, dtype=float)
+        return y[..., : self.dim], y[..., self.dim:]
+
+
+class SeparableSystem(HamiltonianSystem):
+    """H(q, p) = sum_i p_i^2 / (2 M_i) + V(q).  Subclasses define ``masses``, ``potential``,
+    ``forces`` (= -grad V, batched over a leading axis)."""
+
+    masses: np.ndarray
+
+    def potential(self, q: np.ndarray):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def forces(self, q: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def kinetic(self, p: np.ndarray):
+        return 0.5 * np.sum(p * p / self.masses, axis=-1)
+
+    def energy(self, y: np.ndarray):
+        q, p = self.split(y)
+        return self.kinetic(p) + self.potential(q)
+
+    def gradient(self, y: np.ndarray) -> np.ndarray:
+        q, p = self.split(y)
+        return np.concatenate([-self.forces(q), p / self.masses], axis=-1)

@@ -1,0 +1,84 @@
+"""The Kepler problem (reduced two-body), HLW Sec. I.2.3."""
+from __future__ import annotations
+
+import numpy as np
+from numba import cfunc
+
+from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+
+
+@cfunc(FORCE_SIGNATURE, cache=True)
+def _kepler_force(Q, params, out):
+    mu = params[0]
+    for i in range(Q.shape[0]):
+        x, y = Q[i, 0], Q[i, 1]
+        r2 = x * x + y * y
+        f = -mu / (r2 * np.sqrt(r2))
+        out[i, 0] = f * x
+        out[i, 1] = f * y
+
+
+@cfunc(POTENTIAL_SIGNATURE, cache=True)
+def _kepler_potential(q, params):
+    return -params[0] / np.sqrt(q[0] * q[0] + q[1] * q[1])
+
+
+class Kepler(SeparableSystem):
+    """H(q, p) = |p|^2 / 2 - mu / |q| in the plane.
+
+    Parameters
+    ----------
+    e : float
+        Eccentricity of the default orbit, 0 <= e < 1: q0 = (1 - e, 0),
+        p0 = (0, sqrt((1 + e) / (1 - e))), energy -1/2 and period 2 pi for mu = 1.
+    mu : float
+        Gravitational parameter.
+
+    Not a polynomial (``polynomial_degree`` is None): HBVM conserves H to round-off once k is
+    large enough for the step size.
+    """
+
+    dim = 2
+    polynomial_degree = None
+
+    def __init__(self, e: float = 0.6, mu: float = 1.0):
+        if not (np.isfinite(e) and 0.0 <= e < 1.0):
+            raise ValueError(f"`e` must satisfy 0 <= e < 1 (got e={e!r})")
+        if not (np.isfinite(mu) and mu > 0):
+            raise ValueError(f"`mu` must be a positive number (got mu={mu!r})")
+        self.e, self.mu = float(e), float(mu)
+        self.masses = np.ones(2)
+
+    def initial_state(self) -> np.ndarray:
+        e = self.e
+        return np.array([1 - e, 0.0, 0.0, np.sqrt(self.mu * (1 + e) / (1 - e))])
+
+    @property
+    def period(self) -> float:
+        a = 1.0  # semi-major axis of the default orbit
+        return 2 * np.pi * np.sqrt(a ** 3 / self.mu)
+
+    def potential(self, q):
+        q = np.asarray(q, dtype=float)
+        return -self.mu / np.sqrt(np.sum(q * q, axis=-1))
+
+    def forces(self, q):
+        q = np.asarray(q, dtype=float)
+        r = np.sqrt(np.sum(q * q, axis=-1, keepdims=True))
+        return -self.mu * q / r ** 3
+
+    def hessian(self, y):
+        q = np.asarray(y, dtype=float)[:2]
+        r = np.sqrt(q @ q)
+        Hqq = self.mu * (np.eye(2) / r ** 3 - 3 * np.outer(q, q) / r ** 5)
+        H = np.zeros((4, 4))
+        H[:2, :2] = Hqq
+        H[2:, 2:] = np.eye(2)
+        return H
+
+    def angular_momentum(self, y):
+        y = np.asarray(y, dtype=float)
+        return y[..., 0] * y[..., 3] - y[..., 1] * y[..., 2]
+
+    def separable_kernels(self):
+        return _kepler_force, _kepler_potential, np.array([self.mu])
