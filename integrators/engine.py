@@ -16,6 +16,7 @@ from .forms import FullForm, SeparableForm
 from .solvers import SimplifiedNewton, StopRule, fixed_point, newton
 
 SOLVERS = ("auto", "fixed_point", "newton")
+FORMS = ("auto", "full", "separable")
 
 
 def _is_separable(system) -> bool:
@@ -49,6 +50,27 @@ def check_step(h) -> float:
     return hf
 
 
+def check_options(solver, form, tol, max_iter, t0) -> float:
+    """Check the options shared by :class:`Stepper` and :func:`integrate`; returns float(t0)."""
+    if not isinstance(solver, str) or solver not in SOLVERS:
+        raise ValueError(f"`solver` must be one of {SOLVERS} (got solver={solver!r})")
+    if not isinstance(form, str) or form not in FORMS:
+        raise ValueError(f"`form` must be 'auto', 'full' or 'separable' (got form={form!r})")
+    if tol is not None and (isinstance(tol, bool) or not isinstance(tol, (int, float, np.number))
+                            or not (np.isfinite(tol) and 0 < tol < 1)):
+        raise ValueError(f"`tol` must be None (round-off) or a number in (0, 1) (got tol={tol!r})")
+    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
+                                 or max_iter < 1):
+        raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
+    try:
+        t0f = float(t0)
+    except (TypeError, ValueError):
+        raise ValueError(f"`t0` must be a finite number (got t0={t0!r})") from None
+    if not np.isfinite(t0f):
+        raise ValueError(f"`t0` must be a finite number (got t0={t0!r})")
+    return t0f
+
+
 class Stepper:
     """Integrates a Hamiltonian system with HBVM(k, s), one step at a time.
 
@@ -79,17 +101,10 @@ class Stepper:
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto"):
-        if solver not in SOLVERS:
-            raise ValueError(f"`solver` must be one of {SOLVERS} (got solver={solver!r})")
-        if form not in ("auto", "full", "separable"):
-            raise ValueError(f"`form` must be 'auto', 'full' or 'separable' (got form={form!r})")
-        if tol is not None and not (np.isfinite(tol) and 0 < tol < 1):
-            raise ValueError(f"`tol` must be None (round-off) or in (0, 1) (got tol={tol!r})")
-        if max_iter is not None and (not isinstance(max_iter, (int, np.integer)) or max_iter < 1):
-            raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
+        t0 = check_options(solver, form, tol, max_iter, t0)
         self.method, self.system = method, system
         self.y = check_state(system, y0)
-        self.t = float(t0)
+        self.t = t0
         if form == "separable" and not _is_separable(system):
             raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
                              "`potential`; use form='full'")
@@ -228,16 +243,20 @@ class IntegrationResult:
         return float(np.polyfit(self.t - self.t[0], self.energy_error, 1)[0]) if len(self.t) > 2 else 0.0
 
 
-def _wants_fast(system, solver, fast) -> bool:
+def _wants_fast(system, solver, fast, form="auto") -> bool:
     has = hasattr(system, "separable_kernels") and _is_separable(system)
     if fast is None:
-        return has and solver in ("auto", "fixed_point")
+        # the compiled loop is the separable form: an explicit form='full' keeps the numpy engine
+        return has and solver in ("auto", "fixed_point") and form != "full"
     if fast and not has:
         raise ValueError("`fast=True` needs a system with `separable_kernels()` (compiled force "
                          "and potential); use fast=False for the numpy path")
     if fast and solver == "newton":
         raise ValueError("the compiled fast path iterates by fixed point; use fast=False with "
                          "solver='newton'")
+    if fast and form == "full":
+        raise ValueError("the compiled fast path iterates on the separable form; use fast=False "
+                         "with form='full'")
     return bool(fast)
 
 
@@ -261,10 +280,9 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
         raise ValueError(f"`steps` must be an integer >= 0 (got steps={steps!r})")
     if isinstance(sample_every, bool) or not isinstance(sample_every, (int, np.integer)) or sample_every < 1:
         raise ValueError(f"`sample_every` must be an integer >= 1 (got sample_every={sample_every!r})")
-    if solver not in SOLVERS:
-        raise ValueError(f"`solver` must be one of {SOLVERS} (got solver={solver!r})")
+    t0 = check_options(solver, form, tol, max_iter, t0)
     y0 = check_state(system, y0)
-    if _wants_fast(system, solver, fast):
+    if _wants_fast(system, solver, fast, form):
         return _integrate_fast(method, system, y0, h, int(steps), t0, solver, int(sample_every), tol, max_iter)
     st = Stepper(method, system, y0, t0, solver, tol, max_iter, form)
     return _run_stepper(st, h, int(steps), int(sample_every))

@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit
 
 EPS = np.finfo(float).eps
+DECREASE = 2.0 ** -30   # same stopping rule as integrators.solvers.StopRule
 
 # status codes of the compiled loop
 OK, DIVERGED, NOT_FINITE = 0, 1, 2
@@ -81,6 +82,7 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
                     acc += E[i, l] * gamma[l, j]
                 g[i, j] = acc
         prev = np.inf
+        first = np.inf
         bad = 0
         converged = False
         it = 0
@@ -100,6 +102,12 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
                     Q[i, j] = q[j] + h * tau[i] * p[j] * minv[j] + h * h * (acc + acc_lo)
             force(Q, params, F)
             counters[2] += n
+            # round-off scale of W @ F: the size of the terms (see solvers.StopRule.run)
+            fmax = 0.0
+            for i in range(n):
+                for j in range(m):
+                    if abs(F[i, j]) > fmax:
+                        fmax = abs(F[i, j])
             delta = 0.0
             scale = 0.0
             for i in range(s):
@@ -124,12 +132,14 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
                 converged = True
                 break
             if delta >= prev:
-                if delta <= plateau * scale:
+                if delta <= plateau * max(scale, fmax) or delta <= DECREASE * first:
                     converged = True
                     break
                 bad += 1
                 if bad >= 2:
                     break
+            if it == 1:
+                first = delta
             prev = delta
         counters[1] += it
         if not converged:

@@ -51,7 +51,11 @@ class FullForm:
         def phi(gamma):
             Y = y0 + h * (m.I @ gamma + m.I_lo @ gamma)
             F = self.f(Y)
+            # the round-off of W @ F is relative to the terms F, not to their (possibly much
+            # smaller) combination: the stopping rule reads this as its round-off scale
+            phi.magnitude = float(np.max(np.abs(F)))
             return m.W @ F + m.W_lo @ F
+        phi.magnitude = 0.0
         return phi
 
     def linear_part(self, y0: np.ndarray, h: float):
@@ -97,7 +101,9 @@ class SeparableForm:
             a = gp * minv
             Q = base + h2 * (m.C2 @ a + m.C2_lo @ a)
             F = sys.forces(Q)
+            phi.magnitude = float(np.max(np.abs(F)))   # round-off scale, see FullForm.phi
             return m.W @ F + m.W_lo @ F
+        phi.magnitude = 0.0
         return phi
 
     def linear_part(self, y0: np.ndarray, h: float):

@@ -11,6 +11,7 @@ import scipy.linalg
 from .errors import ConvergenceError
 
 EPS = np.finfo(float).eps
+DECREASE = 2.0 ** -30   # increments fell this much before stalling: round-off, see StopRule.run
 
 
 class StopRule:
@@ -26,13 +27,27 @@ class StopRule:
                  patience: int = 2):
         self.max_iter, self.tol, self.plateau, self.patience = max_iter, tol, plateau, patience
 
-    def run(self, update, gamma: np.ndarray, h: float, solver: str, t: float | None):
-        """Iterate ``gamma <- update(gamma)`` until converged; returns (gamma, iterations)."""
+    def run(self, update, gamma: np.ndarray, h: float, solver: str, t: float | None,
+            magnitude=None):
+        """Iterate ``gamma <- update(gamma)`` until converged; returns (gamma, iterations).
+
+        ``magnitude``, optional, returns the size of the terms combined by the last update
+        (max |f| at the stages).  The round-off plateau is measured against the larger of it and
+        max |gamma|: when the stage forces nearly cancel (a stiff spring averaged over a step
+        of several periods), max |gamma| alone understates the round-off of the update and a
+        converged iteration would be reported as diverged.  Likewise an iteration whose
+        increments fell below ``2**-30`` times the first one before they stopped falling has
+        reached the round-off of the stage values (with a stiff force it is about
+        eps |q| omega^2, which no scale of gamma shows) and is converged.
+        """
         prev = np.inf
+        first = None
         bad = 0
         for it in range(1, self.max_iter + 1):
             new = update(gamma)
             delta = float(np.max(np.abs(new - gamma)))
+            if first is None:
+                first = delta
             scale = float(np.max(np.abs(new)))
             gamma = new
             if not np.isfinite(delta):
@@ -41,7 +56,8 @@ class StopRule:
             if delta <= 2 * EPS * scale or (self.tol is not None and delta <= self.tol * scale):
                 return gamma, it
             if delta >= prev:
-                if delta <= self.plateau * scale:
+                ref = scale if magnitude is None else max(scale, magnitude())
+                if delta <= self.plateau * ref or delta <= DECREASE * first:
                     return gamma, it
                 bad += 1
                 if bad >= self.patience:
@@ -52,7 +68,7 @@ class StopRule:
 
 def fixed_point(phi, gamma0, rule: StopRule, h: float, t=None):
     """gamma <- phi(gamma).  Converges when h L ||X_s|| < 1 (non-stiff problems)."""
-    return rule.run(phi, gamma0, h, "fixed_point", t)
+    return rule.run(phi, gamma0, h, "fixed_point", t, _magnitude(phi))
 
 
 class SimplifiedNewton:
@@ -104,4 +120,9 @@ def newton(phi, gamma0, rule: StopRule, h: float, lin: SimplifiedNewton, t=None)
     """Simplified Newton on gamma - phi(gamma) = 0 with the factorised Gauss matrix."""
     def update(g):
         return g - lin.solve(g - phi(g))
-    return rule.run(update, gamma0, h, "newton", t)
+    return rule.run(update, gamma0, h, "newton", t, _magnitude(phi))
+
+
+def _magnitude(phi):
+    """A callable returning ``phi.magnitude`` (see :meth:`StopRule.run`), or None."""
+    return (lambda: phi.magnitude) if hasattr(phi, "magnitude") else None
