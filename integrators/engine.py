@@ -288,13 +288,14 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
     return _run_stepper(st, h, int(steps), int(sample_every))
 
 
-def _run_stepper(st: Stepper, h, steps, sample_every, ts=None, ys=None, wall0=0.0):
+def _run_stepper(st: Stepper, h, steps, sample_every, offset=0, ts=None, ys=None, wall0=0.0):
+    """Run ``steps`` steps, sampling when the global step count (offset + i) is a multiple."""
     ts = [st.t] if ts is None else ts
     ys = [st.y.copy()] if ys is None else ys
     t_start = time.perf_counter()
     for i in range(steps):
         st.step(h)
-        if (i + 1) % sample_every == 0:
+        if (offset + i + 1) % sample_every == 0:
             ts.append(st.t)
             ys.append(st.y.copy())
     wall = wall0 + time.perf_counter() - t_start
@@ -331,27 +332,13 @@ def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol,
         st = Stepper(method, system, np.concatenate([q, p]), t_fail, solver, tol, max_iter, "separable")
         st._yc = np.concatenate([cq, cp])
         st.nsteps, st.niter, st.nfev = done, iters, nfev
+        if done > 0:   # the compiled loop keeps the last good step's coefficients in gamma
+            st._gamma, st._h_prev = gamma.copy(), h
         k = done // sample_every + 1
         ts = list(out_t[:k])
         ys = [np.concatenate([a, b]) for a, b in zip(out_q[:k], out_p[:k])]
-        first = sample_every - done % sample_every
-        # keep the sampling grid: sample when the global step count is a multiple
-        res = _run_stepper_grid(st, h, steps - done, sample_every, done, ts, ys, wall)
+        res = _run_stepper(st, h, steps - done, sample_every, done, ts, ys, wall)
         res.path = "compiled+separable"
         return res
     Y = np.concatenate([out_q, out_p], axis=1)
     return IntegrationResult(out_t, Y, out_e, method, h, done, nfev, iters, "compiled", wall)
-
-
-def _run_stepper_grid(st, h, steps, sample_every, offset, ts, ys, wall0):
-    t_start = time.perf_counter()
-    for i in range(steps):
-        st.step(h)
-        if (offset + i + 1) % sample_every == 0:
-            ts.append(st.t)
-            ys.append(st.y.copy())
-    wall = wall0 + time.perf_counter() - t_start
-    Y = np.array(ys)
-    energy = np.asarray(st.system.energy(Y), dtype=float)
-    return IntegrationResult(np.array(ts), Y, energy, st.method, h, st.nsteps, st.nfev, st.niter,
-                             st.form.name, wall, st.newton_steps, st.solver_switches)
