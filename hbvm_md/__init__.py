@@ -14,11 +14,11 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "HBVMDynamics": "hbvm_md.ase_dynamics",
-    "compare_md": "hbvm_md.compare_md",
-    "MDComparison": "hbvm_md.compare_md",
+    "compare_md": "hbvm_md.md_comparison",
+    "MDComparison": "hbvm_md.md_comparison",
     "HBVMIntegrator": "hbvm_md.rebound_driver",
-    "compare_rebound": "hbvm_md.compare_rebound",
-    "ReboundComparison": "hbvm_md.compare_rebound",
+    "compare_rebound": "hbvm_md.rebound_comparison",
+    "ReboundComparison": "hbvm_md.rebound_comparison",
 }
 
 __all__ = ["HBVM", "ConvergenceError", "integrate", *_LAZY]

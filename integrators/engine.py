@@ -306,7 +306,7 @@ def _run_stepper(st: Stepper, h, steps, sample_every, offset=0, ts=None, ys=None
 
 
 def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol, max_iter):
-    from .fast import OK, integrate_separable
+    from .fast import OK, coefficients, integrate_separable
     force, potential, params = system.separable_kernels()
     d = system.dim
     q, p = y0[:d].copy(), y0[d:].copy()
@@ -319,9 +319,8 @@ def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol,
     m = method
     t_start = time.perf_counter()
     integrate_separable(force, potential, np.ascontiguousarray(params, dtype=float), q, p, cq, cp,
-                        minv, h, steps, sample_every, float(t0), m.tau, m.W, m.W_lo, m.C2, m.C2_lo,
-                        np.ascontiguousarray(m.X[0]), m.E, int(max_iter or 60), 2.0 ** -40,
-                        float(tol or 0.0), out_t, out_q, out_p, out_e, counters, gamma)
+                        minv, h, steps, sample_every, float(t0), *coefficients(m),
+                        int(max_iter or 60), 2.0 ** -40, float(tol or 0.0), out_t, out_q, out_p, out_e, counters, gamma)
     wall = time.perf_counter() - t_start
     done, iters, nfev, status = int(counters[0]), int(counters[1]), int(counters[2]), int(counters[3])
     if status != OK:

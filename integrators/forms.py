@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .fast import two_product
+
 
 def _fd_jacobian(fun, x: np.ndarray, rel: float = 2.0 ** -26) -> np.ndarray:
     """Central-difference Jacobian of a batched function (one call on a stack of 2d points)."""
@@ -94,12 +96,13 @@ class SeparableForm:
     def phi(self, y0: np.ndarray, h: float):
         m, sys, minv = self.m, self.sys, self.minv
         q0, v0 = y0[: self.d], y0[self.d:] * minv
-        base = q0 + h * np.outer(m.tau, v0)
-        h2 = h * h
+        base = q0 + (h * np.outer(m.tau, v0) + h * np.outer(m.tau_lo, v0))
+        h2, h2_lo = two_product(h, h)   # exact: see integrators.fast.integrate_separable
 
         def phi(gp):
             a = gp * minv
-            Q = base + h2 * (m.C2 @ a + m.C2_lo @ a)
+            ca = m.C2 @ a
+            Q = base + (h2 * (ca + m.C2_lo @ a) + h2_lo * ca)
             F = sys.forces(Q)
             phi.magnitude = float(np.max(np.abs(F)))   # round-off scale, see FullForm.phi
             return m.W @ F + m.W_lo @ F
@@ -117,7 +120,7 @@ class SeparableForm:
 
     def increment(self, y0: np.ndarray, gamma: np.ndarray, h: float) -> np.ndarray:
         m, d = self.m, self.d
-        xg = m.X[0] @ gamma        # (X_s gamma_p)_1
+        xg = m.X[0] @ gamma + m.X_lo[0] @ gamma       # (X_s gamma_p)_1
         dq = h * (y0[d:] + h * xg) * self.minv
         return np.concatenate([dq, h * gamma[0]])
 

@@ -48,6 +48,17 @@ def gauss_matrix(s: int) -> np.ndarray:
     return X
 
 
+def _gauss_matrix_remainder(s: int) -> np.ndarray:
+    """The rounding remainder of X_s (xi_j is irrational): X_s = gauss_matrix(s) + this."""
+    R = np.zeros((s, s))
+    with mpmath.workdps(_q._DPS):
+        for j in range(1, s):
+            x = 1 / (2 * mpmath.sqrt((2 * j + 1) * (2 * j - 1)))
+            R[j, j - 1] = float(x - mpmath.mpf(xi(j)))
+            R[j - 1, j] = -R[j, j - 1]
+    return R
+
+
 def gauss_spectrum(s: int) -> np.ndarray:
     """Eigenvalues of X_s (= those of the s-stage Gauss-Legendre method), sorted."""
     return _sort(np.linalg.eigvals(gauss_matrix(s)))
@@ -138,7 +149,8 @@ class HBVM:
         X_s of eq. (Xs).
     W : ndarray, shape (s, n)
         P_s^T Omega, the projection that maps stage values to the coefficients gamma_j
-        (eq. (orth) discretised).  ``W_lo``, ``I_lo``, ``C2_lo`` hold the rounding remainders.
+        (eq. (orth) discretised).  ``tau_lo``, ``W_lo``, ``I_lo``, ``C2_lo``, ``X_lo`` hold the
+        rounding remainders.
 
     Examples
     --------
@@ -147,7 +159,7 @@ class HBVM:
     (4, 6)
     """
 
-    __slots__ = ("k", "s", "nodes", "n_stages", "tau", "omega", "P", "I", "X", "W",
+    __slots__ = ("k", "s", "nodes", "n_stages", "tau", "tau_lo", "omega", "P", "I", "X", "X_lo", "W",
                  "W_lo", "I_lo", "C2", "C2_lo", "E", "P_next", "_mp", "__dict__")
 
     def __init__(self, k: int, s: int, nodes: str = "gauss"):
@@ -164,9 +176,10 @@ class HBVM:
         set_(self, "s", s)
         set_(self, "nodes", nodes)
         set_(self, "n_stages", len(d["tau"]))
-        for name in ("tau", "omega", "P", "I", "W", "W_lo", "I_lo", "C2", "C2_lo", "E", "P_next"):
+        for name in ("tau", "tau_lo", "omega", "P", "I", "W", "W_lo", "I_lo", "C2", "C2_lo", "E", "P_next"):
             set_(self, name, _readonly(d[name]))
         set_(self, "X", _readonly(gauss_matrix(s)))
+        set_(self, "X_lo", _readonly(_gauss_matrix_remainder(s)))
         set_(self, "_mp", d["mp"])
         self._check()
 

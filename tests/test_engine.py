@@ -90,11 +90,14 @@ def test_newton_on_stiff_fpu_and_auto_switch(s):
     st = Stepper(m, fpu, y0, solver="fixed_point")
     with pytest.raises(ConvergenceError, match="fixed_point iteration stopped"):
         st.step(h)
+    # At h omega = 5 the iteration stalls at the round-off of the stiff force (eps |q| omega^2),
+    # so H is conserved to that level, not to eps: over 200 steps the error measured across
+    # 1e-12 perturbations of y0 spreads from 3e-13 to 1.4e-12 (s = 1, 2); 3e-12 bounds it.
     newton = integrate(m, fpu, y0, h, 200, solver="newton")
-    assert newton.newton_steps == 200 and newton.max_energy_error <= 1e-12
+    assert newton.newton_steps == 200 and newton.max_energy_error <= 3e-12
     auto = integrate(m, fpu, y0, h, 200, solver="auto")
     assert auto.solver_switches == 1 and auto.newton_steps > 0
-    assert auto.max_energy_error <= 1e-12
+    assert auto.max_energy_error <= 3e-12
     assert np.max(np.abs(auto.y[-1] - newton.y[-1])) <= 1e-10
     # the same step with k = s does not conserve H to anything near that level
     gauss = integrate(HBVM(s, s), fpu, y0, h, 200, solver="newton")

@@ -1,0 +1,255 @@
+"""The ``hbvm-md`` command line: demo, bench, spectrum, hard-cases.
+
+``hbvm-md demo`` is the quick start: the outer solar system through REBOUND and a
+polynomial-pair cluster through ASE, each with HBVM and with the host's own integrators; it
+prints comparison tables and writes energy-error plots into an output folder.
+
+Bad arguments print one line to stderr and exit with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_OUT = "hbvm-md-output"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (no usage block) and exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+    p = _Parser(prog="hbvm-md", description="Energy-conserving HBVM(k, s) integrators for ASE and "
+                "REBOUND: demos, work-precision benchmarks, spectra and hard cases.")
+    p.add_argument("--version", action="version", version=f"hbvm-md {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    d = sub.add_parser("demo", help="outer solar system (REBOUND) and a pair-potential cluster (ASE): "
+                       "HBVM against the hosts' integrators, table and energy plots",
+                       description="Integrate the outer solar system through REBOUND and a "
+                       "polynomial-pair cluster through ASE with HBVM and the hosts' own integrators; "
+                       "print comparison tables and write PNG plots of the relative energy error.")
+    d.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default ./{DEFAULT_OUT})")
+    d.add_argument("--quick", action="store_true", help="shorter runs (for CI)")
+    d.add_argument("--t-end", type=_positive_float, default=None,
+                   help="length of the solar-system run in days (default 1e5, 2e4 with --quick)")
+    d.add_argument("--atoms", type=_positive_int, default=None,
+                   help="atoms in the cluster (default 38, 13 with --quick)")
+    d.add_argument("--md-steps", type=_positive_int, default=None,
+                   help="MD steps per method (default 2000, 100 with --quick)")
+
+    b = sub.add_parser("bench", help="work-precision diagrams (error against wall time) per scene",
+                       description="Sweep step sizes (tolerances for adaptive peers) per scene and "
+                       "plot energy and solution error against wall time; writes CSV, PNG, markdown.")
+    from .workprecision import SCENES
+    b.add_argument("--out", default=f"{DEFAULT_OUT}/bench", help=f"output folder (default ./{DEFAULT_OUT}/bench)")
+    b.add_argument("--scenes", nargs="+", choices=list(SCENES), default=None, metavar="SCENE",
+                   help=f"scenes to run (default all: {', '.join(SCENES)})")
+    b.add_argument("--quick", action="store_true", help="fewer and shorter runs (for CI)")
+
+    s = sub.add_parser("spectrum", help="HBVM(K, S) tableau and its isospectral check against Gauss",
+                       description="Print the Butcher tableau of HBVM(K, S), the S nonzero eigenvalues of "
+                       "A next to those of the S-stage Gauss-Legendre method, and the largest difference.")
+    s.add_argument("K", type=_positive_int, help="quadrature nodes k (k >= s)")
+    s.add_argument("S", type=_positive_int, help="degree s of the method (order 2s)")
+    s.add_argument("--nodes", choices=("gauss", "lobatto"), default="gauss", help="quadrature abscissae")
+    s.add_argument("--quick", action="store_true", help="accepted for uniformity (spectra are instant)")
+
+    h = sub.add_parser("hard-cases", help="run the hard-case suite (stiff FPU, eccentric Kepler, close "
+                       "encounter, chaotic Henon-Heiles, steps too large)",
+                       description="Run each hard case and print, per method, whether it finished, "
+                       "its energy error, solution error and wall time.")
+    from .hard_cases import CASES
+    h.add_argument("--case", nargs="+", choices=list(CASES), default=None, metavar="CASE",
+                   help=f"cases to run (default all: {', '.join(CASES)})")
+    h.add_argument("--quick", action="store_true", help="small sizes (for CI)")
+    return p
+
+
+def _say(*a):
+    print(*a, flush=True)
+
+
+# -- demo ----------------------------------------------------------------------------------
+def cmd_demo(args) -> int:
+    from .plots import energy_error_plot
+    from .progress import progress
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _say(f"hbvm-md demo: writing into {out.resolve()}")
+    t_end = args.t_end or (2e4 if args.quick else 1e5)
+    written, missing = [], []
+    bar = progress(total=2, desc="demo")
+    # the outer solar system through REBOUND
+    t0 = time.perf_counter()
+    try:
+        from .rebound_comparison import compare_rebound
+        cmp = compare_rebound("outer_solar_system", t_end=t_end, n_samples=200)
+        _say(f"\n== Outer solar system (HLW), {t_end:g} days, through REBOUND "
+             f"({time.perf_counter() - t0:.1f} s)\n")
+        _say(cmp.table())
+        written.append(energy_error_plot(cmp.series, out / "energy_outer_solar_system.png",
+                                         f"Outer solar system, {t_end:g} days", "t [days]"))
+    except ImportError as err:
+        missing.append(f"REBOUND comparison not available ({err})")
+    bar.update(1)
+    # the polynomial-pair cluster through ASE
+    t0 = time.perf_counter()
+    n_atoms = args.atoms or (13 if args.quick else 38)
+    md_steps = args.md_steps or (100 if args.quick else 2000)
+    try:
+        from .md_comparison import compare_md, default_cluster
+        atoms, calc = default_cluster(n_atoms=n_atoms)
+        mdc = _call_compare_md(compare_md, atoms, calc, md_steps)
+        _say(f"\n== Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, through ASE "
+             f"({time.perf_counter() - t0:.1f} s)\n")
+        _say(mdc.table())
+        written.append(energy_error_plot(mdc.series, out / "energy_md_cluster.png",
+                                         f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]"))
+    except ImportError as err:
+        missing.append(f"ASE comparison not available ({err})")
+    bar.update(1)
+    bar.close()
+    for m in missing:
+        _say(f"skipped: {m}")
+    _say("\nwrote:")
+    for w in written:
+        _say(f"  {w}")
+    return 0 if written else 1
+
+
+def _call_compare_md(compare_md, atoms, calc, steps):
+    """compare_md with the step count, tolerating the signature variants of the MD module."""
+    import inspect
+    params = inspect.signature(compare_md).parameters
+    kwargs = {}
+    if "steps" in params:
+        kwargs["steps"] = steps
+    if "verbose" in params:
+        kwargs["verbose"] = False      # the demo prints the table itself
+    if "calculator" in params:
+        kwargs["calculator"] = calc
+        return compare_md(atoms, **kwargs)
+    atoms.calc = calc
+    return compare_md(atoms, **kwargs)
+
+
+# -- bench ---------------------------------------------------------------------------------
+def cmd_bench(args) -> int:
+    from .workprecision import bench
+    out = Path(args.out)
+    _say(f"hbvm-md bench: writing into {out.resolve()}")
+    res = bench(out, scenes=args.scenes, quick=args.quick, log=_say)
+    _say(f"wrote {res['csv']}\nwrote {res['markdown']}")
+    for p in res["pngs"]:
+        _say(f"wrote {p}")
+    for sc, why in res["skipped"].items():
+        _say(f"skipped {sc}: {why}")
+    return 0 if res["rows"] else 1
+
+
+# -- spectrum ------------------------------------------------------------------------------
+def cmd_spectrum(args) -> int:
+    from integrators import HBVM, gauss_spectrum
+    if args.K < args.S:
+        _fail(f"K must be >= S (got K={args.K}, S={args.S}); HBVM(K, S) needs at least S nodes")
+    if args.K > 64:
+        _fail(f"K must be <= 64 for a printed tableau (got K={args.K})")
+    m = HBVM(args.K, args.S, nodes=args.nodes)
+    A, b, c = m.butcher_tableau()
+    np.set_printoptions(linewidth=160, precision=6, suppress=False)
+    _say(f"{m!r}: {m.n_stages} stages, order {m.order}, exact for polynomial H of degree <= "
+         f"{m.polynomial_degree_exact}, symplecticity defect {m.symplecticity_defect():.2e}")
+    if m.n_stages <= 10:
+        _say("\nButcher tableau (c | A, then b):")
+        for i in range(m.n_stages):
+            _say(f"  {c[i]: .6f} | " + " ".join(f"{a: .6f}" for a in A[i]))
+        _say("  " + " " * 9 + "| " + " ".join(f"{x: .6f}" for x in b))
+    else:
+        _say(f"\nA is {m.n_stages} x {m.n_stages} (not printed); c and b:")
+        _say("  c = " + " ".join(f"{x:.6f}" for x in c))
+        _say("  b = " + " ".join(f"{x:.6f}" for x in b))
+    ev = m.essential_spectrum()
+    g = gauss_spectrum(args.S)
+    _say(f"\nNonzero eigenvalues of A (HBVM({args.K},{args.S})) and of the {args.S}-stage Gauss method:")
+    for i, (x, y) in enumerate(zip(ev, g)):
+        _say(f"  {i + 1:2d}  {x.real: .15f} {x.imag:+.15f}i    {y.real: .15f} {y.imag:+.15f}i")
+    diff = float(np.max(np.abs(ev - g)))
+    _say(f"\nlargest difference: {diff:.3e} (isospectral property: A and the Gauss matrix share "
+         f"their nonzero eigenvalues)")
+    return 0
+
+
+# -- hard cases ----------------------------------------------------------------------------
+def cmd_hard_cases(args) -> int:
+    from .hard_cases import CASES
+    from .progress import progress
+    names = args.case or list(CASES)
+    bar = progress(total=len(names), desc="hard cases")
+    for n in names:
+        t0 = time.perf_counter()
+        rep = CASES[n](quick=args.quick)
+        _say(rep.table())
+        _say(f"({n}: {time.perf_counter() - t0:.1f} s)\n")
+        bar.update(1)
+    bar.close()
+    return 0
+
+
+class _UsageError(Exception):
+    pass
+
+
+def _fail(message: str):
+    raise _UsageError(message)
+
+
+COMMANDS = {"demo": cmd_demo, "bench": cmd_bench, "spectrum": cmd_spectrum, "hard-cases": cmd_hard_cases}
+
+
+def main(argv=None) -> int:
+    """Entry point of ``hbvm-md`` and ``python -m hbvm_md``; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except _UsageError as err:
+        sys.stderr.write(f"hbvm-md {args.command}: error: {err}\n")
+        return 2
+    except OSError as err:
+        # e.g. an output folder that cannot be created
+        sys.stderr.write(f"hbvm-md {args.command}: error: {err}\n")
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

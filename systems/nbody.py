@@ -1,0 +1,246 @@
+"""Newtonian N-body gravity as a separable system, with a compiled (numba) force kernel.
+
+Sources and test particles
+--------------------------
+Particle i is a *source* when it is active (i < ``n_active``) and has positive mass; every other
+particle is a *test particle*: it feels the sources and exerts nothing (REBOUND's
+``testparticle_type = 0``).  The unknowns are q (3N,) flat and
+
+* p_i = m_i v_i for a source (the usual canonical momentum),
+* p_i = v_i for a test particle (unit "mass" in M), so that a zero mass loses nothing.
+
+The force kernel returns dp/dt: for a source the Newtonian force, for a test particle its
+acceleration.  With sources only this is the separable Hamiltonian
+
+    H(q, p) = sum_i |p_i|^2 / (2 m_i) - G sum_{i<j} m_i m_j / |q_i - q_j|.
+
+With test particles the sources still form this closed Hamiltonian system (nothing acts back on
+them) and each test particle follows the restricted problem in their field.  :meth:`energy`
+reports the sources' H, which is what ``rebound.Simulation.energy()`` reports.
+
+Kernel parameters: ``params = [G, N, w_0 .. w_{N-1}, g_0 .. g_{N-1}]`` with w_i the mass in M
+(m_i for a source, 1 for a test particle) and g_i the gravitating mass (m_i for a source, 0
+otherwise).  The force on i from j is G w_i g_j (q_j - q_i) / r^3; for two sources
+w_i g_j = w_j g_i = m_i m_j, so the pair forces cancel exactly.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from numba import cfunc
+
+from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+
+
+@cfunc(FORCE_SIGNATURE, cache=True)
+def _nbody_force(Q, params, out):
+    G = params[0]
+    N = int(params[1])
+    for r in range(Q.shape[0]):
+        for a in range(3 * N):
+            out[r, a] = 0.0
+        for i in range(N):
+            wi = params[2 + i]
+            gi = params[2 + N + i]
+            xi, yi, zi = Q[r, 3 * i], Q[r, 3 * i + 1], Q[r, 3 * i + 2]
+            for j in range(i + 1, N):
+                gj = params[2 + N + j]
+                if gi == 0.0 and gj == 0.0:
+                    continue
+                dx = Q[r, 3 * j] - xi
+                dy = Q[r, 3 * j + 1] - yi
+                dz = Q[r, 3 * j + 2] - zi
+                r2 = dx * dx + dy * dy + dz * dz
+                inv3 = G / (r2 * np.sqrt(r2))
+                ci = wi * gj * inv3
+                cj = params[2 + j] * gi * inv3
+                out[r, 3 * i] += ci * dx
+                out[r, 3 * i + 1] += ci * dy
+                out[r, 3 * i + 2] += ci * dz
+                out[r, 3 * j] -= cj * dx
+                out[r, 3 * j + 1] -= cj * dy
+                out[r, 3 * j + 2] -= cj * dz
+
+
+@cfunc(POTENTIAL_SIGNATURE, cache=True)
+def _nbody_potential(q, params):
+    G = params[0]
+    N = int(params[1])
+    v = 0.0
+    for i in range(N):
+        gi = params[2 + N + i]
+        if gi == 0.0:
+            continue
+        for j in range(i + 1, N):
+            gj = params[2 + N + j]
+            if gj == 0.0:
+                continue
+            dx = q[3 * j] - q[3 * i]
+            dy = q[3 * j + 1] - q[3 * i + 1]
+            dz = q[3 * j + 2] - q[3 * i + 2]
+            v -= gi * gj / np.sqrt(dx * dx + dy * dy + dz * dz)
+    return G * v
+
+
+class NBody(SeparableSystem):
+    """N bodies under Newtonian gravity, H = sum |p_i|^2 / (2 m_i) - G sum_{i<j} m_i m_j / r_ij.
+
+    Parameters
+    ----------
+    masses : array_like, shape (N,)
+        Masses m_i >= 0; zero-mass particles are test particles.
+    G : float
+        Gravitational constant (REBOUND's default is 1).
+    n_active : int, optional
+        Only the first ``n_active`` particles gravitate (REBOUND's ``N_active``, test particles
+        of ``testparticle_type = 0``); default all.
+    positions, velocities : array_like, shape (N, 3), optional
+        Initial state for :meth:`initial_state` (default: not set).
+    names : sequence of str, optional
+        Labels of the bodies.
+
+    Attributes
+    ----------
+    dim : int
+        3N degrees of freedom; q = positions.ravel().
+    masses : ndarray (3N,)
+        The mass in M per degree of freedom: m_i for a source, 1 for a test particle (its
+        momentum is its velocity), see the module docstring.
+    body_masses : ndarray (N,)
+    is_source : ndarray (N,) of bool
+
+    Not a polynomial (``polynomial_degree`` is None).
+    """
+
+    polynomial_degree = None
+
+    def __init__(self, masses, G: float = 1.0, n_active: int | None = None,
+                 positions=None, velocities=None, names: Sequence[str] | None = None):
+        m = np.array(masses, dtype=float).reshape(-1) if np.ndim(masses) <= 1 else None
+        if m is None or m.size < 1:
+            raise ValueError(f"`masses` must be a 1-d array of N >= 1 masses (got {masses!r})")
+        if not np.all(np.isfinite(m)) or np.any(m < 0):
+            raise ValueError(f"`masses` must be finite and >= 0 (got {m}); use 0 for test particles")
+        if not (np.isfinite(G) and G > 0):
+            raise ValueError(f"`G` must be a positive number (got G={G!r})")
+        N = m.size
+        if n_active is None:
+            n_active = N
+        if isinstance(n_active, bool) or not isinstance(n_active, (int, np.integer)) or not 0 <= n_active <= N:
+            raise ValueError(f"`n_active` must be an integer in [0, N={N}] or None for all (got {n_active!r})")
+        self.N, self.G, self.n_active = N, float(G), int(n_active)
+        self.body_masses = m
+        self.is_source = (np.arange(N) < self.n_active) & (m > 0)
+        w = np.where(self.is_source, m, 1.0)
+        self.masses = np.repeat(w, 3)
+        self.dim = 3 * N
+        self._params = np.concatenate([[self.G, float(N)], w, np.where(self.is_source, m, 0.0)])
+        self.names = list(names) if names is not None else [f"body{i}" for i in range(N)]
+        if len(self.names) != N:
+            raise ValueError(f"`names` must have N={N} entries (got {len(self.names)})")
+        self.positions = self._check_xyz(positions, "positions")
+        self.velocities = self._check_xyz(velocities, "velocities")
+
+    def _check_xyz(self, a, name):
+        if a is None:
+            return None
+        a = np.array(a, dtype=float)
+        if a.shape != (self.N, 3) or not np.all(np.isfinite(a)):
+            raise ValueError(f"`{name}` must be a finite array of shape ({self.N}, 3) (got shape {a.shape})")
+        return a
+
+    def __repr__(self) -> str:
+        return f"NBody(N={self.N}, G={self.G!r}, n_active={self.n_active}, names={self.names})"
+
+    # -- state conversions -------------------------------------------------------------
+    def momenta_from_velocities(self, v) -> np.ndarray:
+        """p (3N,) from velocities (N, 3) or (3N,): m v for sources, v for test particles."""
+        return np.asarray(v, dtype=float).reshape(-1) * self.masses
+
+    def velocities_from_momenta(self, p) -> np.ndarray:
+        """Velocities (N, 3) from p (3N,)."""
+        return (np.asarray(p, dtype=float).reshape(-1) / self.masses).reshape(self.N, 3)
+
+    def state(self, positions, velocities) -> np.ndarray:
+        """y = (q, p), shape (6N,), from positions and velocities of shape (N, 3)."""
+        x = self._check_xyz(positions, "positions")
+        v = self._check_xyz(velocities, "velocities")
+        return np.concatenate([x.reshape(-1), self.momenta_from_velocities(v)])
+
+    def initial_state(self) -> np.ndarray:
+        if self.positions is None or self.velocities is None:
+            raise ValueError("this NBody has no initial positions and velocities; pass them to "
+                             "NBody(...) or use state(positions, velocities)")
+        return self.state(self.positions, self.velocities)
+
+    # -- the model ---------------------------------------------------------------------
+    def potential(self, q):
+        q = np.asarray(q, dtype=float)
+        X = q.reshape(q.shape[:-1] + (self.N, 3))
+        g = np.where(self.is_source, self.body_masses, 0.0)
+        d = X[..., None, :, :] - X[..., :, None, :]
+        r = np.sqrt(np.sum(d * d, axis=-1))
+        iu = np.triu_indices(self.N, 1)
+        gg = (g[:, None] * g[None, :])[iu]
+        return -self.G * np.sum(gg / r[..., iu[0], iu[1]], axis=-1)
+
+    def forces(self, q):
+        q = np.asarray(q, dtype=float)
+        Q = np.ascontiguousarray(q.reshape(-1, self.dim))
+        out = np.empty_like(Q)
+        self._force_numpy(Q, out)
+        return out.reshape(q.shape)
+
+    def _force_numpy(self, Q, out):
+        X = Q.reshape(Q.shape[0], self.N, 3)
+        w = self._params[2:2 + self.N]
+        g = self._params[2 + self.N:]
+        d = X[:, None, :, :] - X[:, :, None, :]          # d[i, j] = x_j - x_i
+        r2 = np.sum(d * d, axis=-1)
+        idx = np.arange(self.N)
+        r2[:, idx, idx] = 1.0
+        inv3 = self.G / (r2 * np.sqrt(r2))
+        inv3[:, idx, idx] = 0.0
+        acc = np.sum((g[None, None, :] * inv3)[..., None] * d, axis=2)
+        out[:] = (w[None, :, None] * acc).reshape(Q.shape)
+
+    def kinetic(self, p):
+        """Kinetic energy of the sources (test particles carry no energy, as in REBOUND)."""
+        p = np.asarray(p, dtype=float)
+        src = np.repeat(self.is_source, 3)
+        return 0.5 * np.sum(np.where(src, p * p / self.masses, 0.0), axis=-1)
+
+    def separable_kernels(self):
+        return _nbody_force, _nbody_potential, self._params.copy()
+
+    # -- hosts -------------------------------------------------------------------------
+    def to_rebound(self, y=None):
+        """A fresh ``rebound.Simulation`` with G, the masses, ``N_active`` and the state y
+        (default :meth:`initial_state`)."""
+        import rebound
+        y = self.initial_state() if y is None else np.asarray(y, dtype=float)
+        x = y[: self.dim].reshape(self.N, 3)
+        v = self.velocities_from_momenta(y[self.dim:])
+        sim = rebound.Simulation()
+        sim.G = self.G
+        for i in range(self.N):
+            sim.add(m=float(self.body_masses[i]), x=x[i, 0], y=x[i, 1], z=x[i, 2],
+                    vx=v[i, 0], vy=v[i, 1], vz=v[i, 2])
+        if self.n_active < self.N:
+            sim.N_active = self.n_active
+        return sim
+
+    @classmethod
+    def from_rebound(cls, sim, names: Sequence[str] | None = None) -> "NBody":
+        """The NBody model of a ``rebound.Simulation`` (G, masses, N_active, current state as
+        the initial state).  Only plain Newtonian gravity is modelled: see
+        :class:`hbvm_md.HBVMIntegrator` for what is refused."""
+        N = sim.N
+        xv = np.zeros(6 * N)
+        m = np.zeros(N)
+        sim.serialize_particle_data(xyzvxvyvz=xv, m=m)
+        xv = xv.reshape(N, 6)
+        n_active = None if sim.N_active < 0 or sim.N_active >= N else int(sim.N_active)
+        return cls(m, G=sim.G, n_active=n_active, positions=xv[:, :3], velocities=xv[:, 3:],
+                   names=names)

@@ -1,0 +1,388 @@
+"""Polynomial pair potentials as an ASE calculator: phi(r) = sum_n c_n r^(2n).
+
+A polynomial in r^2 is a polynomial in the Cartesian coordinates (r^2 = |x_j - x_i|^2), so
+with all pairs or a fixed list of bonded pairs the Hamiltonian is a polynomial of degree
+2 (len(c) - 1) and HBVM(k, s) with k >= nu s / 2 conserves it exactly (BIT, eq. (knu)).
+Note that (r - r0)^2 is *not* a polynomial in r^2: springs here have zero rest length, or a
+rest length encoded by a well such as c2 r^4 - c1 r^2.
+
+The force kernel is compiled by numba and evaluates many configurations at once
+(:meth:`PolynomialPairPotential.forces_batch`): the k stages of an HBVM step in one call.
+"""
+from __future__ import annotations
+
+import numpy as np
+from ase.calculators.calculator import Calculator, PropertyNotImplementedError, all_changes
+from numba import njit
+
+
+@njit(cache=True)
+def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
+    """F[a] = -grad E at each configuration X[a] (shapes (n, N, 3)).
+
+    E = sum_p G_t(u_p), u_p = |X_j - X_i + shift_p|^2, G_t(u) = sum_q C[t, q] u^q; pairs with
+    u >= rc2 contribute nothing.  F_i = 2 G'(u) D, F_j = -2 G'(u) D with D = X_j - X_i + shift.
+    """
+    deg = C.shape[1] - 1
+    for a in range(X.shape[0]):
+        for k in range(X.shape[1]):
+            F[a, k, 0] = 0.0
+            F[a, k, 1] = 0.0
+            F[a, k, 2] = 0.0
+        for p in range(ii.shape[0]):
+            i, j, t = ii[p], jj[p], ctype[p]
+            dx = X[a, j, 0] - X[a, i, 0] + shift[p, 0]
+            dy = X[a, j, 1] - X[a, i, 1] + shift[p, 1]
+            dz = X[a, j, 2] - X[a, i, 2] + shift[p, 2]
+            u = dx * dx + dy * dy + dz * dz
+            if u >= rc2:
+                continue
+            g = 0.0
+            for q in range(deg, 0, -1):
+                g = g * u + q * C[t, q]
+            f = 2.0 * g
+            F[a, i, 0] += f * dx
+            F[a, i, 1] += f * dy
+            F[a, i, 2] += f * dz
+            F[a, j, 0] -= f * dx
+            F[a, j, 1] -= f * dy
+            F[a, j, 2] -= f * dz
+
+
+@njit(cache=True)
+def _pair_properties(X, ii, jj, shift, ctype, C, rc2, F, e_atom, virial):
+    """One configuration X (N, 3): forces F (N, 3), per-atom energies (N,) (half of each pair
+    to each atom) and the virial sum_p 2 G'(u) D D^T (3, 3)."""
+    deg = C.shape[1] - 1
+    for k in range(X.shape[0]):
+        e_atom[k] = 0.0
+        for c in range(3):
+            F[k, c] = 0.0
+    for a in range(3):
+        for b in range(3):
+            virial[a, b] = 0.0
+    d = np.empty(3)
+    for p in range(ii.shape[0]):
+        i, j, t = ii[p], jj[p], ctype[p]
+        for c in range(3):
+            d[c] = X[j, c] - X[i, c] + shift[p, c]
+        u = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        if u >= rc2:
+            continue
+        e = 0.0
+        g = 0.0
+        for q in range(deg, 0, -1):
+            e = e * u + C[t, q]
+            g = g * u + q * C[t, q]
+        e = e * u + C[t, 0]
+        e_atom[i] += 0.5 * e
+        e_atom[j] += 0.5 * e
+        f = 2.0 * g
+        for c in range(3):
+            F[i, c] += f * d[c]
+            F[j, c] -= f * d[c]
+            for b in range(3):
+                virial[c, b] += f * d[c] * d[b]
+
+
+def _check_coefficients(c, name: str) -> np.ndarray:
+    try:
+        arr = np.array(c, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be an array of numbers c_0, c_1, ... of "
+                         f"phi(r) = sum_n c_n r^(2n) (got {c!r})") from None
+    if arr.ndim == 0:
+        arr = arr[None]
+    if arr.size == 0 or arr.shape[-1] == 0:
+        raise ValueError(f"`{name}` must hold at least one coefficient (got {c!r}); "
+                         f"e.g. coefficients=[0.0, 1.0] for phi(r) = r^2")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` must be finite (got {arr.tolist()}); remove nan or inf")
+    return arr
+
+
+def _poly_u_derivatives(c: np.ndarray, u: float, order: int) -> list[float]:
+    """G(u), G'(u), ..., G^(order)(u) for G(u) = sum c_n u^n."""
+    poly = np.polynomial.Polynomial(c)
+    return [float(poly.deriv(m)(u)) if m else float(poly(u)) for m in range(order + 1)]
+
+
+class PolynomialPairPotential(Calculator):
+    """Pair potential phi(r) = sum_n c_n r^(2n), an ASE calculator.
+
+    Parameters
+    ----------
+    coefficients : array_like, shape (n_c,) or (n_pairs, n_c)
+        c_0 .. c_{n_c - 1} of phi as a polynomial in r^2 (units eV / A^(2n)).  With ``pairs``
+        a 2-D array gives every pair its own polynomial.
+    pairs : array_like of int, shape (n_pairs, 2), optional
+        Bonded mode: only these pairs interact (spring networks, FPU-like chains, elastic
+        networks).  The separation is the plain difference x_j - x_i of the (unwrapped)
+        positions, also with periodic cells, so H stays a polynomial.
+    cutoff : float, optional
+        Cutoff mode: all pairs closer than ``cutoff`` (minimum image and periodic images through
+        an ASE neighbour list with a skin).  phi must vanish at r_c with its first two
+        derivatives (C^2); build such a phi with :meth:`soft_sphere` or :meth:`with_cutoff`.
+        H is then only *piecewise* polynomial: HBVM conserves it to the accuracy of its
+        quadrature across pairs that enter or leave the cutoff, not exactly.
+    skin : float, optional
+        Verlet skin of the neighbour list in the cutoff mode (default 0.25 * cutoff): the list
+        of pairs within cutoff + skin is reused until an atom moves more than skin / 2.
+
+    With neither ``pairs`` nor ``cutoff`` (all-pairs mode, clusters and droplets) every pair
+    interacts, no periodic boundaries are allowed, and phi must be bounded below: the leading
+    coefficient must be positive.
+
+    Attributes
+    ----------
+    polynomial_degree : int or None
+        Degree of H as a polynomial in (q, p): max(2, 2 (n_c - 1)) in the all-pairs and
+        bonded modes (trailing zero coefficients ignored), None in the cutoff mode.
+    batch_evaluations : int
+        Number of configurations evaluated by :meth:`forces_batch` so far.
+
+    Examples
+    --------
+    >>> from ase import Atoms
+    >>> atoms = Atoms("Ar2", positions=[[0, 0, 0], [0, 0, 1.5]])
+    >>> atoms.calc = PolynomialPairPotential([0.0, -1.0, 0.5])   # r^4 / 2 - r^2
+    >>> round(atoms.get_potential_energy(), 6)
+    0.28125
+    """
+
+    implemented_properties = ["energy", "free_energy", "forces", "stress", "energies"]
+    nolabel = True
+
+    def __init__(self, coefficients, pairs=None, cutoff: float | None = None,
+                 skin: float | None = None, **kwargs):
+        super().__init__(**kwargs)
+        C = _check_coefficients(coefficients, "coefficients")
+        if C.ndim > 2:
+            raise ValueError(f"`coefficients` must have shape (n_c,) or (n_pairs, n_c) "
+                             f"(got shape {C.shape})")
+        if pairs is not None and cutoff is not None:
+            raise ValueError("give either `pairs` (bonded mode) or `cutoff` (cutoff mode), not "
+                             f"both (got pairs with {len(pairs)} entries and cutoff={cutoff!r})")
+        self.pairs = None
+        if pairs is not None:
+            try:
+                P = np.array(pairs)
+            except (TypeError, ValueError):
+                raise ValueError(f"`pairs` must be an integer array of shape (n_pairs, 2) "
+                                 f"(got {pairs!r})") from None
+            if P.size == 0:
+                P = P.reshape(0, 2)
+            if P.ndim != 2 or P.shape[1] != 2 or (P.size and not np.issubdtype(P.dtype, np.integer)):
+                raise ValueError(f"`pairs` must be an integer array of shape (n_pairs, 2) "
+                                 f"(got shape {P.shape}, dtype {P.dtype})")
+            if P.size and P.min() < 0:
+                raise ValueError(f"`pairs` holds a negative atom index ({int(P.min())}); use "
+                                 f"indices 0 .. len(atoms) - 1")
+            same = np.nonzero(P[:, 0] == P[:, 1])[0]
+            if same.size:
+                raise ValueError(f"`pairs` row {int(same[0])} joins atom {int(P[same[0], 0])} to "
+                                 f"itself; remove it")
+            self.pairs = P.astype(np.int64)
+        if C.ndim == 2:
+            if self.pairs is None:
+                raise ValueError("a 2-D `coefficients` (one polynomial per pair) needs `pairs`; "
+                                 "give a 1-D array c_0, c_1, ... for the all-pairs and cutoff modes")
+            if C.shape[0] != len(self.pairs):
+                raise ValueError(f"`coefficients` has {C.shape[0]} rows but `pairs` has "
+                                 f"{len(self.pairs)}; give one row per pair or a single 1-D row")
+        # trailing zero columns change nothing but the degree
+        while C.shape[-1] > 1 and np.all(C[..., -1] == 0):
+            C = C[..., :-1]
+        self.coefficients = C
+        self._table = np.ascontiguousarray(C if C.ndim == 2 else C[None, :])
+        self.cutoff = None
+        if cutoff is not None:
+            try:
+                rc = float(cutoff)
+            except (TypeError, ValueError):
+                raise ValueError(f"`cutoff` must be a positive number (got cutoff={cutoff!r})") from None
+            if not (np.isfinite(rc) and rc > 0):
+                raise ValueError(f"`cutoff` must be a positive number (got cutoff={cutoff!r}); "
+                                 f"use cutoff=None for all pairs")
+            self.cutoff = rc
+            self._check_vanishing(C, rc)
+        if skin is not None and not (np.isfinite(skin) and skin >= 0):
+            raise ValueError(f"`skin` must be a number >= 0 (got skin={skin!r})")
+        self.skin = (0.25 * self.cutoff if self.cutoff else 0.0) if skin is None else float(skin)
+        if self.pairs is None and self.cutoff is None and C.shape[-1] > 1 and not C[-1] > 0:
+            raise ValueError(
+                f"all-pairs potential phi(r) = sum c_n r^(2n) with leading coefficient "
+                f"c_{C.shape[-1] - 1} = {C[-1]!r} is not bounded below; make the highest "
+                f"coefficient positive (e.g. add a repulsive c r^{2 * C.shape[-1]} term), or "
+                f"give `pairs` or `cutoff`")
+        self.batch_evaluations = 0
+        self._nl = None    # (ii, jj, shift, ctype, reference positions, cell, pbc, n_atoms)
+
+    # -- constructors ----------------------------------------------------------------------
+    @classmethod
+    def soft_sphere(cls, epsilon: float, cutoff: float, **kwargs) -> "PolynomialPairPotential":
+        """Repulsive soft spheres phi(r) = epsilon (1 - r^2 / r_c^2)^4 for r < r_c (C^3 at r_c)."""
+        if not (np.isfinite(epsilon) and epsilon > 0):
+            raise ValueError(f"`epsilon` must be a positive number (got epsilon={epsilon!r})")
+        return cls.with_cutoff([float(epsilon)], cutoff, smoothness=4, **kwargs)
+
+    @classmethod
+    def with_cutoff(cls, coefficients, cutoff: float, smoothness: int = 3,
+                    **kwargs) -> "PolynomialPairPotential":
+        """phi(r) = g(r^2) (1 - r^2 / r_c^2)^smoothness, g(u) = sum_n c_n u^n, for r < r_c.
+
+        The factor makes phi vanish at r_c with its first ``smoothness - 1`` derivatives
+        (smoothness >= 3 gives the C^2 the cutoff mode requires).
+        """
+        if isinstance(smoothness, bool) or not isinstance(smoothness, (int, np.integer)) or smoothness < 3:
+            raise ValueError(f"`smoothness` must be an integer >= 3 (got smoothness={smoothness!r}) "
+                             f"so that phi is C^2 at the cutoff")
+        g = _check_coefficients(coefficients, "coefficients")
+        if g.ndim != 1:
+            raise ValueError(f"`coefficients` must be 1-D here (got shape {g.shape})")
+        try:
+            rc = float(cutoff)
+        except (TypeError, ValueError):
+            raise ValueError(f"`cutoff` must be a positive number (got cutoff={cutoff!r})") from None
+        if not (np.isfinite(rc) and rc > 0):
+            raise ValueError(f"`cutoff` must be a positive number (got cutoff={cutoff!r})")
+        factor = np.polynomial.Polynomial([1.0, -1.0 / rc ** 2]) ** int(smoothness)
+        c = (np.polynomial.Polynomial(g) * factor).coef
+        return cls(c, cutoff=rc, **kwargs)
+
+    @staticmethod
+    def _check_vanishing(C: np.ndarray, rc: float) -> None:
+        uc = rc * rc
+        scale = float(np.sum(np.abs(C) * uc ** np.arange(C.shape[-1])))
+        vals = _poly_u_derivatives(C, uc, 2)
+        bad = [m for m, v in enumerate(vals) if abs(v) * uc ** m > 1e-10 * max(scale, 1e-300)]
+        if bad:
+            raise ValueError(
+                f"with cutoff={rc!r} phi must vanish at r_c together with its first two "
+                f"derivatives (got d^m phi/d(r^2)^m at r_c = {[vals[m] for m in bad]} for m = {bad}); "
+                f"build it with PolynomialPairPotential.with_cutoff(coefficients, cutoff) or "
+                f"PolynomialPairPotential.soft_sphere(epsilon, cutoff)")
+
+    # -- metadata --------------------------------------------------------------------------
+    @property
+    def polynomial_degree(self) -> int | None:
+        if self.cutoff is not None:
+            return None
+        return max(2, 2 * (self.coefficients.shape[-1] - 1))
+
+    def todict(self) -> dict:
+        d = {"coefficients": self.coefficients.tolist()}
+        if self.pairs is not None:
+            d["pairs"] = self.pairs.tolist()
+        if self.cutoff is not None:
+            d["cutoff"] = self.cutoff
+            d["skin"] = self.skin
+        return d
+
+    # -- pairs -------------------------------------------------------------------------------
+    def _pair_list(self, atoms, X: np.ndarray):
+        """(ii, jj, shift, ctype, rc2) valid for configurations X (n, N, 3) of ``atoms``."""
+        n_atoms = len(atoms)
+        if self.pairs is not None:
+            if len(self.pairs) and self.pairs.max() >= n_atoms:
+                raise ValueError(f"`pairs` refers to atom {int(self.pairs.max())} but the atoms "
+                                 f"have {n_atoms}; use indices 0 .. {n_atoms - 1}")
+            ctype = (np.arange(len(self.pairs)) if self.coefficients.ndim == 2
+                     else np.zeros(len(self.pairs), dtype=np.int64))
+            return (self.pairs[:, 0].copy(), self.pairs[:, 1].copy(),
+                    np.zeros((len(self.pairs), 3)), ctype.astype(np.int64), np.inf)
+        if self.cutoff is None:
+            if np.any(atoms.pbc):
+                raise ValueError("the all-pairs mode has no cutoff and cannot sum over periodic "
+                                 f"images (got pbc={atoms.pbc.tolist()}); give `cutoff` or set "
+                                 "atoms.pbc = False")
+            ii, jj = np.triu_indices(n_atoms, 1)
+            return (ii.astype(np.int64), jj.astype(np.int64), np.zeros((len(ii), 3)),
+                    np.zeros(len(ii), dtype=np.int64), np.inf)
+        return self._neighbours(atoms, X)
+
+    def _neighbours(self, atoms, X):
+        from ase.neighborlist import neighbor_list
+        cell = np.array(atoms.cell)
+        pbc = np.array(atoms.pbc)
+        nl = self._nl
+        ok = (nl is not None and nl[7] == len(atoms) and np.array_equal(nl[5], cell)
+              and np.array_equal(nl[6], pbc))
+        if ok:
+            disp = np.max(np.sum((X - nl[4]) ** 2, axis=-1)) if X.size else 0.0
+            ok = disp < (0.5 * self.skin) ** 2
+        if not ok:
+            ref = atoms.copy()
+            ref.calc = None
+            ref.positions[:] = X[0]
+            i, j, S = neighbor_list("ijS", ref, self.cutoff + self.skin)
+            # one entry per unordered pair: i < j, or an atom with its own image once (S > 0)
+            first = np.where(S[:, 0] != 0, S[:, 0], np.where(S[:, 1] != 0, S[:, 1], S[:, 2]))
+            keep = (i < j) | ((i == j) & (first > 0))
+            i, j, S = i[keep], j[keep], S[keep]
+            shift = np.ascontiguousarray(S @ cell, dtype=float)
+            nl = (i.astype(np.int64), j.astype(np.int64), shift, np.zeros(len(i), dtype=np.int64),
+                  X[0].copy(), cell, pbc, len(atoms))
+            self._nl = nl
+            disp = np.max(np.sum((X - nl[4]) ** 2, axis=-1)) if X.size else 0.0
+            if disp >= (0.5 * self.skin) ** 2:
+                return None    # configurations too far apart for one list
+        return nl[0], nl[1], nl[2], nl[3], self.cutoff ** 2
+
+    # -- evaluation --------------------------------------------------------------------------
+    def forces_batch(self, Q, atoms=None) -> np.ndarray:
+        """Forces at many configurations at once (compiled), e.g. the k stages of a step.
+
+        Parameters
+        ----------
+        Q : array_like, shape (n, N, 3)
+            Positions of the N atoms in n configurations (A).
+        atoms : ase.Atoms, optional
+            Supplies cell, pbc and the number of atoms; default the atoms of the last
+            calculation.
+
+        Returns
+        -------
+        ndarray, shape (n, N, 3)
+            -grad E at each configuration (eV / A).  Evaluates no energy and changes no cached
+            result.
+        """
+        if atoms is None:
+            atoms = self.atoms
+            if atoms is None:
+                raise ValueError("`forces_batch` needs `atoms` (cell, pbc) before any "
+                                 "calculation; pass atoms=...")
+        X = np.ascontiguousarray(Q, dtype=float)
+        if X.ndim != 3 or X.shape[1:] != (len(atoms), 3):
+            raise ValueError(f"`Q` must have shape (n, {len(atoms)}, 3) (got shape {X.shape})")
+        F = np.empty_like(X)
+        lst = self._pair_list(atoms, X)
+        if lst is None:    # the configurations are far apart: one neighbour list each
+            for a in range(X.shape[0]):
+                F[a] = self.forces_batch(X[a:a + 1], atoms)[0]
+                self.batch_evaluations -= 1
+        else:
+            ii, jj, shift, ctype, rc2 = lst
+            _pair_forces(X, ii, jj, shift, ctype, self._table, rc2, F)
+        self.batch_evaluations += X.shape[0]
+        return F
+
+    def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+        super().calculate(atoms, properties, system_changes)
+        atoms = self.atoms
+        X = np.ascontiguousarray(atoms.positions, dtype=float)
+        lst = self._pair_list(atoms, X[None])
+        ii, jj, shift, ctype, rc2 = lst
+        F = np.empty_like(X)
+        e_atom = np.empty(len(atoms))
+        virial = np.empty((3, 3))
+        _pair_properties(X, ii, jj, shift, ctype, self._table, rc2, F, e_atom, virial)
+        energy = float(np.sum(e_atom))
+        self.results = {"energy": energy, "free_energy": energy, "forces": F, "energies": e_atom}
+        if atoms.cell.rank == 3:
+            sigma = virial / atoms.get_volume()
+            self.results["stress"] = sigma.flat[[0, 4, 8, 5, 2, 1]].copy()
+        elif "stress" in properties:
+            raise PropertyNotImplementedError(
+                "stress needs a cell of nonzero volume (got cell rank "
+                f"{atoms.cell.rank}); set atoms.cell")

@@ -1,0 +1,270 @@
+"""HBVMDynamics: exact conservation on polynomial potentials, agreement with the core engine,
+EMT copper, ASE citizenship (irun order, logger vs trajectory, todict), constraints, failures."""
+import numpy as np
+import pytest
+from ase import Atoms, units
+from ase.build import bulk
+from ase.calculators.calculator import Calculator, all_changes
+from ase.calculators.emt import EMT
+from ase.calculators.tip3p import TIP3P
+from ase.constraints import FixAtoms, FixBondLengths
+from ase.data import s22
+from ase.io import Trajectory
+from ase.md.verlet import VelocityVerlet
+
+from hbvm_md import HBVMDynamics
+from hbvm_md.ase_dynamics import default_k
+from hbvm_md.md_comparison import default_cluster, maxwell_boltzmann
+from integrators import HBVM, ConvergenceError, integrate
+from systems import FPU, PolynomialPairPotential
+
+
+def _energies(dyn, atoms):
+    E = []
+    dyn.attach(lambda: E.append(atoms.get_potential_energy() + atoms.get_kinetic_energy()))
+    return E
+
+
+def _rel_error(E):
+    E = np.asarray(E)
+    return float(np.max(np.abs(E - E[0])) / abs(E[0]))
+
+
+def _thermal_cluster(n=38, T=300.0, seed=0):
+    atoms, calc = default_cluster(n)
+    maxwell_boltzmann(atoms, T, seed)
+    return atoms, calc
+
+
+def test_quartic_cluster_energy_exact_where_verlet_is_not():
+    dt = 20 * units.fs
+    a_vv, _ = _thermal_cluster()
+    E_vv = _energies(vv := VelocityVerlet(a_vv, dt), a_vv)
+    vv.run(1000)
+    assert _rel_error(E_vv) >= 1e-5
+    atoms, _ = _thermal_cluster()
+    dyn = HBVMDynamics(atoms, dt)
+    assert (dyn.k, dyn.s) == (4, 2)          # degree 4: k = nu s / 2
+    E = _energies(dyn, atoms)
+    dyn.run(1000)
+    assert len(E) == 1001
+    assert _rel_error(E) <= 1e-12
+
+
+def _fpu_chain(fpu: FPU, y0):
+    """The FPU chain as ASE atoms on the x axis: walls are two fixed atoms at x = 0, springs
+    have zero rest length, so (x_j - x_i)^2 = r^2 and the polynomials in r^2 are exact."""
+    m2 = fpu.dim
+    x = np.concatenate([[0.0], y0[:m2], [0.0]])
+    atoms = Atoms(f"H{m2 + 2}", positions=np.c_[x, np.zeros(m2 + 2), np.zeros(m2 + 2)])
+    atoms.set_masses(np.ones(m2 + 2))
+    atoms.set_momenta(np.c_[np.concatenate([[0.0], y0[m2:], [0.0]]), np.zeros((m2 + 2, 2))])
+    pairs, coefs = [], []
+    for i in range(m2 + 1):               # atoms i, i+1 are q_i, q_{i+1} (q_0, q_{2m+1} walls)
+        pairs.append((i, i + 1))
+        # even i: soft spring (q_{i+1} - q_i)^4; odd i: stiff omega^2 / 4 (q_{i+1} - q_i)^2
+        coefs.append([0.0, 0.0, 1.0] if i % 2 == 0 else [0.0, 0.25 * fpu.omega ** 2, 0.0])
+    atoms.calc = PolynomialPairPotential(coefs, pairs=pairs)
+    atoms.set_constraint(FixAtoms([0, m2 + 1]))
+    return atoms
+
+
+def test_fpu_chain_as_atoms_follows_the_core_engine():
+    fpu = FPU(3, 50.0)
+    y0 = fpu.initial_state()
+    h, steps = 0.01, 200
+    ref = integrate(HBVM(4, 2), fpu, y0, h, steps, fast=False)
+    atoms = _fpu_chain(fpu, y0)
+    dyn = HBVMDynamics(atoms, h, s=2)
+    assert dyn.k == 4
+    x0 = atoms.get_positions()[[0, -1]]
+    dyn.run(steps)
+    m2 = fpu.dim
+    np.testing.assert_allclose(atoms.positions[1:-1, 0], ref.y[-1, :m2], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(atoms.get_momenta()[1:-1, 0], ref.y[-1, m2:], rtol=0, atol=1e-10)
+    assert np.array_equal(atoms.get_positions()[[0, -1]], x0)          # walls did not move
+    assert np.all(atoms.positions[:, 1:] == 0.0)                      # motion stays on the x axis
+    assert atoms.get_potential_energy() + atoms.get_kinetic_energy() == pytest.approx(
+        fpu.energy(y0), rel=1e-12)
+
+
+def test_emt_copper_hbvm_beats_verlet_by_100():
+    dt, steps = 5 * units.fs, 40
+
+    def make():
+        atoms = bulk("Cu", cubic=True) * (2, 2, 2)                   # 32 atoms, periodic
+        maxwell_boltzmann(atoms, 600.0, seed=1)
+        atoms.calc = EMT()
+        return atoms
+    a = make()
+    E_vv = _energies(vv := VelocityVerlet(a, dt), a)
+    vv.run(steps)
+    b = make()
+    dyn = HBVMDynamics(b, dt, s=2, k=3)
+    E = _energies(dyn, b)
+    dyn.run(steps)
+    err_vv, err = _rel_error(E_vv), _rel_error(E)
+    assert err_vv > 0 and err * 100 <= err_vv, (err, err_vv)
+
+
+def test_default_k_rule():
+    cu = bulk("Cu")
+    cu.calc = EMT()
+    assert HBVMDynamics(cu, 1.0, s=3).k == default_k(3, None) == 7
+    atoms, _ = default_cluster(5)
+    assert HBVMDynamics(atoms, 1.0, s=3).k == 6
+    atoms.calc = PolynomialPairPotential.soft_sphere(0.1, 4.0)
+    assert HBVMDynamics(atoms, 1.0, s=1).k == 5
+
+
+def test_step_returns_forces_at_new_positions_and_leaves_cache_warm():
+    atoms, calc = _thermal_cluster(13)
+    dyn = HBVMDynamics(atoms, 5 * units.fs)
+    f = dyn.step()
+    assert not calc.calculation_required(atoms, ["forces", "energy"])
+    np.testing.assert_array_equal(f, atoms.get_forces())
+
+
+def test_irun_call_order_matches_ase():
+    atoms = bulk("Cu") * (2, 2, 2)
+    atoms.calc = EMT()
+    dyn = HBVMDynamics(atoms, timestep=1.0 * units.fs)
+    calls = []
+    for name in ("step", "_refresh_properties", "log", "call_observers"):
+        setattr(dyn, name, lambda *a, _n=name, **k: calls.append(_n))
+    list(dyn.irun(steps=2))
+    per_step = ["step", "_refresh_properties", "log", "call_observers"]
+    assert calls == ["_refresh_properties", "log", "call_observers"] + 2 * per_step
+
+
+@pytest.mark.parametrize("loginterval", [1, 2])
+def test_logger_and_trajectory_agree(tmp_path, loginterval):
+    atoms = s22.create_s22_system("Water_dimer")
+    atoms.calc = TIP3P(rc=9.0)
+    log, traj = tmp_path / "md.log", tmp_path / "md.traj"
+    with HBVMDynamics(atoms, 1 * units.fs, logfile=str(log), trajectory=str(traj),
+                      loginterval=loginterval) as dyn:
+        dyn.run(steps=5)
+        dyn.run(steps=5)
+    lines = log.read_text().splitlines()
+    with Trajectory(str(traj)) as tr:
+        frames = list(tr)
+        description = tr.description
+    assert len(lines) == len(frames) + 1 == (12 if loginterval == 1 else 7)
+    for a, line in zip(frames, lines[1:]):
+        epot, temp = float(line.split()[-3]), float(line.split()[-1])
+        assert epot == pytest.approx(a.get_potential_energy(), abs=0.01)
+        assert temp == pytest.approx(a.get_temperature(), abs=0.1)
+    assert description["md-type"] == "HBVMDynamics"
+    assert (description["k"], description["s"], description["method"]) == (6, 2, "HBVM(6, 2)")
+
+
+def test_fix_atoms_stay_fixed_and_energy_is_conserved():
+    atoms, _ = _thermal_cluster(20, T=600.0)
+    atoms.set_constraint(FixAtoms([0, 7]))
+    start = atoms.get_positions()
+    x0 = start[[0, 7]]
+    dyn = HBVMDynamics(atoms, 10 * units.fs)
+    E = _energies(dyn, atoms)
+    dyn.run(300)
+    assert np.array_equal(atoms.get_positions()[[0, 7]], x0)
+    assert np.all(atoms.get_momenta()[[0, 7]] == 0.0)
+    assert np.min(np.linalg.norm(atoms.get_positions()[1:7] - start[1:7], axis=1)) > 0.1
+    assert _rel_error(E) <= 1e-12
+
+
+def test_other_constraints_are_refused():
+    atoms = s22.create_s22_system("Water_dimer")
+    atoms.calc = TIP3P(rc=9.0)
+    atoms.set_constraint(FixBondLengths([(0, 1)]))
+    with pytest.raises(ValueError, match="only FixAtoms constraints \\(got FixBondLengths\\)"):
+        HBVMDynamics(atoms, 1 * units.fs)
+    atoms.set_constraint()
+    dyn = HBVMDynamics(atoms, 1 * units.fs)
+    atoms.set_constraint(FixBondLengths([(0, 1)]))     # added later: refused at the next step
+    with pytest.raises(ValueError, match="got FixBondLengths"):
+        dyn.run(1)
+
+
+def _snapshot(atoms):
+    calc = atoms.calc
+    return (atoms.get_positions(), atoms.get_momenta(),
+            {k: np.copy(v) for k, v in calc.results.items()})
+
+
+def _assert_same(atoms, snap):
+    pos, mom, results = snap
+    assert np.array_equal(atoms.get_positions(), pos)
+    assert np.array_equal(atoms.get_momenta(), mom)
+    assert set(atoms.calc.results) == set(results)
+    for key, v in results.items():
+        assert np.array_equal(atoms.calc.results[key], v)
+    assert not atoms.calc.calculation_required(atoms, ["forces"])
+
+
+def test_failed_step_leaves_state_unchanged_batched_path():
+    atoms, _ = _thermal_cluster(13, T=3000.0)
+    dyn = HBVMDynamics(atoms, 5 * units.fs, solver="fixed_point")
+    dyn.run(3)
+    snap = _snapshot(atoms)
+    dyn.dt = 5000 * units.fs
+    with pytest.raises(ConvergenceError, match="did not converge"):
+        dyn.step()
+    _assert_same(atoms, snap)
+    dyn.dt = 5 * units.fs                   # the run goes on from the same state
+    dyn.run(2)
+    assert not np.array_equal(atoms.get_positions(), snap[0])
+
+
+class _NaNBeyond(Calculator):
+    """Harmonic tether to the origin whose forces are nan beyond |x| > 1.5 (a broken calculator)."""
+
+    implemented_properties = ["energy", "forces"]
+
+    def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+        super().calculate(atoms, properties, system_changes)
+        x = self.atoms.positions
+        f = -x.copy()
+        if np.max(np.abs(x)) > 1.5:
+            f[:] = np.nan
+        self.results = {"energy": 0.5 * float(np.sum(x * x)), "forces": f}
+
+
+def test_failed_step_leaves_state_unchanged_stage_by_stage_path():
+    atoms = Atoms("H2", positions=[[1.0, 0, 0], [0, -1.0, 0]])
+    atoms.set_masses([1.0, 1.0])
+    atoms.set_momenta([[2.0, 0, 0], [0, 0, 0.5]])
+    atoms.calc = _NaNBeyond()
+    dyn = HBVMDynamics(atoms, 0.05)
+    dyn.run(2)
+    snap = _snapshot(atoms)
+    dyn.dt = 2.0                            # the stages leave |x| <= 1.5: nan forces
+    with pytest.raises(ConvergenceError, match="not finite"):
+        dyn.step()
+    _assert_same(atoms, snap)
+
+
+def test_stepper_is_rebuilt_when_atoms_change_from_outside():
+    atoms, _ = _thermal_cluster(13)
+    dyn = HBVMDynamics(atoms, 5 * units.fs)
+    dyn.run(3)
+    atoms.set_momenta(-atoms.get_momenta())            # a user reverses the velocities
+    other = atoms.copy()
+    other.calc = PolynomialPairPotential(atoms.calc.coefficients)
+    fresh = HBVMDynamics(other, 5 * units.fs)
+    dyn.run(2)
+    fresh.run(2)
+    np.testing.assert_allclose(atoms.positions, other.positions, rtol=0, atol=1e-13)
+
+
+def test_bad_arguments():
+    atoms, _ = default_cluster(5)
+    with pytest.raises(ValueError, match="`k` must be >= `s`"):
+        HBVMDynamics(atoms, 1.0, s=3, k=2)
+    with pytest.raises(ValueError, match="`solver` must be"):
+        HBVMDynamics(atoms, 1.0, solver="magic")
+    with pytest.raises(ValueError, match="`timestep` must be a nonzero finite number"):
+        HBVMDynamics(atoms, 0.0)
+    atoms.calc = None
+    with pytest.raises(ValueError, match="no calculator"):
+        HBVMDynamics(atoms, 1.0)

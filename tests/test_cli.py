@@ -1,0 +1,94 @@
+"""The hbvm-md command line: every subcommand in --quick mode, --help, bad arguments."""
+import re
+import subprocess
+import sys
+
+import pytest
+
+from hbvm_md.cli import main
+from hbvm_md.progress import _Quiet, progress
+
+
+@pytest.mark.parametrize("cmd", [[], ["demo"], ["bench"], ["spectrum"], ["hard-cases"]])
+def test_help_on_every_subcommand(cmd, capsys):
+    with pytest.raises(SystemExit) as ex:
+        main(cmd + ["--help"])
+    assert ex.value.code == 0
+    assert "usage: hbvm-md" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["frobnicate"], r"invalid choice: 'frobnicate'"),
+    (["spectrum", "x", "3"], r"argument K: expected a positive integer, got 'x'"),
+    (["spectrum", "4", "0"], r"argument S: expected a positive integer, got '0'"),
+    (["bench", "--scenes", "mars"], r"invalid choice: 'mars'"),
+    (["hard-cases", "--case", "nope"], r"invalid choice: 'nope'"),
+    (["demo", "--t-end", "-5"], r"argument --t-end: expected a positive number"),
+])
+def test_bad_arguments_exit_2_with_one_line(argv, message, capsys):
+    with pytest.raises(SystemExit) as ex:
+        main(argv)
+    assert ex.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and re.search(message, err)
+
+
+def test_spectrum_k_below_s_is_a_usage_error(capsys):
+    assert main(["spectrum", "2", "3"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("hbvm-md spectrum: error: K must be >= S (got K=2, S=3); "
+                           "HBVM(K, S) needs at least S nodes")
+
+
+def test_spectrum_prints_tableau_and_isospectral_difference(capsys):
+    assert main(["spectrum", "6", "3", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "Butcher tableau" in out and "HBVM(6, 3)" in out
+    diff = float(re.search(r"largest difference: (\S+)", out).group(1))
+    assert diff < 1e-13
+    assert main(["spectrum", "12", "2"]) == 0      # large K: tableau not printed, spectrum is
+    out = capsys.readouterr().out
+    assert "not printed" in out and float(re.search(r"largest difference: (\S+)", out).group(1)) < 1e-12
+
+
+def test_hard_cases_quick(capsys):
+    assert main(["hard-cases", "--quick", "--case", "step-too-large", "chaotic-henon-heiles"]) == 0
+    out = capsys.readouterr().out
+    assert "ConvergenceError" in out and "== chaotic-henon-heiles" in out
+
+
+def test_bench_quick_writes_csv_png_markdown(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "--quick", "--scenes", "henon-heiles", "kepler", "--out", str(out)]) == 0
+    for name in ("workprecision.csv", "workprecision.md", "wp_henon-heiles.png", "wp_kepler.png"):
+        assert (out / name).stat().st_size > 0
+    csv = (out / "workprecision.csv").read_text().splitlines()
+    assert csv[0].startswith("scene,method,family,param")
+    md = (out / "workprecision.md").read_text()
+    assert "HBVM s=2 (auto k)" in md and "DOP853" in md and "IAS15" in md and "what a larger k would have cost" in md
+    assert str(out / "workprecision.csv") in capsys.readouterr().out
+
+
+def test_demo_quick_writes_plots(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert str(out.resolve()) in text
+    assert (out / "energy_outer_solar_system.png").stat().st_size > 0
+    assert (out / "energy_md_cluster.png").stat().st_size > 0
+    assert "ias15" in text.lower() and "VelocityVerlet" in text
+
+
+def test_python_dash_m_runs():
+    r = subprocess.run([sys.executable, "-m", "hbvm_md", "spectrum", "3", "2"], capture_output=True, text=True)
+    assert r.returncode == 0 and "largest difference" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "hbvm_md", "spectrum", "1"], capture_output=True, text=True)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_progress_is_quiet_off_a_terminal():
+    assert isinstance(progress(range(3)), _Quiet)          # pytest captures stderr: not a TTY
+    assert list(progress(range(3))) == [0, 1, 2]
+    bar = progress(total=5, enabled=True)
+    assert not isinstance(bar, _Quiet)
+    bar.close()
