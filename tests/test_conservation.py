@@ -79,7 +79,12 @@ def test_kepler_energy_bounded_without_drift(k, s, bound):
     res = integrate(HBVM(k, s), kep, kep.initial_state(), 2 * np.pi / 200, 20_000, sample_every=20)
     assert res.max_energy_error <= bound
     scatter = _scatter(res)
-    assert _drift_over_run(res) <= 5 * scatter + 1e-15, (_drift_over_run(res), scatter)
+    # At round-off (k = 6, 8) the error is a random walk of a few ulps of H0 = -1/2: the line
+    # fitted through it has a slope too, of either sign.  Measured over 1e-14 perturbations of
+    # y0: |drift over the run| up to 5.8e-15 (HBVM(6, 3), (8, 4), (12, 4)).  A systematic bias of
+    # 1e-18 a step, the size of the coefficient-rounding drift once found in the separable step,
+    # would give 2e-14.
+    assert _drift_over_run(res) <= 5 * scatter + 1e-14, (_drift_over_run(res), scatter)
 
 
 @pytest.mark.slow
