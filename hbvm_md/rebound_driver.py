@@ -4,7 +4,7 @@ How it attaches
 ---------------
 ``sim.integrator = "none"`` makes REBOUND advance only the time (t += dt, dt_last_done = dt);
 a post-timestep callback then advances the particles by ``sim.dt_last_done`` with one compiled
-HBVM step (:func:`integrators.fast.integrate_separable` with ``nsteps=1``).  Everything REBOUND
+HBVM step (:func:`_driver_step`, built from the pieces of :mod:`integrators.fast`).  Everything REBOUND
 does around a step (``exact_finish_time``'s shrunken last step, heartbeats, ``steps_done``,
 simulation archives, ``sim.energy()``) is REBOUND's own.  Measured here (outer solar system,
 6 bodies): a REBOUND step with "none" and an empty Python callback costs about 1 microsecond,
@@ -14,8 +14,9 @@ would still have to call into Python (or into the numba step through a C pointer
 most that microsecond.
 
 Per step, Python does little: it reads dt_last_done, checks the particle array's address and
-N, and calls one compiled function (:func:`_driver_step`) through its compiled entry point
-(numba's dispatcher spends about 10 microseconds typing each ``cfunc`` argument).
+N, and calls one compiled function (:func:`_driver_step`) through its compiled entry point, with
+arrays and numbers only: the N-body kernel is called statically inside (a ``cfunc`` argument
+would cost about 5 microseconds a step to unbox, measured).
 
 State between steps
 -------------------
@@ -45,9 +46,10 @@ import weakref
 import numpy as np
 
 from integrators import HBVM, ConvergenceError
-from integrators.fast import NOT_FINITE, OK, coefficients, integrate_separable
+from integrators.fast import (DIVERGED, NOT_FINITE, OK, POLISH, coefficients, commit, guess, project,
+                              project_compensated, stage_positions, step_constants, stop_action)
 from numba import njit
-from systems.nbody import NBody
+from systems.nbody import NBody, nbody_forces, nbody_potential
 
 _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValueDictionary()
 _DOUBLES_PER_PARTICLE = 14       # sizeof(reb_particle) = 112 bytes in REBOUND 5.2
@@ -66,7 +68,41 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _driver_step(force, potential, params, view, written, S, scratch, minv, gamma, gamma_new,
+def _solve_nbody(params, q, p, cq, cp, minv, W, W_lo, C2, C2_lo, E, ht, ht_lo, h2, h2_lo,
+                 gamma, g, a, Q, F, hist, max_iter, plateau, tol, counters):
+    """:func:`integrators.fast.solve_step` with the N-body kernel called statically.
+
+    Passing the kernel as a value instead costs about 5 us a step to unbox (a cfunc from
+    Python: a third of a step of the outer solar system, measured), or makes this function
+    uncachable (a compiled kernel is embedded by address).  Keep the two alike."""
+    n = Q.shape[0]
+    guess(E, gamma, g)
+    hist[0], hist[1], hist[2] = np.inf, np.inf, 0.0
+    polish = False
+    it = 0
+    while polish or it < max_iter:
+        it += 1
+        stage_positions(q, p, cq, cp, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q)
+        nbody_forces(Q, params, F)
+        counters[2] += n
+        if polish:
+            project_compensated(W, W_lo, F, g)
+            counters[1] += it
+            return OK
+        delta, scale, fmax = project(W, W_lo, F, g)
+        counters[4] = delta
+        action = stop_action(delta, scale, fmax, it, hist, tol, plateau)
+        if action == POLISH:
+            polish = True
+        elif action < 0:
+            counters[1] += it
+            return -action
+    counters[1] += it
+    return DIVERGED
+
+
+@njit(cache=True)
+def _driver_step(params, view, written, S, scratch, minv, gamma, gamma_new,
                  h, tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo, E, max_iter, tol, counters):
     """One HBVM step of REBOUND's particles (view, (N, 14) over reb_particle) in place.
 
@@ -78,40 +114,58 @@ def _driver_step(force, potential, params, view, written, S, scratch, minv, gamm
     if written.shape[0] != N:
         return RESYNC
     for i in range(N):
-        for a in range(6):
-            if view[i, a] != written[i, a]:
+        for c in range(6):
+            if view[i, c] != written[i, c]:
                 return RESYNC
         if view[i, 9] != written[i, 6]:
             return RESYNC
+    m = S.shape[1]
+    s, n = W.shape
     for r in range(4):
-        for j in range(S.shape[1]):
+        for j in range(m):
             scratch[r, j] = S[r, j]
-    for i in range(gamma.shape[0]):
-        for j in range(gamma.shape[1]):
+    q, p, cq, cp = scratch[0], scratch[1], scratch[2], scratch[3]
+    for c in range(5):
+        counters[c] = 0.0
+    Q = np.empty((n, m))
+    F = np.empty((n, m))
+    g = np.empty((s, m))
+    a = np.empty((s, m))
+    hist = np.empty(3)
+    ht = np.empty(n)
+    ht_lo = np.empty(n)
+    h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
+    started = False
+    for i in range(s):
+        for j in range(m):
             gamma_new[i, j] = gamma[i, j]
-    for a in range(5):
-        counters[a] = 0.0
-    dummy1 = np.empty(1)
-    dummy2 = np.empty((1, 1))
-    integrate_separable(force, potential, params, scratch[0], scratch[1], scratch[2], scratch[3],
-                        minv, h, 1, 0, 0.0, tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo, E, max_iter,
-                        2.0 ** -40, tol, dummy1, dummy2, dummy2, dummy1, counters, gamma_new)
-    status = int(counters[3])
+            if gamma[i, j] != 0.0:
+                started = True
+    if not started:            # first step: start from the forces at q0
+        for i in range(n):
+            Q[i] = q
+        nbody_forces(Q, params, F)
+        counters[2] += n
+        gamma_new[0] = F[0]
+    status = _solve_nbody(params, q, p, cq, cp, minv, W, W_lo, C2, C2_lo, E, ht, ht_lo, h2, h2_lo,
+                          gamma_new, g, a, Q, F, hist, max_iter, 2.0 ** -40, tol, counters)
+    counters[3] = status
     if status != OK:
         return status
+    commit(q, p, cq, cp, minv, h, g, X0, X0_lo, gamma_new, np.empty(m), np.empty(m))
     for r in range(2):
-        for j in range(S.shape[1]):
+        for j in range(m):
             if not np.isfinite(scratch[r, j]):
                 return NOT_FINITE
     for r in range(4):
-        for j in range(S.shape[1]):
+        for j in range(m):
             S[r, j] = scratch[r, j]
     for i in range(N):
-        for a in range(3):
-            view[i, a] = S[0, 3 * i + a]
-            view[i, 3 + a] = S[1, 3 * i + a] * minv[3 * i + a]
-            written[i, a] = view[i, a]
-            written[i, 3 + a] = view[i, 3 + a]
+        for c in range(3):
+            view[i, c] = S[0, 3 * i + c]
+            view[i, 3 + c] = S[1, 3 * i + c] * minv[3 * i + c]
+            written[i, c] = view[i, c]
+            written[i, 3 + c] = view[i, 3 + c]
     return OK
 
 
@@ -425,7 +479,6 @@ class HBVMIntegrator:
             raise ValueError("the simulation holds non-finite positions or velocities")
         self._system = nb
         _, _, self._params = nb.separable_kernels()
-        self._force, self._potential = nb.separable_kernels()[:2]
         self._minv = 1.0 / nb.masses
         # S rows: q, p, and their Kahan compensations; scratch is the trial step's copy
         self._S = np.zeros((4, nb.dim))
@@ -464,14 +517,16 @@ class HBVMIntegrator:
         if self._written is None or self._G_c.value != self._G or self._na_c.value != self._na:
             self._resync(view)
         c = self._counters
-        args = (self._force, self._potential, self._params, view, self._written, self._S,
-                self._scratch, self._minv, self._gamma, self._gamma_new, h, *self._coef, E,
-                self.max_iter, self.tol, c)
-        status = self._call(*args)
+        status = self._call(self._params, view, self._written, self._S, self._scratch, self._minv,
+                            self._gamma, self._gamma_new, h, *self._coef, E, self.max_iter,
+                            self.tol, c)
         if status == RESYNC:
+            # the user changed the particles: rebuild the model (masses, params, arrays) and
+            # step again with the new arrays
             self._resync(view)
-            status = self._call(*args[:4], self._written, self._S, self._scratch, self._minv,
-                                self._gamma, self._gamma_new, *args[10:])
+            status = self._call(self._params, view, self._written, self._S, self._scratch,
+                                self._minv, self._gamma, self._gamma_new, h, *self._coef, E,
+                                self.max_iter, self.tol, c)
         self.niter += int(c[1])
         self.nfev += int(c[2])
         if status != OK:

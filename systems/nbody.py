@@ -28,13 +28,18 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from numba import cfunc
+from numba import cfunc, njit
 
 from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
-def _nbody_force(Q, params, out):
+@njit(cache=True)
+def nbody_forces(Q, params, out):
+    """dp/dt at each row of Q (n, 3N) into out; params as in the module docstring.
+
+    A plain compiled function, so that compiled callers (the REBOUND driver's step) call it
+    statically; :data:`_nbody_force` wraps it as the ``cfunc`` of the generic fast path.
+    """
     G = params[0]
     N = int(params[1])
     for r in range(Q.shape[0]):
@@ -63,8 +68,9 @@ def _nbody_force(Q, params, out):
                 out[r, 3 * j + 2] -= cj * dz
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
-def _nbody_potential(q, params):
+@njit(cache=True)
+def nbody_potential(q, params):
+    """V(q) of the sources, q (3N,)."""
     G = params[0]
     N = int(params[1])
     v = 0.0
@@ -81,6 +87,16 @@ def _nbody_potential(q, params):
             dz = q[3 * j + 2] - q[3 * i + 2]
             v -= gi * gj / np.sqrt(dx * dx + dy * dy + dz * dz)
     return G * v
+
+
+@cfunc(FORCE_SIGNATURE, cache=True)
+def _nbody_force(Q, params, out):
+    nbody_forces(Q, params, out)
+
+
+@cfunc(POTENTIAL_SIGNATURE, cache=True)
+def _nbody_potential(q, params):
+    return nbody_potential(q, params)
 
 
 class NBody(SeparableSystem):
