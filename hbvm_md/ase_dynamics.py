@@ -7,12 +7,16 @@ units, p in amu A / time unit, F in eV / A, so dq/dt = p / m and dp/dt = F.
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
 from integrators import HBVM, ConvergenceError, Stepper
 from systems.base import SeparableSystem
+
+_log = logging.getLogger(__name__)
 
 def default_k(s: int, polynomial_degree: int | None) -> int:
     """The k that ``HBVMDynamics(k=None)`` uses.
@@ -136,8 +140,15 @@ class HBVMDynamics(MolecularDynamics):
             raise ValueError(f"`solver` must be 'auto', 'fixed_point' or 'newton' (got solver={solver!r})")
         if k is None:
             HBVM(s, s, nodes)   # validates s and nodes with their own messages
-            k = default_k(s, getattr(atoms.calc, "polynomial_degree", None))
+            nu = getattr(atoms.calc, "polynomial_degree", None)
+            k = default_k(s, nu)
+            why = (f"chosen: exact for the calculator's polynomial degree {nu}" if nu is not None
+                   else "chosen: s + 4, round-off quadrature error for smooth potentials")
+        else:
+            why = "given"
         self.method = HBVM(k, s, nodes)
+        _log.info("HBVMDynamics: %r, k=%d (%s), s=%d (order %d), solver=%s",
+                  self.method, k, why, s, self.method.order, solver)
         self.solver = solver
         fixed = self._fixed_indices(atoms)
         self._stepper = None

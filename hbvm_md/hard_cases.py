@@ -263,17 +263,10 @@ def close_encounter(quick: bool = False, t_end: float | None = None, s: int = 6,
         sim.integrator = integrator
         if dt is not None:
             sim.dt = dt
-        e0 = sim.energy()
-        es, ys = [e0], [y0]
-        wall = 0.0
-        for tt in np.linspace(0, t_end, samples + 1)[1:]:
-            t0 = time.perf_counter()
-            sim.integrate(tt)
-            wall += time.perf_counter() - t0
-            es.append(sim.energy())
-            ys.append(_sim_state(sim, nb))
-        return Run(integrator if dt is None else f"{integrator}", np.linspace(0, t_end, samples + 1),
-                   np.array(ys), np.array(es), int(sim.steps_done), int(sim.steps_done), wall)
+        es, ys, clock = [sim.energy()], [y0], [0.0]
+        _sample(sim, nb, t_end, samples, es, ys, clock)
+        return Run(integrator, np.linspace(0, t_end, samples + 1), np.array(ys), np.array(es),
+                   int(sim.steps_done), int(sim.steps_done), clock[0])
 
     ref = run_rebound("ias15")
     yref = ref.y[-1]
@@ -305,39 +298,34 @@ def _sim_state(sim, nb):
     return nb.state(x, v)
 
 
-def _hbvm_nbody_run(nb, y0, dt, t_end, s, samples) -> Run:
-    """HBVM on the N-body scene: through REBOUND with HBVMIntegrator when it is importable,
-    else the core engine on :class:`systems.NBody` (noted in ``extra['how']``)."""
-    try:
-        from .rebound_driver import HBVMIntegrator
-    except ImportError:
-        HBVMIntegrator = None
-    if HBVMIntegrator is not None:
-        sim = nb.to_rebound(y0)
-        drv = HBVMIntegrator(sim, s=s, dt=dt)
-        label = f"HBVM{(drv.method.k, drv.method.s)}"
-        es, ys = [sim.energy()], [y0]
-        wall = 0.0
+def _sample(sim, nb, t_end, samples, es, ys, clock) -> None:
+    """Integrate ``sim`` to t_end in ``samples`` equal pieces, appending H and the state after
+    each to ``es`` and ``ys``; ``clock[0]`` adds up the wall time of the integrate calls.  What was
+    sampled stays in the lists when a step raises."""
+    for tt in np.linspace(0, t_end, samples + 1)[1:]:
+        t0 = time.perf_counter()
         try:
-            for tt in np.linspace(0, t_end, samples + 1)[1:]:
-                t0 = time.perf_counter()
-                sim.integrate(tt)
-                wall += time.perf_counter() - t0
-                es.append(sim.energy())
-                ys.append(_sim_state(sim, nb))
-        except ConvergenceError as err:
-            return Run(label, np.zeros(len(es)), np.array(ys), np.array(es), drv.nsteps, drv.nfev, wall,
-                       False, f"ConvergenceError: {err}"[:80])
-        run = Run(label, np.linspace(0, t_end, samples + 1), np.array(ys), np.array(es), drv.nsteps,
-                  drv.nfev, wall, extra={"how": "HBVMIntegrator"})
-        return run
-    from .rebound_driver import default_k  # pragma: no cover - only without the driver
-    n = int(round(t_end / dt))
-    m = HBVM(default_k(s, dt, 2 * np.pi), s)
-    r = integrate(m, nb, y0, t_end / n, n, sample_every=sample_interval(n, samples))
-    run = from_integration(f"HBVM{(m.k, m.s)}", r)
-    run.extra["how"] = "core engine on systems.NBody"
-    return run
+            sim.integrate(tt)
+        finally:
+            clock[0] += time.perf_counter() - t0
+        es.append(sim.energy())
+        ys.append(_sim_state(sim, nb))
+
+
+def _hbvm_nbody_run(nb, y0, dt, t_end, s, samples) -> Run:
+    """HBVM on the N-body scene through REBOUND (:class:`hbvm_md.HBVMIntegrator`)."""
+    from .rebound_driver import HBVMIntegrator
+    sim = nb.to_rebound(y0)
+    drv = HBVMIntegrator(sim, s=s, dt=dt)
+    label = f"HBVM{(drv.method.k, drv.method.s)}"
+    es, ys, clock = [sim.energy()], [y0], [0.0]
+    try:
+        _sample(sim, nb, t_end, samples, es, ys, clock)
+    except ConvergenceError as err:
+        return Run(label, np.zeros(len(es)), np.array(ys), np.array(es), drv.nsteps, drv.nfev,
+                   clock[0], False, f"ConvergenceError: {err}"[:80])
+    return Run(label, np.linspace(0, t_end, samples + 1), np.array(ys), np.array(es), drv.nsteps,
+               drv.nfev, clock[0], extra={"how": "HBVMIntegrator"})
 
 
 # -- chaotic Henon-Heiles ------------------------------------------------------------------

@@ -6,6 +6,16 @@ from pathlib import Path
 import numpy as np
 
 
+
+def _save(fig, path) -> Path:
+    """Lay out, write (creating the folder) and close a figure; returns the path."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    _pyplot().close(fig)
+    return path
+
 def _pyplot():
     import matplotlib
     matplotlib.use("Agg")
@@ -39,12 +49,7 @@ def energy_error_plot(series: dict, path, title: str, time_label: str = "t") -> 
     ax.set_title(title)
     ax.grid(True, which="major", alpha=0.3)
     ax.legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def work_precision_plot(rows: list, path, title: str) -> Path:
@@ -74,9 +79,4 @@ def work_precision_plot(rows: list, path, title: str) -> Path:
         ax.grid(True, which="major", alpha=0.3)
     axes[1].legend(fontsize=7, loc="best")
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

@@ -117,6 +117,18 @@ def test_default_k_rule():
     assert HBVMDynamics(atoms, 1.0, s=1).k == 5
 
 
+def test_chosen_k_and_s_are_visible_and_logged(caplog):
+    atoms, calc = default_cluster(n_atoms=13)
+    with caplog.at_level("INFO", logger="hbvm_md.ase_dynamics"):
+        dyn = HBVMDynamics(atoms, 2 * units.fs, s=3)
+    assert (dyn.k, dyn.s) == (6, 3) and dyn.todict()["k"] == 6
+    assert "HBVM(6, 3), k=6 (chosen: exact for the calculator's polynomial degree 4), s=3" in caplog.text
+    atoms.calc = EMT()
+    with caplog.at_level("INFO", logger="hbvm_md.ase_dynamics"):
+        HBVMDynamics(atoms, 2 * units.fs, s=2, k=3)
+    assert "HBVM(3, 2), k=3 (given), s=2 (order 4)" in caplog.text
+
+
 def test_step_returns_forces_at_new_positions_and_leaves_cache_warm():
     atoms, calc = _thermal_cluster(13)
     dyn = HBVMDynamics(atoms, 5 * units.fs)

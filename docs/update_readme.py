@@ -1,0 +1,57 @@
+"""Fill README.md's results from the files the benchmarks and the demo wrote.
+
+    python docs/update_readme.py [demo-output.txt]
+
+Replaces the text between the markers ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->``
+with the table read from its source, so that the README quotes real runs verbatim.
+"""
+from __future__ import annotations
+
+import pathlib
+import re
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def tables(text: str) -> list[str]:
+    """The markdown tables of a text, with the line that follows each (a verdict) if any."""
+    out, cur = [], []
+    for line in text.splitlines():
+        if line.startswith("|"):
+            cur.append(line)
+        elif cur:
+            out.append("\n".join(cur))
+            cur = []
+    if cur:
+        out.append("\n".join(cur))
+    return out
+
+
+def main() -> None:
+    readme = (ROOT / "README.md").read_text()
+    parts = {}
+    reb = (ROOT / "benchmarks/results/rebound.md").read_text()
+    parts["rebound"] = "\n\n".join(
+        f"**{title}**\n\n" + body.strip()
+        for title, body in re.findall(r"^## (t_end = .*?)$\n(.*?)(?=^## |\Z)", reb, re.S | re.M))
+    kep = (ROOT / "benchmarks/results/kepler.md").read_text()
+    parts["kepler"] = tables(kep)[0]
+    md = (ROOT / "benchmarks/results/md.md").read_text()
+    parts["md"] = md.splitlines()[0] + "\n\n" + tables(md)[0]
+    if len(sys.argv) > 1:
+        demo = pathlib.Path(sys.argv[1]).read_text()
+        t = tables(demo)
+        heads = re.findall(r"^== (.*)$", demo, re.M)
+        parts["demo"] = "\n\n".join(f"*{h}*\n\n{tb}" for h, tb in zip(heads, t))
+    for name, body in parts.items():
+        pat = re.compile(rf"(<!-- results:{name} -->\n).*?(<!-- /results:{name} -->)", re.S)
+        if not pat.search(readme):
+            raise SystemExit(f"README.md has no markers for {name!r}")
+        readme = pat.sub(lambda m: m.group(1) + body + "\n" + m.group(2), readme)
+    (ROOT / "README.md").write_text(readme)
+    print("updated:", ", ".join(parts))
+
+
+if __name__ == "__main__":
+    main()
