@@ -282,7 +282,7 @@ def close_encounter(quick: bool = False, t_end: float | None = None, s: int = 6,
             hb = _hbvm_nbody_run(nb, y0, dt, t_end, s, samples)
         except ConvergenceError as err:
             hb = Run(f"HBVM(k, {s})", np.zeros(1), y0[None], np.zeros(1), 0, 0, 0.0, False,
-                     f"ConvergenceError at t={err.t:.4g}")
+                     f"{type(err).__name__} at t={err.t:.4g}")
         rep.outcomes.append(_outcome(hb, setting, yref, hb.message or hb.extra.get("how", "")))
         rep.facts[f"hbvm {spo}"] = hb.max_energy_error if hb.finished else float("inf")
         for name in ("whfast", "leapfrog"):
@@ -323,7 +323,7 @@ def _hbvm_nbody_run(nb, y0, dt, t_end, s, samples) -> Run:
         _sample(sim, nb, t_end, samples, es, ys, clock)
     except ConvergenceError as err:
         return Run(label, np.zeros(len(es)), np.array(ys), np.array(es), drv.nsteps, drv.nfev,
-                   clock[0], False, f"ConvergenceError: {err}"[:80])
+                   clock[0], False, f"{type(err).__name__} at t={err.t:.6g}")
     return Run(label, np.linspace(0, t_end, samples + 1), np.array(ys), np.array(es), drv.nsteps,
                drv.nfev, clock[0], extra={"how": "HBVMIntegrator"})
 

@@ -45,7 +45,7 @@ import weakref
 
 import numpy as np
 
-from integrators import HBVM, ConvergenceError
+from integrators import HBVM, ConvergenceError, UnresolvedStepError
 from integrators.fast import (DIVERGED, NOT_FINITE, OK, POLISH, coefficients, commit, guess, project,
                               project_compensated, stage_positions, step_constants, stop_action)
 from numba import njit
@@ -56,6 +56,7 @@ _DOUBLES_PER_PARTICLE = 14       # sizeof(reb_particle) = 112 bytes in REBOUND 5
 
 
 RESYNC = -1
+UNRESOLVED = 3            # a status of _driver_step besides integrators.fast's OK, DIVERGED, NOT_FINITE
 TINY_RATIO = 1e-3         # steps shorter than this times the previous one are 'slivers'
 MAX_EXTRAPOLATION = 4.0   # largest h_new / h_old the previous step's gamma is extrapolated over
 
@@ -102,13 +103,29 @@ def _solve_nbody(params, q, p, cq, cp, minv, W, W_lo, C2, C2_lo, E, ht, ht_lo, h
 
 
 @njit(cache=True)
+def _source_kinetic(p, minv, params):
+    """Kinetic energy of the gravitating bodies (params as in systems.nbody): test particles
+    are left out, as from ``sim.energy()``."""
+    N = int(params[1])
+    ke = 0.0
+    for i in range(N):
+        if params[2 + N + i] != 0.0:
+            for c in range(3):
+                ke += 0.5 * p[3 * i + c] * p[3 * i + c] * minv[3 * i + c]
+    return ke
+
+
+@njit(cache=True)
 def _driver_step(params, view, written, S, scratch, minv, gamma, gamma_new,
-                 h, tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo, E, max_iter, tol, counters):
+                 h, tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo, E, max_iter, tol, counters,
+                 energy_tol, eref):
     """One HBVM step of REBOUND's particles (view, (N, 14) over reb_particle) in place.
 
     Returns RESYNC (nothing done) when the particles differ from ``written`` (what the last step
     wrote: x, y, z, vx, vy, vz, m), else the status of the step.  S = [q, p, cq, cp] and gamma
-    are committed, and the particles written, only when the step succeeded.
+    are committed, and the particles written, only when the step succeeded.  With
+    energy_tol > 0 a step whose energy change exceeds energy_tol (|T| + |V|) returns UNRESOLVED
+    (counters[4] = the relative change); eref[0] carries the energy between steps.
     """
     N = view.shape[0]
     if written.shape[0] != N:
@@ -157,6 +174,16 @@ def _driver_step(params, view, written, S, scratch, minv, gamma, gamma_new,
         for j in range(m):
             if not np.isfinite(scratch[r, j]):
                 return NOT_FINITE
+    if energy_tol > 0.0:
+        if not np.isfinite(eref[0]):
+            eref[0] = _source_kinetic(S[1], minv, params) + nbody_potential(S[0], params)
+        kin = _source_kinetic(p, minv, params)
+        pot = nbody_potential(q, params)
+        change = abs(kin + pot - eref[0]) / (abs(kin) + abs(pot))
+        if not change <= energy_tol:
+            counters[4] = change
+            return UNRESOLVED
+        eref[0] = kin + pot
     for r in range(4):
         for j in range(m):
             S[r, j] = scratch[r, j]
@@ -318,6 +345,13 @@ class HBVMIntegrator:
         Relative tolerance of the iteration; None iterates to round-off.
     nodes : {"gauss", "lobatto"}
         Quadrature of the line integral.
+    energy_tol : float or None
+        A step that changes the energy of the gravitating bodies by more than this, relative to
+        |T| + |V|, is refused with :class:`integrators.UnresolvedStepError` (nothing committed).
+        HBVM at round-off k changes it by about 1e-16 a step; a step that does not resolve the
+        motion (two bodies passing within a fraction of a step, or a spurious root of the
+        nonlinear system found after many iterations) changes it visibly, and would otherwise
+        pass silently.  The check costs one potential evaluation a step.  None disables it.
 
     Attributes
     ----------
@@ -336,7 +370,8 @@ class HBVMIntegrator:
     """
 
     def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
-                 max_iter: int = 60, tol: float | None = None, nodes: str = "gauss"):
+                 max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
+                 energy_tol: float | None = 1e-10):
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
             raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
@@ -361,7 +396,12 @@ class HBVMIntegrator:
                 k = choose_k(nb, nb.initial_state(), int(s), sim.dt, shortest_period(sim))
         self.method = HBVM(int(k), int(s), nodes=nodes)
         self.sim = sim
+        if energy_tol is not None and not (np.isfinite(energy_tol) and energy_tol > 0):
+            raise ValueError(f"`energy_tol` must be a positive number or None (got "
+                             f"energy_tol={energy_tol!r}); None switches the energy check off")
         self.max_iter, self.tol = int(max_iter), float(tol or 0.0)
+        self.energy_tol = energy_tol
+        self._eref = np.full(1, np.nan)    # energy after the last committed step (nan: unknown)
         m = self.method
         # (tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo): E is chosen per step
         self._coef = tuple(_readonly(a) for a in coefficients(m)[:-1])
@@ -493,6 +533,7 @@ class HBVMIntegrator:
         self._h_prev = None
         self._G = self._G_c.value
         self._na = self._na_c.value
+        self._eref[0] = np.nan
         self.resyncs += 1
 
     def _step(self) -> None:
@@ -517,23 +558,29 @@ class HBVMIntegrator:
         if self._written is None or self._G_c.value != self._G or self._na_c.value != self._na:
             self._resync(view)
         c = self._counters
+        etol = self.energy_tol or 0.0
         status = self._call(self._params, view, self._written, self._S, self._scratch, self._minv,
                             self._gamma, self._gamma_new, h, *self._coef, E, self.max_iter,
-                            self.tol, c)
+                            self.tol, c, etol, self._eref)
         if status == RESYNC:
             # the user changed the particles: rebuild the model (masses, params, arrays) and
             # step again with the new arrays
             self._resync(view)
             status = self._call(self._params, view, self._written, self._S, self._scratch,
                                 self._minv, self._gamma, self._gamma_new, h, *self._coef, E,
-                                self.max_iter, self.tol, c)
+                                self.max_iter, self.tol, c, etol, self._eref)
         self.niter += int(c[1])
         self.nfev += int(c[2])
         if status != OK:
+            if status == UNRESOLVED:
+                raise UnresolvedStepError(
+                    h, float(c[4]), self.energy_tol, int(c[1]), self._step_start(h),
+                    hint="use a smaller sim.dt (or IAS15 for close encounters), or pass "
+                         "energy_tol=None to accept such steps")
             if status == NOT_FINITE:
-                raise ConvergenceError(h, float("nan"), int(c[1]), "fixed_point", self._t_c.value,
+                raise ConvergenceError(h, float("nan"), int(c[1]), "fixed_point", self._step_start(h),
                                        hint="the new state is not finite; try a smaller sim.dt")
-            raise ConvergenceError(h, float(c[4]), self.max_iter, "fixed_point", self._t_c.value,
+            raise ConvergenceError(h, float(c[4]), self.max_iter, "fixed_point", self._step_start(h),
                                    hint="try a smaller sim.dt or a larger max_iter")
         if hp is None or abs(h) >= TINY_RATIO * abs(hp):
             self._gamma, self._gamma_new = self._gamma_new, self._gamma
@@ -551,8 +598,11 @@ class HBVMIntegrator:
             self._call = next(iter(_driver_step.overloads.values())).entry_point
         return status
 
-    def _restore_time(self, h: float) -> None:
+    def _step_start(self, h: float) -> float:
+        """sim.t before REBOUND's "none" integrator did t += h (exact when we wrote it)."""
         t = self._t_c.value
         tw = self._t_written
-        # REBOUND's "none" integrator did t += h; undo it exactly when we know the old t
-        self._t_c.value = tw if (tw is not None and tw + h == t) else t - h
+        return tw if (tw is not None and tw + h == t) else t - h
+
+    def _restore_time(self, h: float) -> None:
+        self._t_c.value = self._step_start(h)

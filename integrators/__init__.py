@@ -3,8 +3,8 @@
 No ASE, no REBOUND here.
 """
 from .engine import IntegrationResult, Stepper, integrate
-from .errors import ConvergenceError
+from .errors import ConvergenceError, UnresolvedStepError
 from .tableau import HBVM, gauss_collocation_tableau, gauss_matrix, gauss_spectrum
 
-__all__ = ["HBVM", "Stepper", "integrate", "IntegrationResult", "ConvergenceError",
+__all__ = ["HBVM", "Stepper", "integrate", "IntegrationResult", "ConvergenceError", "UnresolvedStepError",
            "gauss_spectrum", "gauss_matrix", "gauss_collocation_tableau"]

@@ -31,3 +31,31 @@ class ConvergenceError(RuntimeError):
         super().__init__(
             f"HBVM step of size h={h:.6g}{where} did not converge: {solver} iteration stopped after "
             f"{iterations} iterations with increment {residual:.3e}; {hint}")
+
+
+class UnresolvedStepError(ConvergenceError):
+    """An HBVM step converged but changed the energy by more than the caller's tolerance.
+
+    HBVM conserves H up to the quadrature error of the line integral; a step that changes H
+    visibly does not resolve the motion (a close encounter passed within a fraction of a step,
+    or the iteration found a spurious root of the nonlinear system).  Nothing was committed.
+
+    Attributes
+    ----------
+    h, t : float
+        The step size and the time at the start of the step.
+    change : float
+        |H(y1) - H(y0)| relative to the size of the energy terms (|T| + |V|).
+    tolerance : float
+        The tolerance it exceeded.
+    """
+
+    def __init__(self, h: float, change: float, tolerance: float, iterations: int,
+                 t: float | None = None, hint: str | None = None):
+        RuntimeError.__init__(
+            self, f"HBVM step of size h={h:.6g}" + ("" if t is None else f" at t={t:.17g}")
+            + f" changed the energy by {change:.3e} (relative), more than energy_tol="
+            f"{tolerance:.1e}: the step does not resolve the motion; "
+            + (hint or "use a smaller step"))
+        self.h, self.residual, self.iterations, self.solver, self.t = h, change, iterations, "fixed_point", t
+        self.change, self.tolerance = change, tolerance

@@ -199,3 +199,44 @@ def test_simulation_archive_and_heartbeat(tmp_path):
     HBVMIntegrator(again, s=6, k=8, dt=100.0)
     again.integrate(5000.0)
     assert np.max(np.abs(_xyz(again) - _xyz(sim))) < 1e-12
+
+
+def _xv_all(sim):
+    return np.array([[p.x, p.y, p.z, p.vx, p.vy, p.vz] for p in sim.particles])
+
+
+def test_unresolved_close_encounter_is_refused_not_silent():
+    """Two planets pass 4.4e-4 apart at relative speed 3 near t = 2.87 (hard_cases'
+    encounter scene): at P/20000 that is within half a step.  Without the energy check a later
+    passage of the same kind converged to a spurious root and jumped the energy from 2e-8 to
+    3.6 (measured); with it the step is refused, nothing committed."""
+    from hbvm_md.hard_cases import encounter_scene
+    from integrators import UnresolvedStepError
+    nb = encounter_scene()
+    sim = nb.to_rebound(nb.initial_state())
+    HBVMIntegrator(sim, s=6, dt=2 * math.pi / 20000)
+    E0 = sim.energy()
+    states = []
+    sim.heartbeat = lambda simp: states.append((simp.contents.t, _xv_all(sim)))
+    with pytest.raises(UnresolvedStepError, match=r"at t=2\.869.*changed the energy by .* more than "
+                                                  r"energy_tol=1\.0e-10.*smaller sim\.dt"):
+        sim.integrate(3.0)
+    assert 2.86 < sim.t < 2.87 and abs(sim.energy() / E0 - 1) < 1e-9
+    last_t, last_xv = max((s for s in states if s[0] <= sim.t), key=lambda s: s[0])
+    assert last_t == sim.t and np.array_equal(_xv_all(sim), last_xv)
+    # opting out: the same step is taken, and the energy jumps
+    sim2 = nb.to_rebound(nb.initial_state())
+    HBVMIntegrator(sim2, s=6, dt=2 * math.pi / 20000, energy_tol=None)
+    sim2.integrate(3.0)
+    assert abs(sim2.energy() / E0 - 1) > 1e-7
+    # a step that resolves the passage keeps the energy
+    sim3 = nb.to_rebound(nb.initial_state())
+    HBVMIntegrator(sim3, s=6, dt=2 * math.pi / 200000)
+    sim3.integrate(3.0)
+    assert abs(sim3.energy() / E0 - 1) < 1e-12
+
+
+@pytest.mark.parametrize("bad", [0.0, -1e-10, float("nan"), float("inf")])
+def test_energy_tol_is_checked(bad):
+    with pytest.raises(ValueError, match=r"`energy_tol` must be a positive number or None"):
+        HBVMIntegrator(outer_solar_system().to_rebound(), s=6, dt=100.0, energy_tol=bad)
