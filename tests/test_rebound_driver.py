@@ -240,3 +240,18 @@ def test_unresolved_close_encounter_is_refused_not_silent():
 def test_energy_tol_is_checked(bad):
     with pytest.raises(ValueError, match=r"`energy_tol` must be a positive number or None"):
         HBVMIntegrator(outer_solar_system().to_rebound(), s=6, dt=100.0, energy_tol=bad)
+
+
+def test_driver_step_matches_the_compiled_engine():
+    """rebound_driver._solve_nbody mirrors integrators.fast.solve_step with a static kernel call:
+    the two must give the same trajectory (the same arithmetic, so to the last bits)."""
+    from integrators import HBVM, integrate
+    nb = outer_solar_system()
+    sim = nb.to_rebound()
+    drv = HBVMIntegrator(sim, s=6, k=7, dt=250.0)
+    sim.steps(400)
+    ref = integrate(HBVM(7, 6), nb, nb.initial_state(), 250.0, 400, sample_every=400, fast=True)
+    assert ref.path == "compiled" and drv.nsteps == 400 and sim.t == 1e5
+    q = ref.y[-1, : nb.dim].reshape(-1, 3)
+    assert np.array_equal(_xyz(sim), q)     # measured: identical to the last bit
+    assert drv.niter == ref.iterations and drv.nfev == ref.nfev
