@@ -5,7 +5,6 @@ conserved to round-off; Gauss, symplectic but not energy-preserving, shows a bou
 
 Run:  python examples/hbvm_vs_gauss.py
 """
-import numpy as np
 
 from integrators import HBVM
 from systems import FPU, HenonHeiles

@@ -251,7 +251,6 @@ def close_encounter(quick: bool = False, t_end: float | None = None, s: int = 6,
     Facts: per method label, energy error, finished; ``min_distance`` of the reference run and
     the Hill radius.
     """
-    import rebound
     t_end = (40.0 if quick else 200.0) if t_end is None else float(t_end)
     nb = encounter_scene()
     y0 = nb.initial_state()

@@ -139,7 +139,7 @@ def scene_kepler(quick=False, k_info=None, bar=None):
 def _rebound_kepler_fixed(e, T, name, n, samples=100):
     from .peers import Run, kepler_simulation
     sim = kepler_simulation(e, name, T / n)
-    ys, wall, done = [], 0.0, 0
+    ys, wall = [], 0.0
     pl = sim.particles[1]
     ys.append([pl.x, pl.y, pl.vx, pl.vy])
     chunks = np.diff(np.linspace(0, n, samples + 1).round().astype(int))

@@ -1,5 +1,4 @@
 """compare_rebound: HBVM against REBOUND's integrators in one process."""
-import numpy as np
 import pytest
 
 import hbvm_md
