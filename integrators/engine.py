@@ -243,21 +243,31 @@ class IntegrationResult:
         return float(np.polyfit(self.t - self.t[0], self.energy_error, 1)[0]) if len(self.t) > 2 else 0.0
 
 
-def _wants_fast(system, solver, fast, form="auto") -> bool:
-    has = hasattr(system, "separable_kernels") and _is_separable(system)
+def _fast_kind(system, solver, fast, form="auto") -> str | None:
+    """Which compiled loop to run: "separable" (``separable_kernels``), "full" (``full_kernels``,
+    any Hamiltonian) or None (the numpy engine)."""
+    sep = hasattr(system, "separable_kernels") and _is_separable(system)
+    full = hasattr(system, "full_kernels")
     if fast is None:
-        # the compiled loop is the separable form: an explicit form='full' keeps the numpy engine
-        return has and solver in ("auto", "fixed_point") and form != "full"
-    if fast and not has:
+        if solver not in ("auto", "fixed_point"):
+            return None
+        if sep and form != "full":
+            return "separable"
+        # an explicit form='separable' asks for the numpy separable engine
+        return "full" if full and form != "separable" else None
+    if fast and not (sep or full):
         raise ValueError("`fast=True` needs a system with `separable_kernels()` (compiled force "
-                         "and potential); use fast=False for the numpy path")
+                         "and potential) or `full_kernels()` (compiled gradient and energy); use "
+                         "fast=False for the numpy path")
     if fast and solver == "newton":
         raise ValueError("the compiled fast path iterates by fixed point; use fast=False with "
                          "solver='newton'")
-    if fast and form == "full":
+    if fast and form == "full" and not full:
         raise ValueError("the compiled fast path iterates on the separable form; use fast=False "
                          "with form='full'")
-    return bool(fast)
+    if not fast:
+        return None
+    return "separable" if sep and form != "full" else "full"
 
 
 def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver: str = "auto",
@@ -270,9 +280,10 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
     sample_every : int
         Keep t, y and H every this many steps (and at step 0).
     fast : bool or None
-        Use the compiled fast path (separable systems with ``separable_kernels``).  None: when
-        available and the solver is not "newton".  With solver="auto" the fast path falls back to
-        the numpy engine (and its Newton switch) from a step where fixed point fails.
+        Use a compiled loop: the separable form for systems with ``separable_kernels``, the full
+        form for systems with ``full_kernels`` (see :mod:`systems.base`).  None: when available
+        and the solver is not "newton".  With solver="auto" a compiled loop falls back to the
+        numpy engine (and its Newton switch) from a step where fixed point fails.
     Other parameters as for :class:`Stepper`.
     """
     h = check_step(h)
@@ -282,8 +293,11 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
         raise ValueError(f"`sample_every` must be an integer >= 1 (got sample_every={sample_every!r})")
     t0 = check_options(solver, form, tol, max_iter, t0)
     y0 = check_state(system, y0)
-    if _wants_fast(system, solver, fast, form):
+    kind = _fast_kind(system, solver, fast, form)
+    if kind == "separable":
         return _integrate_fast(method, system, y0, h, int(steps), t0, solver, int(sample_every), tol, max_iter)
+    if kind == "full":
+        return _integrate_full(method, system, y0, h, int(steps), t0, solver, int(sample_every), tol, max_iter)
     st = Stepper(method, system, y0, t0, solver, tol, max_iter, form)
     return _run_stepper(st, h, int(steps), int(sample_every))
 
@@ -341,3 +355,38 @@ def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol,
         return res
     Y = np.concatenate([out_q, out_p], axis=1)
     return IntegrationResult(out_t, Y, out_e, method, h, done, nfev, iters, "compiled", wall)
+
+
+def _integrate_full(method, system, y0, h, steps, t0, solver, sample_every, tol, max_iter):
+    """The compiled full form (``system.full_kernels()``); on a failed step with solver="auto"
+    the numpy engine (with its switch to Newton) goes on from the last good step."""
+    from .fast import OK, integrate_full
+    gradient, energy, params = system.full_kernels()
+    d = y0.size
+    y, cy = y0.copy(), np.zeros(d)
+    nsamp = steps // sample_every + 1
+    out_t, out_y, out_e = np.empty(nsamp), np.empty((nsamp, d)), np.empty(nsamp)
+    counters = np.zeros(5)
+    gamma = np.zeros((method.s, d))
+    m = method
+    c = np.ascontiguousarray
+    t_start = time.perf_counter()
+    integrate_full(gradient, energy, c(params, dtype=float), y, cy, h, steps, sample_every,
+                   float(t0), c(m.W), c(m.W_lo), c(m.I), c(m.I_lo), c(m.E), int(max_iter or 60),
+                   2.0 ** -40, float(tol or 0.0), out_t, out_y, out_e, counters, gamma)
+    wall = time.perf_counter() - t_start
+    done, iters, nfev, status = int(counters[0]), int(counters[1]), int(counters[2]), int(counters[3])
+    if status != OK:
+        t_fail = t0 + done * h
+        if solver != "auto":
+            raise ConvergenceError(h, float(counters[4]), int(max_iter or 60), "fixed_point", t_fail)
+        st = Stepper(method, system, y, t_fail, solver, tol, max_iter, "full")
+        st._yc = cy.copy()
+        st.nsteps, st.niter, st.nfev = done, iters, nfev
+        if done > 0:
+            st._gamma, st._h_prev = gamma.copy(), h
+        k = done // sample_every + 1
+        res = _run_stepper(st, h, steps - done, sample_every, done, list(out_t[:k]), list(out_y[:k]), wall)
+        res.path = "compiled+full"
+        return res
+    return IntegrationResult(out_t, out_y, out_e, method, h, done, nfev, iters, "compiled-full", wall)

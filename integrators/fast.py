@@ -328,3 +328,112 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
             out_e[isample] = kinetic(p, minv) + potential(q, params)
             isample += 1
     counters[3] = OK
+
+
+# -- the full form (any Hamiltonian with compiled kernels) -----------------------------------
+@njit(cache=True)
+def full_stages(y, cy, g, I, I_lo, h, Y):
+    """Y = y0 + h I_s gamma at the stages, with y0 the double-double y - cy (forms.FullForm)."""
+    n = Y.shape[0]
+    s, d = g.shape
+    for i in range(n):
+        for j in range(d):
+            acc = 0.0
+            acc_lo = 0.0
+            for l in range(s):
+                acc += I[i, l] * g[l, j]
+                acc_lo += I_lo[i, l] * g[l, j]
+            Y[i, j] = y[j] + (h * (acc + acc_lo) - cy[j])
+
+
+@njit(cache=True)
+def _symplectic(G, F):
+    """F = J G with J = [[0, I], [-I, 0]]: (dH/dp, -dH/dq) from G = grad H, row by row."""
+    m = G.shape[1] // 2
+    for i in range(G.shape[0]):
+        for j in range(m):
+            F[i, j] = G[i, m + j]
+            F[i, m + j] = -G[i, j]
+
+
+@njit(cache=True)
+def integrate_full(gradient, energy, params, y, cy, h, nsteps, sample_every, t0, W, W_lo, I, I_lo,
+                   E, max_iter, plateau, tol, out_t, out_y, out_e, counters, gamma):
+    """The full form compiled: ``gradient`` writes grad H at each row of Y (n, d) (signature of
+    ``systems.base.FORCE_SIGNATURE``), ``energy`` returns H(y) (``POTENTIAL_SIGNATURE``).
+
+    Same conventions as :func:`integrate_separable` (double-double state y - cy, counters,
+    samples, gamma (s, d)), with the same unbiased round-off: y1 = y0 + h gamma_1 added
+    exactly, the last projection compensated.
+    """
+    n, s = W.shape[1], W.shape[0]
+    d = y.shape[0]
+    Y = np.empty((n, d))
+    G = np.empty((n, d))
+    F = np.empty((n, d))
+    g = np.empty((s, d))
+    hist = np.empty(3)
+    t, ct = t0, 0.0
+    isample = 0
+    if sample_every > 0:
+        out_t[0] = t
+        out_y[0] = y
+        out_e[0] = energy(y, params)
+        isample = 1
+    started = False
+    for i in range(s):
+        for j in range(d):
+            if gamma[i, j] != 0.0:
+                started = True
+    if not started:
+        for i in range(n):
+            Y[i] = y
+        gradient(Y, params, G)
+        _symplectic(G, F)
+        counters[2] += n
+        gamma[0] = F[0]
+    for step in range(nsteps):
+        guess(E, gamma, g)
+        hist[0], hist[1], hist[2] = np.inf, np.inf, 0.0
+        polish = False
+        status = DIVERGED
+        it = 0
+        while polish or it < max_iter:
+            it += 1
+            full_stages(y, cy, g, I, I_lo, h, Y)
+            gradient(Y, params, G)
+            _symplectic(G, F)
+            counters[2] += n
+            if polish:
+                project_compensated(W, W_lo, F, g)
+                status = OK
+                break
+            delta, scale, fmax = project(W, W_lo, F, g)
+            counters[4] = delta
+            action = stop_action(delta, scale, fmax, it, hist, tol, plateau)
+            if action == POLISH:
+                polish = True
+            elif action < 0:
+                status = -action
+                break
+        counters[1] += it
+        if status != OK:
+            counters[3] = status
+            return
+        for j in range(d):
+            d_hi, d_lo = two_product(h, g[0, j])
+            _dd_add(y, cy, j, d_hi, d_lo)
+        for i in range(s):
+            for j in range(d):
+                gamma[i, j] = g[i, j]
+        yk = h - ct
+        tn = t + yk
+        ct = (tn - t) - yk
+        t = tn
+        counters[0] += 1
+        if sample_every > 0 and (step + 1) % sample_every == 0:
+            out_t[isample] = t
+            out_y[isample] = y
+            out_e[isample] = energy(y, params)
+            isample += 1
+    counters[3] = OK

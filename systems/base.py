@@ -28,6 +28,11 @@ engine then iterates on the momentum coefficients only.
     ``cfunc`` of signature :data:`FORCE_SIGNATURE` writing -grad V at each row of Q (n, m) into
     ``out``; ``potential`` a ``cfunc`` of signature :data:`POTENTIAL_SIGNATURE`; ``params`` a
     float64 array handed to both.
+``full_kernels()``
+    For a system that is not separable: ``(gradient, energy, params)``, a ``cfunc`` of signature
+    :data:`FORCE_SIGNATURE` writing grad H at each row of a stack of states Y (n, 2m) into
+    ``out``, and one of :data:`POTENTIAL_SIGNATURE` returning H(y); the engine then runs the
+    compiled full form (see :class:`systems.poincare.PoincareKepler`).
 
 Writing your own is a small class; see :class:`HamiltonianSystem` and :class:`SeparableSystem`.
 """

@@ -27,7 +27,9 @@ from typing import Callable
 
 import numpy as np
 
-from .base import HamiltonianSystem
+from numba import cfunc
+
+from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, HamiltonianSystem
 
 
 def distance_power(alpha: float, indices=None) -> tuple[Callable, Callable]:
@@ -119,10 +121,13 @@ class PoincareTransformed(HamiltonianSystem):
 
     @classmethod
     def for_kepler(cls, kepler, alpha: float = 1.0, y0=None) -> "PoincareTransformed":
-        """g = |q|^alpha on a Kepler problem, at the energy of y0 (default its initial state)."""
+        """g = |q|^alpha on a Kepler problem, at the energy of y0 (default its initial state).
+
+        Returns a :class:`PoincareKepler`, which also offers compiled kernels
+        (``full_kernels``), so that ``integrate`` runs it on the compiled full-form path."""
         y0 = kepler.initial_state() if y0 is None else np.asarray(y0, dtype=float)
         g, grad_g = distance_power(alpha)
-        return cls(kepler, g, grad_g, float(kepler.energy(y0)))
+        return PoincareKepler(kepler, g, grad_g, float(kepler.energy(y0)), float(alpha))
 
     # -- the extended state ------------------------------------------------------------
     def extend(self, y, t: float = 0.0) -> np.ndarray:
@@ -169,3 +174,45 @@ class PoincareTransformed(HamiltonianSystem):
         dp = gq * gradH[..., m:]
         zero = np.zeros(Y.shape[:-1] + (1,))
         return np.concatenate([dq, zero, dp, gq], axis=-1)
+
+
+@cfunc(FORCE_SIGNATURE, cache=True)
+def _kepler_poincare_gradient(Y, params, out):
+    # Y = (q1, q2, t, p1, p2, e); K = g (H + e), g = |q|^alpha, H = |p|^2 / 2 - mu / |q|
+    mu, alpha = params[0], params[1]
+    for i in range(Y.shape[0]):
+        x, y, p1, p2, e = Y[i, 0], Y[i, 1], Y[i, 3], Y[i, 4], Y[i, 5]
+        r2 = x * x + y * y
+        r = np.sqrt(r2)
+        H = 0.5 * (p1 * p1 + p2 * p2) - mu / r
+        g = r ** alpha
+        c = alpha * r ** (alpha - 2.0) * (H + e) + g * mu / (r2 * r)
+        out[i, 0] = c * x
+        out[i, 1] = c * y
+        out[i, 2] = 0.0
+        out[i, 3] = g * p1
+        out[i, 4] = g * p2
+        out[i, 5] = g
+
+
+@cfunc(POTENTIAL_SIGNATURE, cache=True)
+def _kepler_poincare_energy(Y, params):
+    mu, alpha = params[0], params[1]
+    r = np.sqrt(Y[0] * Y[0] + Y[1] * Y[1])
+    return r ** alpha * (0.5 * (Y[3] * Y[3] + Y[4] * Y[4]) - mu / r + Y[5])
+
+
+class PoincareKepler(PoincareTransformed):
+    """:class:`PoincareTransformed` of a :class:`systems.Kepler` problem with g = |q|^alpha,
+    with compiled kernels of grad K and K (``full_kernels``) for the compiled full-form path."""
+
+    def __init__(self, kepler, g, grad_g, H0: float, alpha: float):
+        super().__init__(kepler, g, grad_g, H0)
+        if self.m != 2 or not hasattr(kepler, "mu"):
+            raise TypeError("PoincareKepler needs a systems.Kepler problem (2 degrees of freedom)")
+        self.alpha = float(alpha)
+        self._params = np.array([float(kepler.mu), self.alpha])
+
+    def full_kernels(self):
+        """(gradient, energy, params): cfuncs of grad K at a stack of extended states and of K."""
+        return _kepler_poincare_gradient, _kepler_poincare_energy, self._params.copy()
