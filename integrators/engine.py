@@ -320,7 +320,8 @@ def _run_stepper(st: Stepper, h, steps, sample_every, offset=0, ts=None, ys=None
 
 
 def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol, max_iter):
-    from .fast import OK, coefficients, integrate_separable
+    """The compiled separable form (``system.separable_kernels()``)."""
+    from .fast import coefficients, integrate_separable
     force, potential, params = system.separable_kernels()
     d = system.dim
     q, p = y0[:d].copy(), y0[d:].copy()
@@ -330,37 +331,20 @@ def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol,
     out_t, out_q, out_p, out_e = np.empty(nsamp), np.empty((nsamp, d)), np.empty((nsamp, d)), np.empty(nsamp)
     counters = np.zeros(5)
     gamma = np.zeros((method.s, d))
-    m = method
     t_start = time.perf_counter()
     integrate_separable(force, potential, np.ascontiguousarray(params, dtype=float), q, p, cq, cp,
-                        minv, h, steps, sample_every, float(t0), *coefficients(m),
-                        int(max_iter or 60), 2.0 ** -40, float(tol or 0.0), out_t, out_q, out_p, out_e, counters, gamma)
+                        minv, h, steps, sample_every, float(t0), *coefficients(method),
+                        int(max_iter or 60), 2.0 ** -40, float(tol or 0.0), out_t, out_q, out_p,
+                        out_e, counters, gamma)
     wall = time.perf_counter() - t_start
-    done, iters, nfev, status = int(counters[0]), int(counters[1]), int(counters[2]), int(counters[3])
-    if status != OK:
-        t_fail = t0 + done * h
-        if solver != "auto":
-            raise ConvergenceError(h, float(counters[4]), int(max_iter or 60), "fixed_point", t_fail)
-        # fall back to the numpy engine (with its switch to Newton) from the last good step
-        st = Stepper(method, system, np.concatenate([q, p]), t_fail, solver, tol, max_iter, "separable")
-        st._yc = np.concatenate([cq, cp])
-        st.nsteps, st.niter, st.nfev = done, iters, nfev
-        if done > 0:   # the compiled loop keeps the last good step's coefficients in gamma
-            st._gamma, st._h_prev = gamma.copy(), h
-        k = done // sample_every + 1
-        ts = list(out_t[:k])
-        ys = [np.concatenate([a, b]) for a, b in zip(out_q[:k], out_p[:k])]
-        res = _run_stepper(st, h, steps - done, sample_every, done, ts, ys, wall)
-        res.path = "compiled+separable"
-        return res
-    Y = np.concatenate([out_q, out_p], axis=1)
-    return IntegrationResult(out_t, Y, out_e, method, h, done, nfev, iters, "compiled", wall)
+    return _finish_compiled(method, system, h, steps, t0, solver, sample_every, tol, max_iter,
+                            "separable", counters, np.concatenate([q, p]), np.concatenate([cq, cp]),
+                            gamma, out_t, np.concatenate([out_q, out_p], axis=1), out_e, wall)
 
 
 def _integrate_full(method, system, y0, h, steps, t0, solver, sample_every, tol, max_iter):
-    """The compiled full form (``system.full_kernels()``); on a failed step with solver="auto"
-    the numpy engine (with its switch to Newton) goes on from the last good step."""
-    from .fast import OK, integrate_full
+    """The compiled full form (``system.full_kernels()``)."""
+    from .fast import integrate_full
     gradient, energy, params = system.full_kernels()
     d = y0.size
     y, cy = y0.copy(), np.zeros(d)
@@ -375,18 +359,30 @@ def _integrate_full(method, system, y0, h, steps, t0, solver, sample_every, tol,
                    float(t0), c(m.W), c(m.W_lo), c(m.I), c(m.I_lo), c(m.E), int(max_iter or 60),
                    2.0 ** -40, float(tol or 0.0), out_t, out_y, out_e, counters, gamma)
     wall = time.perf_counter() - t_start
-    done, iters, nfev, status = int(counters[0]), int(counters[1]), int(counters[2]), int(counters[3])
-    if status != OK:
-        t_fail = t0 + done * h
-        if solver != "auto":
-            raise ConvergenceError(h, float(counters[4]), int(max_iter or 60), "fixed_point", t_fail)
-        st = Stepper(method, system, y, t_fail, solver, tol, max_iter, "full")
-        st._yc = cy.copy()
-        st.nsteps, st.niter, st.nfev = done, iters, nfev
-        if done > 0:
-            st._gamma, st._h_prev = gamma.copy(), h
-        k = done // sample_every + 1
-        res = _run_stepper(st, h, steps - done, sample_every, done, list(out_t[:k]), list(out_y[:k]), wall)
-        res.path = "compiled+full"
-        return res
-    return IntegrationResult(out_t, out_y, out_e, method, h, done, nfev, iters, "compiled-full", wall)
+    return _finish_compiled(method, system, h, steps, t0, solver, sample_every, tol, max_iter,
+                            "full", counters, y, cy, gamma, out_t, out_y, out_e, wall)
+
+
+def _finish_compiled(method, system, h, steps, t0, solver, sample_every, tol, max_iter, form,
+                     counters, y, yc, gamma, out_t, out_y, out_e, wall) -> IntegrationResult:
+    """The result of a compiled loop; on a failed step with solver="auto" the numpy engine (with
+    its switch to Newton) goes on from the last good step, keeping its coefficients and the
+    compensation of the state."""
+    from .fast import OK
+    done, iters, nfev, status = (int(counters[0]), int(counters[1]), int(counters[2]),
+                                 int(counters[3]))
+    path = "compiled" if form == "separable" else "compiled-full"
+    if status == OK:
+        return IntegrationResult(out_t, out_y, out_e, method, h, done, nfev, iters, path, wall)
+    t_fail = t0 + done * h
+    if solver != "auto":
+        raise ConvergenceError(h, float(counters[4]), int(max_iter or 60), "fixed_point", t_fail)
+    st = Stepper(method, system, y, t_fail, solver, tol, max_iter, form)
+    st._yc = yc.copy()
+    st.nsteps, st.niter, st.nfev = done, iters, nfev
+    if done > 0:   # the compiled loop keeps the last good step's coefficients in gamma
+        st._gamma, st._h_prev = gamma.copy(), h
+    k = done // sample_every + 1
+    res = _run_stepper(st, h, steps - done, sample_every, done, list(out_t[:k]), list(out_y[:k]), wall)
+    res.path = f"compiled+{form}"
+    return res

@@ -87,6 +87,15 @@ def _dd_add(x, c, j, inc_hi, inc_lo):
 
 
 @njit(cache=True)
+def _all_zero(a):
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            if a[i, j] != 0.0:
+                return False
+    return True
+
+
+@njit(cache=True)
 def kinetic(p, minv):
     """p^T M^{-1} p / 2."""
     ke = 0.0
@@ -298,12 +307,7 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
         out_p[0] = p
         out_e[0] = kinetic(p, minv) + potential(q, params)
         isample = 1
-    started = False
-    for i in range(s):
-        for j in range(m):
-            if gamma[i, j] != 0.0:
-                started = True
-    if not started:
+    if _all_zero(gamma):        # no previous step: start from the forces at q0
         for i in range(n):
             Q[i] = q
         force(Q, params, F)
@@ -380,12 +384,7 @@ def integrate_full(gradient, energy, params, y, cy, h, nsteps, sample_every, t0,
         out_y[0] = y
         out_e[0] = energy(y, params)
         isample = 1
-    started = False
-    for i in range(s):
-        for j in range(d):
-            if gamma[i, j] != 0.0:
-                started = True
-    if not started:
+    if _all_zero(gamma):        # no previous step: start from f(y0)
         for i in range(n):
             Y[i] = y
         gradient(Y, params, G)
