@@ -46,8 +46,9 @@ import weakref
 import numpy as np
 
 from integrators import HBVM, ConvergenceError, UnresolvedStepError
-from integrators.fast import (DIVERGED, NOT_FINITE, OK, POLISH, coefficients, commit, guess, project,
-                              project_compensated, stage_positions, step_constants, stop_action)
+from integrators.fast import (DIVERGED, NOT_FINITE, OK, POLISH, all_zero, coefficients, commit,
+                              guess, project, project_compensated, stage_positions,
+                              step_constants, stop_action)
 from numba import njit
 from systems.nbody import NBody, nbody_forces, nbody_potential
 
@@ -152,13 +153,8 @@ def _driver_step(params, view, written, S, scratch, minv, gamma, gamma_new,
     ht = np.empty(n)
     ht_lo = np.empty(n)
     h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
-    started = False
-    for i in range(s):
-        for j in range(m):
-            gamma_new[i, j] = gamma[i, j]
-            if gamma[i, j] != 0.0:
-                started = True
-    if not started:            # first step: start from the forces at q0
+    gamma_new[:, :] = gamma
+    if all_zero(gamma):       # first step: start from the forces at q0
         for i in range(n):
             Q[i] = q
         nbody_forces(Q, params, F)

@@ -87,7 +87,7 @@ def _dd_add(x, c, j, inc_hi, inc_lo):
 
 
 @njit(cache=True)
-def _all_zero(a):
+def all_zero(a):
     for i in range(a.shape[0]):
         for j in range(a.shape[1]):
             if a[i, j] != 0.0:
@@ -232,12 +232,27 @@ def commit(q, p, cq, cp, minv, h, g, X0, X0_lo, gamma, dq, dq_lo):
         dq_lo[j] = a_lo + i_lo
     for j in range(m):
         _dd_add(q, cq, j, dq[j], dq_lo[j])
-    for j in range(m):
+    add_h_gamma1(p, cp, h, g, gamma)
+
+
+@njit(cache=True)
+def add_h_gamma1(x, c, h, g, gamma):
+    """x - c (double-double) += h gamma_1 exactly; keep g as the step's coefficients gamma."""
+    s, d = g.shape
+    for j in range(d):
         d_hi, d_lo = two_product(h, g[0, j])
-        _dd_add(p, cp, j, d_hi, d_lo)
+        _dd_add(x, c, j, d_hi, d_lo)
     for i in range(s):
-        for j in range(m):
+        for j in range(d):
             gamma[i, j] = g[i, j]
+
+
+@njit(cache=True)
+def tick(t, ct, h):
+    """Compensated t += h; returns (t, ct)."""
+    yk = h - ct
+    tn = t + yk
+    return tn, (tn - t) - yk
 
 
 @njit(cache=True)
@@ -307,7 +322,7 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
         out_p[0] = p
         out_e[0] = kinetic(p, minv) + potential(q, params)
         isample = 1
-    if _all_zero(gamma):        # no previous step: start from the forces at q0
+    if all_zero(gamma):        # no previous step: start from the forces at q0
         for i in range(n):
             Q[i] = q
         force(Q, params, F)
@@ -320,10 +335,7 @@ def integrate_separable(force, potential, params, q, p, cq, cp, minv, h, nsteps,
             counters[3] = status
             return
         commit(q, p, cq, cp, minv, h, g, X0, X0_lo, gamma, dq, dq_lo)
-        yk = h - ct
-        tn = t + yk
-        ct = (tn - t) - yk
-        t = tn
+        t, ct = tick(t, ct, h)
         counters[0] += 1
         if sample_every > 0 and (step + 1) % sample_every == 0:
             out_t[isample] = t
@@ -384,7 +396,7 @@ def integrate_full(gradient, energy, params, y, cy, h, nsteps, sample_every, t0,
         out_y[0] = y
         out_e[0] = energy(y, params)
         isample = 1
-    if _all_zero(gamma):        # no previous step: start from f(y0)
+    if all_zero(gamma):        # no previous step: start from f(y0)
         for i in range(n):
             Y[i] = y
         gradient(Y, params, G)
@@ -419,16 +431,8 @@ def integrate_full(gradient, energy, params, y, cy, h, nsteps, sample_every, t0,
         if status != OK:
             counters[3] = status
             return
-        for j in range(d):
-            d_hi, d_lo = two_product(h, g[0, j])
-            _dd_add(y, cy, j, d_hi, d_lo)
-        for i in range(s):
-            for j in range(d):
-                gamma[i, j] = g[i, j]
-        yk = h - ct
-        tn = t + yk
-        ct = (tn - t) - yk
-        t = tn
+        add_h_gamma1(y, cy, h, g, gamma)
+        t, ct = tick(t, ct, h)
         counters[0] += 1
         if sample_every > 0 and (step + 1) % sample_every == 0:
             out_t[isample] = t
