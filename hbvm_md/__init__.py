@@ -19,6 +19,7 @@ _LAZY = {
     "HBVMIntegrator": "hbvm_md.rebound_driver",
     "compare_rebound": "hbvm_md.rebound_comparison",
     "ReboundComparison": "hbvm_md.rebound_comparison",
+    "run_ensemble": "hbvm_md.ensemble",
 }
 
 __all__ = ["HBVM", "ConvergenceError", "integrate", *_LAZY]
