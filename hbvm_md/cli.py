@@ -92,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--case", nargs="+", choices=list(CASES), default=None, metavar="CASE",
                    help=f"cases to run (default all: {', '.join(CASES)})")
     h.add_argument("--quick", action="store_true", help="small sizes (for CI)")
+
+    from .ensemble_cli import add_ensemble_parser
+    add_ensemble_parser(sub)
     return p
 
 
@@ -225,6 +228,12 @@ def cmd_hard_cases(args) -> int:
     return 0
 
 
+# -- ensemble (hbvm_md/ensemble_cli.py) ------------------------------------------------------
+def cmd_ensemble(args) -> int:
+    from .ensemble_cli import cmd_ensemble as run
+    return run(args)
+
+
 class _UsageError(Exception):
     pass
 
@@ -233,7 +242,8 @@ def _fail(message: str):
     raise _UsageError(message)
 
 
-COMMANDS = {"demo": cmd_demo, "bench": cmd_bench, "spectrum": cmd_spectrum, "hard-cases": cmd_hard_cases}
+COMMANDS = {"demo": cmd_demo, "bench": cmd_bench, "spectrum": cmd_spectrum, "hard-cases": cmd_hard_cases,
+            "ensemble": cmd_ensemble}
 
 
 def main(argv=None) -> int:

@@ -34,6 +34,8 @@ __all__ = ["solar_clone", "stability_member", "stability_grid", "stability_table
 
 #: Distance from the Sun (AU) beyond which a planet of a stability map counts as escaped.
 _R_MAX = 100.0
+#: Default mass of a stability map's planet (solar masses): about one Earth mass.
+PLANET_MASS = 3.0e-6
 
 
 def _perturbed(y: np.ndarray, scale: float, rng: np.random.Generator, mask=None) -> np.ndarray:
@@ -179,7 +181,7 @@ def _with_planet(a: float, e: float, mass: float):
 
 
 def stability_member(param, *, t_end: float = 1e6, dt: float = 250.0, s: int = 6,
-                     k: int | None = None, mass: float = 3.0e-6, delta: float = 1e-10,
+                     k: int | None = None, mass: float = PLANET_MASS, delta: float = 1e-10,
                      n_samples: int = 100, r_max: float = _R_MAX) -> dict:
     """One point of a stability map: a planet at (a, e) in the outer solar system.
 
@@ -254,7 +256,9 @@ def stability_table(records: list[dict]) -> list[dict]:
 
 
 def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
-    """Three panels over (a, e): log10 clone divergence, log10 max energy error, survival time."""
+    """Three panels over (a, e): log10 clone divergence, log10 max energy error, survival time.
+
+    Grey cells: no sample (the run stopped before its first sample, or the member failed)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -265,7 +269,7 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
     for r in rows:
         i, j = int(np.searchsorted(e, r["e"])), int(np.searchsorted(a, r["a"]))
         grids["div"][i, j] = r["log10_divergence"]
-        grids["err"][i, j] = np.log10(max(r["max_rel_energy_error"], 1e-17))
+        grids["err"][i, j] = np.log10(max(r["max_rel_energy_error"], 1e-17))   # nan stays nan
         t_end = r.get("t_end") or max(x["t_stop"] for x in rows) or 1.0
         grids["surv"][i, j] = r["t_stop"] / t_end if r["survived"] is not True else 1.0
 
@@ -280,6 +284,8 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
               ("err", "log10 max relative energy error", "viridis"),
               ("surv", "survived fraction of the run", "RdYlGn"))
     for ax, (key, label, cmap) in zip(axes, panels):
+        cmap = matplotlib.colormaps[cmap].copy()
+        cmap.set_bad("0.75")         # grey: stopped before the first sample, or failed
         pc = ax.pcolormesh(edges(a), edges(e), grids[key], cmap=cmap, shading="flat",
                            **({"vmin": 0.0, "vmax": 1.0} if key == "surv" else {}))
         fig.colorbar(pc, ax=ax, label=label)

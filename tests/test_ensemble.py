@@ -181,3 +181,26 @@ def test_ensemble_through_a_scheduler_and_two_worker_processes(tmp_path):
                 p.wait()
         for f in logs:
             f.close()
+
+
+def test_cli_stability_map_writes_csv_and_png(client, tmp_path, capsys):
+    import csv
+
+    from hbvm_md.cli import main
+    out = tmp_path / "map"
+    args = ["ensemble", "stability-map", "--grid", "2x2", "--a-range", "7", "25", "--t-end", "3000",
+            "--scheduler", client.scheduler.address, "--out", str(out)]
+    assert main(args) == 0
+    rows = list(csv.DictReader(open(out / "stability_map.csv")))
+    assert [(float(r["a"]), float(r["e"])) for r in rows] == [(7.0, 0.0), (7.0, 0.5), (25.0, 0.0), (25.0, 0.5)]
+    assert all(r["status"] == "ok" and float(r["max_rel_energy_error"]) < 1e-12 for r in rows)
+    assert (out / "stability_map.png").stat().st_size > 10_000
+    # a changed run length is refused instead of mixing in the stored members
+    assert main([a if a != "3000" else "6000" for a in args]) == 2
+    assert "holds the ensemble of task" in capsys.readouterr().err
+
+
+def test_cli_rejects_workers_with_scheduler(capsys):
+    from hbvm_md.cli import main
+    assert main(["ensemble", "stability-map", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    assert "not both" in capsys.readouterr().err
