@@ -284,8 +284,8 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
               ("err", "log10 max relative energy error", "viridis"),
               ("surv", "survived fraction of the run", "RdYlGn"))
     for ax, (key, label, cmap) in zip(axes, panels):
-        cmap = matplotlib.colormaps[cmap].copy()
-        cmap.set_bad("0.75")         # grey: stopped before the first sample, or failed
+        # grey: stopped before the first sample, or failed
+        cmap = matplotlib.colormaps[cmap].with_extremes(bad="0.75")
         pc = ax.pcolormesh(edges(a), edges(e), grids[key], cmap=cmap, shading="flat",
                            **({"vmin": 0.0, "vmax": 1.0} if key == "surv" else {}))
         fig.colorbar(pc, ax=ax, label=label)
