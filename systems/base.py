@@ -16,8 +16,9 @@ and optionally
     Degree of H as a polynomial in y, or None when H is not a polynomial.  Used to choose the
     smallest k that conserves H exactly.
 ``hessian(y)``
-    The (2m, 2m) Hessian of H at one state; otherwise the Newton solver uses finite differences
-    of ``gradient``.
+    The Hessian of H at one state y of shape (2m,): an array of shape (2m, 2m), rows and
+    columns ordered like y = (q, p), entry (i, j) = d^2 H / dy_i dy_j.  Without it the Newton
+    solver uses finite differences of ``gradient`` (2m extra gradient calls per Newton step).
 ``initial_state()``
     A default starting state.
 Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of

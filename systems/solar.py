@@ -15,7 +15,7 @@ from .nbody import NBody
 #: Gaussian gravitational constant squared: G in AU^3 / (solar mass day^2).
 G_AU_DAY_MSUN = 0.01720209895 ** 2
 
-_OUTER = (  # HLW Table I.2.3 (see shared/reference/test-problems.md)
+_OUTER = (  # Hairer, Lubich, Wanner, Geometric Numerical Integration, Table I.2.3
     ("sun", 1.00000597682, (0, 0, 0), (0, 0, 0)),
     ("jupiter", 0.000954786104043, (-3.5023653, -3.8169847, -1.5507963),
      (0.00565429, -0.00412490, -0.00190589)),
