@@ -2,16 +2,24 @@
 
 A system is any object with
 
-``dim``
-    Number of degrees of freedom m; states are y = (q, p) flat, shape (2m,).
 ``energy(y)``
-    H(y) for y of shape (2m,) (a float) or a stack (n, 2m) (shape (n,)).
+    H(y) for y of shape (2m,) (a float).  Written for one state it is called once per state;
+    when it also takes a stack (n, 2m) and returns shape (n,) (detected once, or declared with
+    ``batched_energy = True``) the stack is passed in one call.
 ``gradient(y)``
-    grad H(y), same shape as y; must accept a stack (n, 2m) of states (the k stages of a
-    step are evaluated in one call).
+    grad H(y), same shape as y; must accept a stack (n, 2m) of states and return one gradient
+    per row, shape (n, 2m) (the k stages of a step are evaluated in one call).  Checked once on
+    a stack of 3 states; a mistake is a ``ValueError`` naming ``gradient`` and the shapes.
 
 and optionally
 
+``dim``
+    Number of degrees of freedom m; states are y = (q, p) flat, shape (2m,).  Default
+    ``len(y0) // 2``.
+``stack_protocol``
+    True declares that ``dim`` is set and ``energy`` and ``gradient`` both take stacks: the
+    system is then used as it is, without the one-time check of :mod:`integrators.protocol`
+    (:class:`HamiltonianSystem` sets it).
 ``polynomial_degree``
     Degree of H as a polynomial in y, or None when H is not a polynomial.  Used to choose the
     smallest k that conserves H exactly.
@@ -51,6 +59,8 @@ class HamiltonianSystem:
 
     dim: int
     polynomial_degree: int | None = None
+    # energy and gradient take stacks: the engine uses the system unprobed (integrators.protocol)
+    stack_protocol = True
 
     def energy(self, y: np.ndarray):  # pragma: no cover - abstract
         raise NotImplementedError
