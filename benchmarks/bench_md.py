@@ -6,7 +6,7 @@ per step and per force evaluation of HBVM(k, s) for s = 1..4 (k chosen by HBVMDy
 VelocityVerlet, the batched compiled stage path against calling the calculator stage by stage,
 and the energy error reached.  Writes the markdown table to benchmarks/results/md.md.
 
-    /tmp/venv/bin/python benchmarks/bench_md.py [--steps 300] [--sizes 256 1000]
+    python benchmarks/bench_md.py [--steps 300] [--sizes 256 1000]
 """
 from __future__ import annotations
 

@@ -6,7 +6,9 @@
 2. EMT copper, 32 atoms in a periodic box at 600 K: not a polynomial; HBVM's error is set by
    the quadrature and by EMT's smoothness at its cutoff, far below VelocityVerlet's.
 
-    /tmp/venv/bin/python examples/md_cluster_and_copper.py [--plot energy.png]
+    python examples/md_cluster_and_copper.py [--plot energy.png] [--quick]
+
+``--quick`` runs a 13-atom cluster and a few steps (a smoke test, as in the test suite).
 """
 from __future__ import annotations
 
@@ -16,40 +18,33 @@ from ase.build import bulk
 from ase.calculators.emt import EMT
 
 from hbvm_md.md_comparison import compare_md, default_cluster
+from hbvm_md.plots import energy_error_plot
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plot", help="save a plot of the relative energy error to this file")
+    ap.add_argument("--quick", action="store_true", help="13 atoms and a few steps (smoke test)")
     args = ap.parse_args(argv)
+    n_atoms, steps, cu_steps = (13, 20, 5) if args.quick else (38, 1000, 100)
 
-    print("## Polynomial cluster (38 atoms, all pairs, degree 4), 300 K, 1000 steps\n")
-    atoms, calc = default_cluster(38)
+    print(f"## Polynomial cluster ({n_atoms} atoms, all pairs, degree 4), 300 K, {steps} steps\n")
+    atoms, calc = default_cluster(n_atoms)
     cluster = compare_md(atoms, calc, timesteps_fs=(5.0, 20.0),
-                         methods=("VelocityVerlet", ("HBVM", 1), ("HBVM", 2)), steps=1000,
+                         methods=("VelocityVerlet", ("HBVM", 1), ("HBVM", 2)), steps=steps,
                          temperature_K=300.0, seed=0)
 
-    print("\n## EMT copper (32 atoms, periodic), 600 K, 100 steps\n")
+    print(f"\n## EMT copper (32 atoms, periodic), 600 K, {cu_steps} steps\n")
     cu = bulk("Cu", cubic=True) * (2, 2, 2)
     copper = compare_md(cu, EMT(), timesteps_fs=(5.0,),
-                        methods=("VelocityVerlet", ("HBVM", 1, 2), ("HBVM", 2, 3)), steps=100,
+                        methods=("VelocityVerlet", ("HBVM", 1, 2), ("HBVM", 2, 3)), steps=cu_steps,
                         temperature_K=600.0, seed=0)
 
     if args.plot:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        for ax, res, title in ((axes[0], cluster, "quartic cluster"), (axes[1], copper, "EMT Cu")):
-            for label, (t, err) in res.series.items():
-                ax.semilogy(t, abs(err) + 1e-17, label=label)
-            ax.set_xlabel("t [ps]")
-            ax.set_ylabel("|E - E0| / |E0|")
-            ax.set_title(title)
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(args.plot, dpi=120)
-        print(f"\nplot written to {args.plot}")
+        series = {f"{name}: {label}": ser for name, res in (("cluster", cluster), ("EMT Cu", copper))
+                  for label, ser in res.series.items()}
+        path = energy_error_plot(series, args.plot, "Quartic cluster and EMT copper", "t [ps]")
+        print(f"\nplot written to {path}")
     return cluster, copper
 
 

@@ -2,20 +2,23 @@
 astropy's built-in ephemeris, compared with REBOUND's own integrators in the same process.
 
     python examples/solar_system_rebound.py [--t-end 1e5] [--plot energy.png]
+
+(the test suite runs it with a short ``--t-end``)
 """
 import argparse
 
 import rebound
 
 from hbvm_md import HBVMIntegrator, compare_rebound
+from hbvm_md.plots import energy_error_plot
 from systems import outer_solar_system, solar_system
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--t-end", type=float, default=1e5, help="days")
     ap.add_argument("--plot", default=None, help="save the energy-error plot to this file")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     # 1. HBVM as a REBOUND integrator: attach, then use REBOUND as usual
     sim = outer_solar_system().to_rebound()
@@ -29,7 +32,7 @@ def main():
 
     # 2. conservation against REBOUND's integrators
     print("\nOuter solar system (HLW Table I.2.3):")
-    c1 = compare_rebound("outer_solar_system", args.t_end, hbvm=((6, None, 100.0), (6, None, 250.0)),
+    c1 = compare_rebound("outer-solar-system", args.t_end, hbvm=((6, None, 100.0), (6, None, 250.0)),
                          verbose=True)
     print("Sun (with the inner planets) + Jupiter..Neptune from astropy's built-in ephemeris, J2000:")
     scene = solar_system("2000-01-01T12:00:00", bodies=("sun", "jupiter", "saturn", "uranus", "neptune"),
@@ -37,19 +40,8 @@ def main():
     compare_rebound(scene, args.t_end, hbvm=((6, None, 100.0),), verbose=True)
 
     if args.plot:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        fig, ax = plt.subplots(figsize=(7, 4))
-        for label, (t, e) in c1.series.items():
-            ax.semilogy(t, e + 1e-18, label=label)
-        ax.set_xlabel("t (days)")
-        ax.set_ylabel("relative energy error")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(args.plot)
-        print(f"saved {args.plot}")
-
+        path = energy_error_plot(c1.series, args.plot, "Outer solar system", "t [days]")
+        print(f"saved {path}")
 
 if __name__ == "__main__":
     main()

@@ -8,7 +8,7 @@ Names are imported lazily so that ``import hbvm_md`` does not pull in ASE or REB
 """
 from importlib import import_module
 
-from integrators import HBVM, ConvergenceError, integrate
+from integrators import HBVM, ConvergenceError, UnresolvedStepError, integrate
 
 __version__ = "0.1.0"
 
@@ -22,7 +22,7 @@ _LAZY = {
     "run_ensemble": "hbvm_md.ensemble",
 }
 
-__all__ = ["HBVM", "ConvergenceError", "integrate", *_LAZY]
+__all__ = ["HBVM", "ConvergenceError", "UnresolvedStepError", "integrate", *_LAZY]
 
 
 def __getattr__(name):

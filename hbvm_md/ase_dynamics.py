@@ -7,9 +7,12 @@ units, p in amu A / time unit, F in eV / A, so dq/dt = p / m and dp/dt = F.
 """
 from __future__ import annotations
 
+import copy
 import logging
+import re
 
 import numpy as np
+from ase import units
 from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
@@ -17,6 +20,10 @@ from integrators import HBVM, ConvergenceError, Stepper
 from systems.base import SeparableSystem
 
 _log = logging.getLogger(__name__)
+
+# keyword arguments of ASE's thermostats and barostats: HBVMDynamics conserves energy (NVE)
+_ENSEMBLE_KWARGS = ("temperature_K", "temperature", "friction", "taut", "ttime", "pressure_au",
+                    "pressure", "taup", "externalstress")
 
 def default_k(s: int, polynomial_degree: int | None) -> int:
     """The k that ``HBVMDynamics(k=None)`` uses.
@@ -125,15 +132,29 @@ class HBVMDynamics(MolecularDynamics):
     cached values.  A failed step (:class:`integrators.ConvergenceError`, non-finite forces)
     leaves positions, momenta and the calculator's cached results as they were, then raises.
     The engine (with its extrapolated initial guess and compensated summation) is kept between
-    steps and rebuilt when the atoms were changed from outside.
+    steps and rebuilt when the atoms were changed from outside.  The message of a
+    ``ConvergenceError`` gives h and t in fs (its attributes ``h`` and ``t`` stay in ASE units).
+    Masses must be positive and positions and momenta finite (``ValueError`` naming the atoms);
+    with no atoms a step does nothing.  The ensemble is NVE: thermostat arguments such as
+    ``temperature_K`` raise ``TypeError`` pointing to ASE's Langevin, Bussi and
+    NoseHooverChainNVT.
     """
 
     def __init__(self, atoms, timestep: float, s: int = 2, k: int | None = None,
                  solver: str = "auto", nodes: str = "gauss", trajectory=None, logfile=None,
                  loginterval: int = 1, **kwargs):
+        thermo = [key for key in _ENSEMBLE_KWARGS if key in kwargs]
+        if thermo:
+            raise TypeError(f"HBVMDynamics is NVE (it conserves the energy) and takes no "
+                            f"{', '.join(f'`{key}`' for key in thermo)}; for constant temperature use "
+                            f"ASE's ase.md.langevin.Langevin, ase.md.bussi.Bussi or "
+                            f"ase.md.nose_hoover_chain.NoseHooverChainNVT, and to start at a "
+                            f"temperature set momenta with ase.md.velocitydistribution."
+                            f"MaxwellBoltzmannDistribution(atoms, temperature_K=...)")
         if atoms.calc is None:
             raise ValueError("`atoms` has no calculator; set atoms.calc before creating "
                              "HBVMDynamics")
+        self._check_atoms(atoms)
         if not np.isfinite(timestep) or timestep == 0:
             raise ValueError(f"`timestep` must be a nonzero finite number (got timestep={timestep!r})")
         if solver not in ("auto", "fixed_point", "newton"):
@@ -193,6 +214,45 @@ class HBVMDynamics(MolecularDynamics):
                                  f"{type(c).__name__}); remove it or use VelocityVerlet")
         return np.array(sorted(set(fixed)), dtype=int)
 
+    @staticmethod
+    def _check_atoms(atoms) -> None:
+        """Masses positive and finite, positions and momenta finite; the message names the
+        atoms (at most 10 indices), never the whole state."""
+        def first(bad) -> str:
+            idx = np.flatnonzero(bad)
+            more = f" and {idx.size - 10} more" if idx.size > 10 else ""
+            return f"{idx[:10].tolist()}{more} (of {len(atoms)})"
+
+        m = np.asarray(atoms.get_masses(), dtype=float)
+        bad = ~(np.isfinite(m) & (m > 0))
+        if bad.any():
+            raise ValueError(f"`atoms` masses must be positive and finite (got {m[bad][:10].tolist()} "
+                             f"for atoms {first(bad)}); HBVMDynamics divides by the masses: set "
+                             f"them with atoms.set_masses(...), or keep an atom in place with "
+                             f"FixAtoms and a nonzero mass")
+        for what, v in (("positions", atoms.get_positions()), ("momenta", atoms.get_momenta())):
+            bad = ~np.all(np.isfinite(v), axis=1)
+            if bad.any():
+                raise ValueError(f"`atoms` {what} are not finite (nan or inf) for atoms {first(bad)}; "
+                                 f"check how the structure or the velocities were built")
+
+    def _in_fs(self, err: ConvergenceError) -> ConvergenceError:
+        """The same error (same type and attributes, h and t in ASE units) with h and t shown
+        in fs in the message, and a hint in the words of this class."""
+        if type(err) is ConvergenceError:
+            # "auto" has tried Newton after fixed point: suggest a smaller timestep only
+            hint = ("try a smaller timestep, or solver='newton' for a stiff problem"
+                    if self.solver == "fixed_point" else "try a smaller timestep")
+            if "not finite" in str(err):
+                hint = "the forces or the new state are not finite; " + hint
+            new = ConvergenceError(err.h, err.residual, err.iterations,
+                                   "auto" if self.solver == "auto" else err.solver, err.t, hint)
+        else:
+            new = copy.copy(err)
+        where = f"h={err.h / units.fs:.6g} fs" + ("" if err.t is None else f" at t={err.t / units.fs:.6g} fs")
+        new.args = (re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1),)
+        return new
+
     def _current_state(self):
         atoms = self.atoms
         return (np.asarray(atoms.get_positions(), dtype=float).ravel(),
@@ -209,6 +269,7 @@ class HBVMDynamics(MolecularDynamics):
                  or not np.array_equal(w[2], fixed)
                  or not np.array_equal(sys_.masses, np.repeat(atoms.get_masses(), 3)))
         if fresh:
+            self._check_atoms(atoms)
             if sys_ is not None:
                 self._stage_total += sys_.stage_evaluations
             batched = hasattr(atoms.calc, "forces_batch")
@@ -226,6 +287,8 @@ class HBVMDynamics(MolecularDynamics):
         HBVM evaluates its own stage forces.
         """
         atoms = self.atoms
+        if len(atoms) == 0:
+            return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
         fixed = self._fixed_indices(atoms)
         st = self._ensure_stepper(fixed)
         pos0 = atoms.get_positions()
@@ -248,7 +311,7 @@ class HBVMDynamics(MolecularDynamics):
                 raise ConvergenceError(self.dt, float("nan"), 0, st.solver, st.t - self.dt,
                                        hint="the forces at the new positions are not finite; "
                                             "try a smaller timestep")
-        except BaseException:
+        except BaseException as err:
             st.__dict__.clear()
             st.__dict__.update(saved_stepper)
             self._system.stage_evaluations = saved_count
@@ -258,6 +321,8 @@ class HBVMDynamics(MolecularDynamics):
                 calc.atoms, calc.results = saved_calc
             else:
                 atoms.get_forces(md=True)
+            if isinstance(err, ConvergenceError):
+                raise self._in_fs(err) from None
             raise
         self._written = (*self._current_state(), fixed)
         return forces

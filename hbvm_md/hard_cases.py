@@ -420,7 +420,8 @@ CASES = {
 
 def run_all(quick: bool = False, names=None, progress=None) -> list[CaseReport]:
     """Run the named cases (default all) and return their reports."""
-    names = list(CASES) if names is None else list(names)
+    from .names import scene_key
+    names = list(CASES) if names is None else [scene_key(n) for n in names]
     bad = [n for n in names if n not in CASES]
     if bad:
         raise ValueError(f"unknown hard case(s) {bad}; choose from {list(CASES)}")

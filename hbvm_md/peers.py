@@ -144,7 +144,7 @@ def stormer_verlet(system, y0, h: float, steps: int, sample_every: int = 1,
     if not all(hasattr(system, a) for a in ("masses", "forces", "potential")):
         raise TypeError(f"`system` must be separable (masses, forces, potential) for Stormer-Verlet "
                         f"(got {type(system).__name__}); use dop853 for a general system")
-    y0 = check_state(system, y0)
+    system, y0 = check_state(system, y0)
     h = check_step(h)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"`steps` must be an integer >= 0 (got steps={steps!r})")
@@ -216,7 +216,7 @@ def dop853(system, y0, t_end: float, rtol: float, atol: float | None = None,
         ``finished`` is False when solve_ivp reports failure.
     """
     from scipy.integrate import solve_ivp
-    y0 = check_state(system, y0)
+    system, y0 = check_state(system, y0)
     if not (np.isfinite(t_end) and t_end > 0):
         raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")
     if not (np.isfinite(rtol) and 0 < rtol < 1):

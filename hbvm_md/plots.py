@@ -6,7 +6,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 def _save(fig, path) -> Path:
     """Lay out, write (creating the folder) and close a figure; returns the path."""
     fig.tight_layout()
@@ -23,6 +22,12 @@ def _pyplot():
     return plt
 
 
+def plotted_error(err) -> np.ndarray:
+    """|err| with non-finite values as gaps (nan) and zeros lifted to 1e-17 for a log axis."""
+    err = np.abs(np.asarray(err, dtype=float))
+    return np.clip(np.where(np.isfinite(err), err, np.nan), 1e-17, None)
+
+
 def energy_error_plot(series: dict, path, title: str, time_label: str = "t") -> Path:
     """Relative energy error against time, log scale, one line per method.
 
@@ -36,14 +41,14 @@ def energy_error_plot(series: dict, path, title: str, time_label: str = "t") -> 
 
     Returns
     -------
-    Path of the PNG.  Zeros are drawn at 1e-17 (below double round-off) so they stay visible.
+    Path of the PNG.  The series may be signed (H - H0) / |H0|: the magnitude is drawn, so that
+    a negative error is not hidden below the axis.  Zeros are drawn at 1e-17 (below double
+    round-off) so they stay visible.
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
     for label, (t, err) in series.items():
-        err = np.asarray(err, dtype=float)
-        ax.semilogy(np.asarray(t), np.clip(np.where(np.isfinite(err), err, np.nan), 1e-17, None),
-                    label=label, lw=1)
+        ax.semilogy(np.asarray(t), plotted_error(err), label=label, lw=1)
     ax.set_xlabel(time_label)
     ax.set_ylabel("|H - H0| / |H0|")
     ax.set_title(title)

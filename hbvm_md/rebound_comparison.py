@@ -26,17 +26,21 @@ def _scene_factory(scene) -> Callable:
 
     from systems import NBody, outer_solar_system
 
+    from .names import scene_key
+
     if isinstance(scene, str):
-        if scene == "outer_solar_system":
+        key = scene_key(scene)
+        if key == "outer-solar-system":
             nb = outer_solar_system()
             return lambda: nb.to_rebound()
-        if scene == "rebound_outer_solar_system":
+        if key == "rebound-outer-solar-system":
             def make():
                 sim = rebound.Simulation()
                 sim.add("outer solar system")
                 return sim
             return make
-        raise ValueError(f"`scene` must be 'outer_solar_system', 'rebound_outer_solar_system', an "
+        raise ValueError(f"`scene` must be 'outer-solar-system', 'rebound-outer-solar-system' ('_' "
+                         f"or '-' alike), an "
                          f"NBody or a function returning a rebound.Simulation (got {scene!r})")
     if isinstance(scene, NBody):
         return lambda: scene.to_rebound()
@@ -121,8 +125,9 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
     Parameters
     ----------
     scene : str, NBody or callable
-        "outer_solar_system" (HLW, :func:`systems.outer_solar_system`),
-        "rebound_outer_solar_system" (REBOUND's ``sim.add("outer solar system")``), an
+        "outer-solar-system" (HLW, :func:`systems.outer_solar_system`),
+        "rebound-outer-solar-system" (REBOUND's ``sim.add("outer solar system")``) (names as
+        everywhere in hbvm_md: "outer_solar_system" is the same scene), an
         :class:`systems.NBody` (e.g. :func:`systems.solar_system`) or a function returning a
         fresh ``rebound.Simulation`` (called once per run).
     t_end : float

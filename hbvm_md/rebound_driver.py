@@ -371,8 +371,8 @@ class HBVMIntegrator:
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
             raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
-        if ctypes.sizeof(rebound.Particle) != 8 * _DOUBLES_PER_PARTICLE or rebound.Particle.m.offset != 72:
-            raise RuntimeError("unexpected reb_particle layout; this REBOUND version is not supported")
+        if not rebound.__version__.startswith("5.") or ctypes.sizeof(rebound.Particle) != 8 * _DOUBLES_PER_PARTICLE or rebound.Particle.m.offset != 72:
+            raise RuntimeError(f"HBVMIntegrator supports REBOUND 5.x (its particle layout) only; got rebound {rebound.__version__}: pip install 'rebound>=5.0,<6'")
         if ctypes.addressof(sim) in _REGISTRY:
             raise ValueError("an HBVMIntegrator is already attached to this simulation; call "
                              "its detach() first")

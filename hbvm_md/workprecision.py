@@ -33,6 +33,7 @@ from systems import FPU, HenonHeiles, Kepler
 
 from .autok import choose_k, k_cost
 from .hard_cases import kepler_exact
+from .names import scene_key
 from .peers import dop853, rebound_kepler, sample_interval, stormer_verlet
 from .progress import progress
 
@@ -306,9 +307,10 @@ SCENES = {
 
 def sweep(scene: str, quick: bool = False, k_info: list | None = None, bar=None) -> tuple[list, str]:
     """Run one scene's sweep; returns (rows, title).  Rows are dicts with keys ``FIELDS``."""
-    if scene not in SCENES:
-        raise ValueError(f"unknown scene {scene!r}; choose from {list(SCENES)}")
-    return SCENES[scene](quick=quick, k_info=k_info, bar=bar)
+    key = scene_key(scene)
+    if key not in SCENES:
+        raise ValueError(f"unknown scene {scene!r}; choose from {list(SCENES)} ('_' or '-' alike)")
+    return SCENES[key](quick=quick, k_info=k_info, bar=bar)
 
 
 def markdown(rows: list, titles: dict, k_info: list) -> str:
@@ -346,7 +348,7 @@ def bench(outdir, scenes=None, quick: bool = False, log=print) -> dict:
     from .plots import work_precision_plot
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    scenes = list(SCENES) if scenes is None else list(scenes)
+    scenes = list(SCENES) if scenes is None else [scene_key(s) for s in scenes]
     for s in scenes:
         if s not in SCENES:
             raise ValueError(f"unknown scene {s!r}; choose from {list(SCENES)}")

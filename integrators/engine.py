@@ -13,6 +13,7 @@ import numpy as np
 
 from .errors import ConvergenceError
 from .forms import FullForm, SeparableForm
+from .protocol import adapt_system
 from .solvers import SimplifiedNewton, StopRule, fixed_point, newton
 
 SOLVERS = ("auto", "fixed_point", "newton")
@@ -23,21 +24,22 @@ def _is_separable(system) -> bool:
     return all(hasattr(system, a) for a in ("masses", "forces", "potential"))
 
 
-def check_state(system, y, name: str = "y0") -> np.ndarray:
-    """A float copy of y, checked: shape (2 * system.dim,) and finite."""
-    if not hasattr(system, "dim") or not hasattr(system, "gradient"):
-        raise TypeError(f"`system` must offer `dim`, `energy(y)` and `gradient(y)` "
-                        f"(got {type(system).__name__}); see systems.base")
+def check_state(system, y, name: str = "y0"):
+    """(system, y): the system as the engine calls it (:func:`.protocol.adapt_system`) and a
+    float copy of y, checked: shape (2 * system.dim,) and finite."""
     try:
         y = np.array(y, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be an array of numbers (got {y!r})") from None
+    if not np.all(np.isfinite(y)):
+        bad = np.flatnonzero(~np.isfinite(y))
+        raise ValueError(f"`{name}` must be finite (got {y.flat[bad[0]]} at index {bad[0]}, {bad.size} "
+                         f"non-finite of {y.size}); check the initial state for nan or inf")
+    system = adapt_system(system, y)
     if y.shape != (2 * system.dim,):
         raise ValueError(f"`{name}` must have shape ({2 * system.dim},) = (q, p) of a system with "
                          f"{system.dim} degrees of freedom (got shape {y.shape})")
-    if not np.all(np.isfinite(y)):
-        raise ValueError(f"`{name}` must be finite (got {y}); check the initial state for nan or inf")
-    return y
+    return system, y
 
 
 def check_step(h) -> float:
@@ -102,8 +104,8 @@ class Stepper:
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto"):
         t0 = check_options(solver, form, tol, max_iter, t0)
+        system, self.y = check_state(system, y0)
         self.method, self.system = method, system
-        self.y = check_state(system, y0)
         self.t = t0
         if form == "separable" and not _is_separable(system):
             raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
@@ -292,7 +294,7 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
     if isinstance(sample_every, bool) or not isinstance(sample_every, (int, np.integer)) or sample_every < 1:
         raise ValueError(f"`sample_every` must be an integer >= 1 (got sample_every={sample_every!r})")
     t0 = check_options(solver, form, tol, max_iter, t0)
-    y0 = check_state(system, y0)
+    system, y0 = check_state(system, y0)
     kind = _fast_kind(system, solver, fast, form)
     if kind == "separable":
         return _integrate_fast(method, system, y0, h, int(steps), t0, solver, int(sample_every), tol, max_iter)

@@ -16,7 +16,8 @@ class ConvergenceError(RuntimeError):
     iterations : int
         Iterations done before giving up.
     solver : str
-        The solver that failed ("fixed_point" or "newton").
+        The solver that failed: "fixed_point", "newton", or "auto" when the fixed point
+        iteration and then Newton both failed (the hint then suggests a smaller step only).
     t : float or None
         Time at the start of the failed step, when known.
     """
@@ -25,7 +26,8 @@ class ConvergenceError(RuntimeError):
                  t: float | None = None, hint: str | None = None):
         self.h, self.residual, self.iterations, self.solver, self.t = h, residual, iterations, solver, t
         if hint is None:
-            hint = ("try a smaller step size h" if solver == "newton" else
+            # "auto" (fixed point, then Newton) has tried Newton already: do not suggest it
+            hint = ("try a smaller step size h" if solver in ("newton", "auto") else
                     "try a smaller step size h, or solver='newton' for a stiff problem")
         where = "" if t is None else f" at t={t:.17g}"
         super().__init__(

@@ -3,8 +3,8 @@
 References
 ----------
 Brugnano, Iavernaro, Trigiante (BIT), "The lack of continuity and the role of infinite and
-infinitesimal in numerical methods for ODEs: the case of symplecticity" (the paper in
-``shared/seed``): eqs. (orto1), (IDPO), (rk), (Xs)-(xij), Theorems 1 and 2.
+infinitesimal in numerical methods for ODEs: the case of symplecticity": eqs. (orto1), (IDPO),
+(rk), (Xs)-(xij), Theorems 1 and 2.
 """
 from __future__ import annotations
 

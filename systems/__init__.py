@@ -10,6 +10,7 @@ from .fpu import FPU
 from .henon_heiles import HenonHeiles
 from .kepler import Kepler
 from .pendulum import Morse, Pendulum
+from .poincare import PoincareKepler, PoincareTransformed, distance_power
 
 _LAZY = {
     "PolynomialPairPotential": "systems.pair_potential",
@@ -19,7 +20,8 @@ _LAZY = {
 }
 
 __all__ = ["HamiltonianSystem", "SeparableSystem", "FORCE_SIGNATURE", "POTENTIAL_SIGNATURE",
-           "Kepler", "HenonHeiles", "FPU", "Pendulum", "Morse", *_LAZY]
+           "Kepler", "HenonHeiles", "FPU", "Pendulum", "Morse", "PoincareTransformed",
+           "PoincareKepler", "distance_power", *_LAZY]
 
 
 def __getattr__(name):

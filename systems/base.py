@@ -2,22 +2,31 @@
 
 A system is any object with
 
-``dim``
-    Number of degrees of freedom m; states are y = (q, p) flat, shape (2m,).
 ``energy(y)``
-    H(y) for y of shape (2m,) (a float) or a stack (n, 2m) (shape (n,)).
+    H(y) for y of shape (2m,) (a float).  Written for one state it is called once per state;
+    when it also takes a stack (n, 2m) and returns shape (n,) (detected once, or declared with
+    ``batched_energy = True``) the stack is passed in one call.
 ``gradient(y)``
-    grad H(y), same shape as y; must accept a stack (n, 2m) of states (the k stages of a
-    step are evaluated in one call).
+    grad H(y), same shape as y; must accept a stack (n, 2m) of states and return one gradient
+    per row, shape (n, 2m) (the k stages of a step are evaluated in one call).  Checked once on
+    a stack of 3 states; a mistake is a ``ValueError`` naming ``gradient`` and the shapes.
 
 and optionally
 
+``dim``
+    Number of degrees of freedom m; states are y = (q, p) flat, shape (2m,).  Default
+    ``len(y0) // 2``.
+``stack_protocol``
+    True declares that ``dim`` is set and ``energy`` and ``gradient`` both take stacks: the
+    system is then used as it is, without the one-time check of :mod:`integrators.protocol`
+    (:class:`HamiltonianSystem` sets it).
 ``polynomial_degree``
     Degree of H as a polynomial in y, or None when H is not a polynomial.  Used to choose the
     smallest k that conserves H exactly.
 ``hessian(y)``
-    The (2m, 2m) Hessian of H at one state; otherwise the Newton solver uses finite differences
-    of ``gradient``.
+    The Hessian of H at one state y of shape (2m,): an array of shape (2m, 2m), rows and
+    columns ordered like y = (q, p), entry (i, j) = d^2 H / dy_i dy_j.  Without it the Newton
+    solver uses finite differences of ``gradient`` (2m extra gradient calls per Newton step).
 ``initial_state()``
     A default starting state.
 Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of
@@ -50,6 +59,8 @@ class HamiltonianSystem:
 
     dim: int
     polynomial_degree: int | None = None
+    # energy and gradient take stacks: the engine uses the system unprobed (integrators.protocol)
+    stack_protocol = True
 
     def energy(self, y: np.ndarray):  # pragma: no cover - abstract
         raise NotImplementedError

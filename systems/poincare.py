@@ -77,6 +77,9 @@ def distance_power(alpha: float, indices=None) -> tuple[Callable, Callable]:
 class PoincareTransformed(HamiltonianSystem):
     """K(q, t, p, e) = g(q) (H(q, p) + e) in the extended phase space (q, t; p, e).
 
+    Build it with :meth:`for_kepler` for a Kepler problem (g = |q|^alpha, compiled kernels), or
+    from any system with your own g and its gradient (e.g. :func:`distance_power`).
+
     Parameters
     ----------
     system : HamiltonianSystem

@@ -15,7 +15,7 @@ from .nbody import NBody
 #: Gaussian gravitational constant squared: G in AU^3 / (solar mass day^2).
 G_AU_DAY_MSUN = 0.01720209895 ** 2
 
-_OUTER = (  # HLW Table I.2.3 (see shared/reference/test-problems.md)
+_OUTER = (  # Hairer, Lubich, Wanner, Geometric Numerical Integration, Table I.2.3
     ("sun", 1.00000597682, (0, 0, 0), (0, 0, 0)),
     ("jupiter", 0.000954786104043, (-3.5023653, -3.8169847, -1.5507963),
      (0.00565429, -0.00412490, -0.00190589)),
@@ -66,14 +66,14 @@ def body_mass(name: str) -> float:
     return 1.0 if name == "sun" else 1.0 / MASS_RATIOS[name]
 
 
-def _posvel(names, epoch):
+def _posvel(names, epoch, ephemeris: str = "builtin"):
     from astropy import units as u
     from astropy.coordinates import get_body_barycentric_posvel, solar_system_ephemeris
     from astropy.utils import iers
-    iers.conf.auto_download = False      # the built-in ephemeris needs no network
+    iers.conf.auto_download = False      # neither ephemeris needs the network
     x = np.empty((len(names), 3))
     v = np.empty((len(names), 3))
-    with solar_system_ephemeris.set("builtin"):
+    with solar_system_ephemeris.set(ephemeris):
         for i, name in enumerate(names):
             p, w = get_body_barycentric_posvel(name, epoch)
             x[i] = p.xyz.to_value(u.au)
@@ -82,16 +82,27 @@ def _posvel(names, epoch):
 
 
 def solar_system(epoch="2000-01-01T12:00:00", bodies: Sequence[str] = ("sun", "jupiter", "saturn", "uranus", "neptune"),
-                 include_inner_in_sun: bool = False, units=("au", "day", "solMass")) -> NBody:
-    """The Sun and chosen planets at ``epoch`` from astropy's built-in ephemeris.
+                 include_inner_in_sun: bool = False, units=("au", "day", "solMass"),
+                 ephemeris: str = "builtin") -> NBody:
+    """The Sun and chosen planets at ``epoch`` from astropy's built-in ephemeris or a JPL kernel.
 
     Parameters
     ----------
     epoch : astropy.time.Time or str
-        A ``Time`` or anything ``Time`` accepts (a string is read in the TDB scale).
+        One time: a scalar ``Time`` or a date string such as "2024-01-01" (read in the TDB
+        scale).  Arrays of times, bare numbers (ambiguous: JD or MJD? which scale?) and None
+        are refused; for a Julian date pass ``Time(2451545.0, format="jd", scale="tdb")``.
     bodies : sequence of str
-        Names from :data:`BODIES` (astropy's built-in ephemeris has no Pluto); only these are
-        modelled.
+        Names from :data:`BODIES` (astropy's ephemerides have no Pluto), "sun" among them (the
+        planets would fly off without it); only these are modelled.  A single string is
+        refused (it would be read letter by letter).
+    ephemeris : str
+        "builtin" (default): astropy's built-in ephemeris (ERFA's epv00, a VSOP87 fit), no
+        download, good to about 1e-3 AU for the outer planets: integrating one year from
+        2024-01-01 misses the ephemeris by 1.2e-3 .. 4.5e-3 AU, with HBVM and with IAS15 alike,
+        so the scene is a realistic model, not the true sky.  Or the path of a JPL kernel
+        (a ``.bsp`` file such as de440s.bsp, already on disk; needs the ``jplephem`` package),
+        used through astropy's ``solar_system_ephemeris``.
     include_inner_in_sun : bool
         Add the masses of the inner planets (Mercury, Venus, Earth-Moon, Mars) that are not in
         ``bodies`` to the Sun, placed at the barycentre of the Sun and those planets (the usual
@@ -104,10 +115,14 @@ def solar_system(epoch="2000-01-01T12:00:00", bodies: Sequence[str] = ("sun", "j
     -------
     NBody
         Barycentric (solar-system barycentre) positions and velocities, masses from
-        :data:`MASS_RATIOS`, bodies in the order given.
+        :data:`MASS_RATIOS`, bodies in the order given.  ``body_masses`` has one mass per body
+        (N,); ``masses`` has one per degree of freedom (3N,), as the integrators need.
     """
     from astropy import units as u
     from astropy.time import Time
+    if isinstance(bodies, str):
+        raise ValueError(f"`bodies` must be a sequence of names, e.g. bodies=('sun', {bodies!r}) "
+                         f"(got the string {bodies!r}, which would be read letter by letter)")
     names = [str(b).lower() for b in bodies]
     unknown = [b for b in names if b not in BODIES]
     if unknown or not names:
@@ -115,8 +130,9 @@ def solar_system(epoch="2000-01-01T12:00:00", bodies: Sequence[str] = ("sun", "j
                          f"(got unknown {unknown or bodies!r})")
     if len(set(names)) != len(names):
         raise ValueError(f"`bodies` lists a body twice (got {names})")
-    if include_inner_in_sun and "sun" not in names:
-        raise ValueError("`include_inner_in_sun=True` needs 'sun' in `bodies`")
+    if "sun" not in names:
+        raise ValueError(f"`bodies` must include 'sun' (got {names}): without it the planets "
+                         f"fly off on straight lines; e.g. bodies=('sun', {', '.join(map(repr, names))})")
     try:
         L, T, M = (u.Unit(x) for x in units)
         lf = (1 * u.au).to_value(L)
@@ -125,10 +141,11 @@ def solar_system(epoch="2000-01-01T12:00:00", bodies: Sequence[str] = ("sun", "j
     except (TypeError, ValueError, u.UnitsError) as exc:
         raise ValueError(f"`units` must be (length, time, mass) astropy units, e.g. "
                          f"('au', 'day', 'solMass') (got {units!r}: {exc})") from None
-    t = epoch if isinstance(epoch, Time) else Time(epoch, scale="tdb")
+    t = _epoch(epoch)
+    ephemeris = _ephemeris(ephemeris)
     extra = [b for b in _INNER if include_inner_in_sun and b not in names
              and not (b == "earth-moon-barycenter" and ("earth" in names or "moon" in names))]
-    x, v = _posvel(names + extra, t)
+    x, v = _posvel(names + extra, t, ephemeris)
     m = np.array([body_mass(b) for b in names + extra])
     if extra:
         i = names.index("sun")
@@ -140,3 +157,41 @@ def solar_system(epoch="2000-01-01T12:00:00", bodies: Sequence[str] = ("sun", "j
     n = len(names)
     G = G_AU_DAY_MSUN * lf ** 3 / (mf * tf ** 2)
     return NBody(m[:n] * mf, G=G, positions=x[:n] * lf, velocities=v[:n] * lf / tf, names=names)
+
+
+def _epoch(epoch):
+    """One astropy Time from ``epoch`` (a scalar Time or a date string), or a ValueError."""
+    from astropy.time import Time
+    if isinstance(epoch, Time):
+        if not epoch.isscalar:
+            raise ValueError(f"`epoch` must be one time (got a Time array of shape {epoch.shape}); "
+                             f"build one scene per epoch, e.g. solar_system(epoch[0])")
+        return epoch
+    if not isinstance(epoch, str):
+        raise ValueError(f"`epoch` must be an astropy Time or a date string such as "
+                         f"'2024-01-01T00:00:00' (got {epoch!r}); for a Julian date pass "
+                         f"Time({epoch!r}, format='jd', scale='tdb')")
+    try:
+        return Time(epoch, scale="tdb")
+    except ValueError:
+        raise ValueError(f"`epoch` must be a date astropy reads, such as '2024-01-01T00:00:00' "
+                         f"(ISO, TDB scale) (got {epoch!r})") from None
+
+
+def _ephemeris(ephemeris) -> str:
+    """"builtin" or the path of an existing .bsp file (no downloads)."""
+    import os
+    if isinstance(ephemeris, os.PathLike):
+        ephemeris = os.fspath(ephemeris)
+    if not isinstance(ephemeris, str):
+        raise ValueError(f"`ephemeris` must be 'builtin' or the path of a JPL .bsp file "
+                         f"(got {ephemeris!r})")
+    if ephemeris.lower() == "builtin":
+        return "builtin"
+    if not ephemeris.lower().endswith(".bsp") or not os.path.isfile(ephemeris):
+        raise ValueError(f"`ephemeris` must be 'builtin' or the path of a JPL kernel file on disk "
+                         f"(got {ephemeris!r}, " + ("not a .bsp file" if not ephemeris.lower().endswith(".bsp")
+                                                    else "no such file") +
+                         "); download one such as de440s.bsp from JPL (naif.jpl.nasa.gov, "
+                         "generic_kernels/spk/planets) first: this function never downloads")
+    return ephemeris

@@ -137,16 +137,21 @@ def test_step_returns_forces_at_new_positions_and_leaves_cache_warm():
     np.testing.assert_array_equal(f, atoms.get_forces())
 
 
-def test_irun_call_order_matches_ase():
-    atoms = bulk("Cu") * (2, 2, 2)
-    atoms.calc = EMT()
-    dyn = HBVMDynamics(atoms, timestep=1.0 * units.fs)
+def test_run_computes_the_final_forces_once_per_step_and_counts_steps_once():
+    """HBVMDynamics's own contract inside ASE's run loop: stage forces go through the batched
+    kernel, each step ends with one calculation at the new positions, and ASE's refresh, the
+    logger and an observer then hit that cache (no further calculations); nsteps is ASE's."""
+    atoms, calc = _thermal_cluster(13)
     calls = []
-    for name in ("step", "_refresh_properties", "log", "call_observers"):
-        setattr(dyn, name, lambda *a, _n=name, **k: calls.append(_n))
-    list(dyn.irun(steps=2))
-    per_step = ["step", "_refresh_properties", "log", "call_observers"]
-    assert calls == ["_refresh_properties", "log", "call_observers"] + 2 * per_step
+    real = calc.calculate
+    calc.calculate = lambda *a, **k: (calls.append(atoms.get_positions().copy()), real(*a, **k))[1]
+    dyn = HBVMDynamics(atoms, 5 * units.fs)
+    seen = []
+    dyn.attach(lambda: seen.append(atoms.get_potential_energy()))
+    dyn.run(3)
+    assert dyn.nsteps == 3 and len(seen) == 4
+    assert len(calls) == 1 + 3                       # the start, then one per step
+    np.testing.assert_array_equal(calls[-1], atoms.get_positions())
 
 
 @pytest.mark.parametrize("loginterval", [1, 2])
@@ -280,3 +285,68 @@ def test_bad_arguments():
     atoms.calc = None
     with pytest.raises(ValueError, match="no calculator"):
         HBVMDynamics(atoms, 1.0)
+
+
+def _cluster_with_calc(n=13):
+    atoms, calc = _thermal_cluster(n)
+    atoms.calc = calc
+    return atoms
+
+
+def test_nan_position_names_the_atom_not_the_state():
+    atoms = _cluster_with_calc()
+    atoms.positions[4, 1] = np.nan
+    with pytest.raises(ValueError, match=r"^`atoms` positions are not finite \(nan or inf\) for "
+                                         r"atoms \[4\] \(of 13\); check how") as info:
+        HBVMDynamics(atoms, 5 * units.fs)
+    assert len(str(info.value)) < 200
+    atoms = _cluster_with_calc()
+    dyn = HBVMDynamics(atoms, 5 * units.fs)
+    p = atoms.get_momenta()
+    p[[1, 2]] = np.inf
+    atoms.set_momenta(p)                             # changed between steps
+    with pytest.raises(ValueError, match=r"`atoms` momenta are not finite .*atoms \[1, 2\] \(of 13\)"):
+        dyn.run(1)
+
+
+def test_zero_mass_is_refused_naming_the_masses():
+    atoms = _cluster_with_calc()
+    masses = atoms.get_masses()
+    masses[0] = 0.0
+    atoms.set_masses(masses)
+    with pytest.raises(ValueError, match=r"`atoms` masses must be positive and finite \(got \[0\.0\] "
+                                         r"for atoms \[0\] \(of 13\)\).*set_masses"):
+        HBVMDynamics(atoms, 5 * units.fs)
+
+
+def test_no_atoms_is_a_no_op_like_velocity_verlet():
+    atoms = Atoms()
+    atoms.calc = PolynomialPairPotential([0.0, -2e-3, 1e-4])
+    dyn = HBVMDynamics(atoms, 5 * units.fs)
+    dyn.run(3)
+    assert dyn.nsteps == 3 and dyn.step().shape == (0, 3)
+
+
+@pytest.mark.parametrize("solver, hint", [
+    ("auto", r"try a smaller timestep$"),
+    ("fixed_point", r"try a smaller timestep, or solver='newton' for a stiff problem$"),
+])
+def test_convergence_error_shows_h_and_t_in_fs(solver, hint):
+    atoms = _cluster_with_calc()
+    dyn = HBVMDynamics(atoms, 500 * units.fs, s=2, solver=solver)
+    dyn.run(1)                                       # converges at 500 fs
+    before = atoms.get_positions()
+    dyn.dt = 2000 * units.fs
+    with pytest.raises(ConvergenceError, match=r"HBVM step of size h=2000 fs at t=500 fs did not "
+                                               r"converge: .*" + hint) as info:
+        dyn.run(1)
+    assert type(info.value) is ConvergenceError
+    assert info.value.h == pytest.approx(2000 * units.fs) and info.value.t == pytest.approx(500 * units.fs)
+    np.testing.assert_array_equal(atoms.get_positions(), before)
+
+
+def test_temperature_k_says_nve_and_points_to_ase_thermostats():
+    atoms = _cluster_with_calc()
+    with pytest.raises(TypeError, match=r"HBVMDynamics is NVE .* takes no `temperature_K`; .*"
+                                        r"ase\.md\.langevin\.Langevin.*NoseHooverChainNVT"):
+        HBVMDynamics(atoms, 5 * units.fs, temperature_K=300)

@@ -3,6 +3,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from hbvm_md.cli import main
@@ -92,3 +93,51 @@ def test_progress_is_quiet_off_a_terminal():
     bar = progress(total=5, enabled=True)
     assert not isinstance(bar, _Quiet)
     bar.close()
+
+
+def test_spectrum_says_when_conditioning_limits_the_check(capsys):
+    # HBVM(60, 50): eigenvalue condition numbers ~1e17, the difference 2.6e-2 proves nothing
+    assert main(["spectrum", "60", "50"]) == 0
+    out = capsys.readouterr().out
+    assert "isospectral check limited by conditioning" in out and "passed" not in out
+    assert main(["spectrum", "6", "3"]) == 0
+    assert "isospectral check passed" in capsys.readouterr().out
+
+
+def test_spectrum_reports_a_failed_check(monkeypatch, capsys):
+    import integrators
+    true = integrators.gauss_spectrum
+    monkeypatch.setattr(integrators, "gauss_spectrum", lambda s: true(s) + 1e-6)
+    assert main(["spectrum", "6", "3"]) == 1
+    assert "isospectral check FAILED" in capsys.readouterr().out
+
+
+def test_demo_refuses_one_atom_before_running_anything(capsys, monkeypatch):
+    import hbvm_md.rebound_comparison as rc
+    monkeypatch.setattr(rc, "compare_rebound", lambda *a, **k: pytest.fail("ran the solar system"))
+    with pytest.raises(SystemExit) as ex:
+        main(["demo", "--atoms", "1", "--quick"])
+    assert ex.value.code == 2
+    assert "argument --atoms: expected an integer >= 2, got '1'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["outer_solar_system", "outer-solar-system", "Outer Solar System"])
+def test_scene_names_accept_underscores_and_hyphens(name):
+    from hbvm_md.names import scene_key
+    from hbvm_md.rebound_comparison import _scene_factory
+    from hbvm_md.workprecision import SCENES
+    assert scene_key(name) == "outer-solar-system" and scene_key(name) in SCENES
+    assert _scene_factory(name)().N == 6
+    with pytest.raises(ValueError, match="'_' or '-' alike"):
+        _scene_factory("inner_solar_system")
+
+
+def test_case_names_accept_underscores(capsys):
+    assert main(["hard-cases", "--quick", "--case", "step_too_large"]) == 0
+    assert "== step-too-large" in capsys.readouterr().out
+
+
+def test_energy_plot_draws_magnitudes_of_signed_errors():
+    from hbvm_md.plots import plotted_error
+    got = plotted_error([0.0, -5.6e-8, 3e-16, float("nan")])
+    assert got[0] == 1e-17 and got[1] == 5.6e-8 and got[2] == 3e-16 and np.isnan(got[3])

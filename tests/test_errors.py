@@ -141,7 +141,7 @@ def test_bad_initial_state(y0, match):
 
 
 def test_not_a_system():
-    with pytest.raises(TypeError, match=r"`system` must offer `dim`, `energy\(y\)` and `gradient\(y\)` \(got dict\)"):
+    with pytest.raises(TypeError, match=r"`system` must offer `energy\(y\)` and `gradient\(y\)` \(and may give `dim`\) \(got dict\)"):
         integrate(HBVM(2, 2), {}, Y0, 0.1, 5)
 
 
@@ -177,3 +177,16 @@ def test_user_defined_system_integrates_and_oscillator_is_exact():
         z = (1.0 + 0.0j) * R ** n
         assert abs(res.y[-1, 0] - z.real) <= 1e-12 and abs(res.y[-1, 1] - z.imag) <= 1e-12
         assert abs(res.y[-1, 0] - np.cos(h * n)) <= 1e-3    # and close to the exact rotation
+
+
+def test_failed_auto_does_not_suggest_newton():
+    """solver="auto" has tried Newton after fixed point: its hint is a smaller step only."""
+    msg = str(ConvergenceError(5.0, 1e-3, 30, "auto", 0.0))
+    assert msg.endswith("try a smaller step size h") and "newton" not in msg.split(";")[-1]
+    assert "solver='newton'" in str(ConvergenceError(5.0, 1e-3, 60, "fixed_point", 0.0))
+
+
+def test_hbvm_md_exports_both_step_errors():
+    import hbvm_md
+    from integrators import UnresolvedStepError
+    assert hbvm_md.UnresolvedStepError is UnresolvedStepError and "UnresolvedStepError" in hbvm_md.__all__

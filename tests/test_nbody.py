@@ -102,3 +102,37 @@ def test_solar_system_matches_astropy():
     assert si.G == pytest.approx(6.6743e-11, rel=1e-4)
     with pytest.raises(ValueError, match="`bodies` must be a non-empty sequence"):
         solar_system(epoch, bodies=("sun", "pluto"))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"bodies": "jupiter"}, r"`bodies` must be a sequence of names, e\.g\. bodies=\('sun', 'jupiter'\) "
+                            r"\(got the string 'jupiter'"),
+    ({"bodies": ("jupiter", "saturn")}, r"`bodies` must include 'sun' \(got \['jupiter', 'saturn'\]\)"),
+    ({"epoch": 2451545.0}, r"`epoch` must be an astropy Time or a date string .*got 2451545\.0\); "
+                           r"for a Julian date pass Time\(2451545\.0, format='jd', scale='tdb'\)"),
+    ({"epoch": None}, r"`epoch` must be an astropy Time or a date string .*\(got None\)"),
+    ({"epoch": "yesterday-ish"}, r"`epoch` must be a date astropy reads.*got 'yesterday-ish'"),
+    ({"ephemeris": "no/such/de440s.bsp"}, r"`ephemeris` must be 'builtin' or the path of a JPL "
+                                          r"kernel file on disk \(got 'no/such/de440s\.bsp', no such file\)"),
+    ({"ephemeris": "de440"}, r"`ephemeris` .*\(got 'de440', not a \.bsp file\).*never downloads"),
+])
+def test_solar_system_bad_input_is_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        solar_system(**kwargs)
+
+
+def test_solar_system_refuses_a_time_array_and_sizes_its_masses():
+    from astropy.time import Time
+    epochs = Time(["2024-01-01", "2024-06-01"], scale="tdb")
+    with pytest.raises(ValueError, match=r"`epoch` must be one time \(got a Time array of shape \(2,\)\)"):
+        solar_system(epochs)
+    sc = solar_system(epochs[0], bodies=["sun", "jupiter"])
+    assert sc.body_masses.shape == (2,) and len(sc.masses) == 6
+    assert np.all(sc.masses == np.repeat(sc.body_masses, 3))
+
+
+def test_poincare_transformed_is_exported_and_built_for_kepler():
+    from systems import Kepler, PoincareKepler, PoincareTransformed, distance_power
+    pt = PoincareTransformed.for_kepler(Kepler(0.9), alpha=1.0)
+    assert isinstance(pt, PoincareKepler) and pt.dim == 3 and callable(distance_power)
+    assert float(pt.energy(pt.extend(Kepler(0.9).initial_state()))) == 0.0

@@ -22,3 +22,25 @@ def test_quick_start_has_two_commands():
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text()
     assert _quick_start_commands()[1] in ci
+
+
+def _python_blocks():
+    return re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+
+
+def test_readme_api_snippet_runs_and_prints_its_claims(capsys):
+    blocks = _python_blocks()
+    api = next(b for b in blocks if "# 1. The core engine" in b)
+    exec(compile(api, "README.md (Public API)", "exec"), {})
+    out = capsys.readouterr().out
+    # each printed energy error is at round-off, as the README says
+    errors = [float(x) for x in re.findall(r"(?:=|:|error) (\d\.\d+e-\d+)", out)]
+    assert len(errors) == 4 and max(errors) < 1e-12, out
+
+
+def test_readme_own_hamiltonian_example_prints_a_round_off_error(capsys):
+    block = next(b for b in _python_blocks() if "class Oscillator" in b)
+    exec(compile(block, "README.md (own Hamiltonian)", "exec"), {})
+    out = capsys.readouterr().out
+    assert out.startswith("oscillator, 1000 steps: max |H-H0|/|H0| =")
+    assert float(out.split("=")[-1]) < 1e-13

@@ -6,7 +6,7 @@ import pytest
 import rebound
 
 from hbvm_md import ConvergenceError, HBVMIntegrator
-from systems import outer_solar_system
+from systems import NBody, outer_solar_system
 
 
 def _xyz(sim):
@@ -25,20 +25,38 @@ def ias15_outer_1e5():
     return _xyz(sim)
 
 
-def test_outer_solar_system_1e5_days(ias15_outer_1e5):
-    sim = outer_solar_system().to_rebound()
-    # dt = 50: over six 1e-13 perturbations of the positions the max error measured
-    # 1.4e-15 .. 1.9e-15 (dt = 100: up to 3.1e-15, at the bound)
-    drv = HBVMIntegrator(sim, s=6, dt=50.0)
+def _perturbed_outer(seed: int, scale: float = 1e-13):
+    """The outer solar system with its positions moved by ``scale`` AU (a new round-off draw)."""
+    nb = outer_solar_system()
+    rng = np.random.default_rng(seed)
+    return NBody(nb.body_masses, G=nb.G, positions=nb.positions + scale * rng.standard_normal(nb.positions.shape),
+                 velocities=nb.velocities, names=nb.names)
+
+
+def _max_energy_error_1e5(sim, dt=50.0):
+    drv = HBVMIntegrator(sim, s=6, dt=dt)
     E0 = sim.energy()
     err = 0.0
     for t in np.linspace(0, 1e5, 201)[1:]:
         sim.integrate(t)
         err = max(err, abs(sim.energy() / E0 - 1))
+    return err, drv
+
+
+def test_outer_solar_system_1e5_days(ias15_outer_1e5):
+    sim = outer_solar_system().to_rebound()
+    err, drv = _max_energy_error_1e5(sim)
     assert sim.t == 1e5
-    assert err <= 3e-15
+    assert err <= 1e-14                      # one draw: loose; the round-off bound is below
     assert np.max(np.abs(_xyz(sim) - ias15_outer_1e5)) < 1e-9
     assert drv.resyncs == 1     # the compensated state was never thrown away
+
+
+def test_outer_solar_system_round_off_median_over_perturbed_starts():
+    # dt = 50: the max error measured 1.4e-15 .. 1.9e-15 over six 1e-13 perturbations of the
+    # positions; a single draw is a random walk's maximum, so the bound is on the median
+    errs = [_max_energy_error_1e5(_perturbed_outer(seed).to_rebound())[0] for seed in range(5)]
+    assert np.median(errs) <= 3e-15, errs
 
 
 def test_rebound_outer_solar_system_1000_jupiter_years():

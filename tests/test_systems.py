@@ -127,3 +127,18 @@ def test_henon_heiles_defaults_and_degrees():
 def test_system_validation(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+@pytest.mark.parametrize("system", [Kepler(0.6), HenonHeiles(), Pendulum()],
+                         ids=lambda s: type(s).__name__)
+def test_hessian_has_the_documented_shape_and_order(system):
+    """systems.base: hessian(y) is (2m, 2m), ordered like y = (q, p): compare with central
+    differences of the gradient."""
+    y = np.asarray(system.initial_state(), dtype=float) + 0.01
+    H = np.asarray(system.hessian(y))
+    n = 2 * system.dim
+    assert H.shape == (n, n)
+    eps = 1e-6
+    fd = np.array([(system.gradient(y + eps * e) - system.gradient(y - eps * e)) / (2 * eps)
+                   for e in np.eye(n)]).T
+    assert np.max(np.abs(H - fd)) <= 1e-6 * max(1.0, np.max(np.abs(H)))

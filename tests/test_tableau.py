@@ -1,6 +1,7 @@
 """Tableau algebra of HBVM(k, s), tested by itself (no time stepping).
 
-References: Brugnano, Iavernaro, Trigiante (the paper in shared/seed): eqs. (Xs), (IDPO), (rk),
+References: Brugnano, Iavernaro, Trigiante, "The lack of continuity and the role of infinite and
+infinitesimal in numerical methods for ODEs: the case of symplecticity": eqs. (Xs), (IDPO), (rk),
 Lemma 2, Theorems 1 and 2; HLW Sec. IV.3 (stability function), IV.5 (Pade approximants).
 """
 from __future__ import annotations
