@@ -1,18 +1,33 @@
-"""Benchmark (not a test): HBVMDynamics against VelocityVerlet on a periodic soft-sphere fluid.
+"""Benchmark (not a test): HBVMDynamics against VelocityVerlet, 1e3 to 1e5 atoms, same calculator.
 
-Cutoff polynomial potential phi(r) = eps (1 - r^2 / r_c^2)^4 (``PolynomialPairPotential.
-soft_sphere``), 256 and 1000 atoms, same calculator, same seeded velocities.  Reports wall time
-per step and per force evaluation of HBVM(k, s) for s = 1..4 (k chosen by HBVMDynamics) and of
-VelocityVerlet, the batched compiled stage path against calling the calculator stage by stage,
-and the energy error reached.  Writes the markdown table to benchmarks/results/md.md.
+A periodic soft-sphere fluid phi(r) = eps (1 - r^2 / r_c^2)^4 (``PolynomialPairPotential.
+soft_sphere``, cutoff mode), a rattled simple-cubic lattice of n^3 argon atoms, seeded
+Maxwell-Boltzmann velocities.  Both integrators are driven the way a user drives them:
+``atoms.calc = PolynomialPairPotential.soft_sphere(...)``, then ``dyn = VelocityVerlet(atoms, dt)``
+or ``dyn = HBVMDynamics(atoms, dt, s=s)`` and ``dyn.run(steps)``, with one observer recording
+the total energy each step.  They share the same calculator class with the same neighbour list:
+VelocityVerlet calls it through ``atoms.get_forces()``; HBVMDynamics evaluates its stage
+configurations through the calculator's ``forces_batch`` and the final positions of each step
+through ``atoms.get_forces()``.
 
-    python benchmarks/bench_md.py [--steps 300] [--sizes 256 1000]
+Timed: building the dynamics object and ``dyn.run(steps)`` (which includes ASE's first force
+call and all neighbour-list builds), nothing else.  The numba kernels are loaded beforehand on a
+small system (the one-off compilation is not timed).  Each (size, method) runs in its own
+process, so that the peak resident memory it reports is its own.  ``force evals`` counts
+configurations at which forces were computed (calculator calls plus batched stage
+configurations), so HBVM's count includes every stage of every iteration.
+
+    python benchmarks/bench_md.py [--steps 50] [--sizes 1000 10000 50000 100000] [--s 1 2 3 4]
 """
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 import platform
+import resource
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -24,33 +39,29 @@ from hbvm_md import HBVMDynamics
 from hbvm_md.md_comparison import maxwell_boltzmann
 from systems import PolynomialPairPotential
 
-EPS, RC, DT_FS, T_K = 0.1, 4.0, 5.0, 300.0
+EPS, RC, DT_FS, T_K, LATTICE = 0.1, 4.0, 5.0, 300.0, 3.5
 
 
 def fluid(n_atoms: int):
-    if n_atoms == 256:
-        atoms = bulk("Ar", "fcc", a=4.95, cubic=True) * (4, 4, 4)
-    elif n_atoms == 1000:
-        atoms = bulk("Ar", "sc", a=3.5) * (10, 10, 10)
-    else:
-        raise ValueError(f"sizes are 256 or 1000 (got {n_atoms})")
+    """The rattled simple-cubic lattice with the cube number of atoms nearest to ``n_atoms``."""
+    side = max(2, int(round(n_atoms ** (1.0 / 3.0))))
+    atoms = bulk("Ar", "sc", a=LATTICE) * (side, side, side)
     atoms.rattle(0.05, seed=2)
     maxwell_boltzmann(atoms, T_K, seed=0)
     return atoms
 
 
-class StageByStage(PolynomialPairPotential):
-    """The same potential without ``forces_batch``: HBVMDynamics calls it stage by stage."""
-
-    def __getattribute__(self, name):
-        if name == "forces_batch":
-            raise AttributeError(name)
-        return super().__getattribute__(name)
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # KiB on Linux
 
 
-def run(atoms, make_dyn, steps, calc):
-    atoms = atoms.copy()
-    atoms.calc = calc
+def _make(method: str, atoms, dt):
+    return VelocityVerlet(atoms, dt) if method == "VV" else HBVMDynamics(atoms, dt, s=int(method))
+
+
+def _run_once(method: str, atoms, steps: int) -> dict:
+    dt = DT_FS * units.fs
+    atoms.calc = calc = PolynomialPairPotential.soft_sphere(EPS, RC)
     calls = [0]
     original = calc.calculate
 
@@ -58,57 +69,78 @@ def run(atoms, make_dyn, steps, calc):
         calls[0] += 1
         return original(*a, **k)
     calc.calculate = counted
-    batch0 = getattr(calc, "batch_evaluations", 0)
-    dyn = make_dyn(atoms)
     E = []
-    dyn.attach(lambda: E.append(atoms.get_potential_energy() + atoms.get_kinetic_energy()))
     t0 = time.perf_counter()
+    dyn = _make(method, atoms, dt)
+    dyn.attach(lambda: E.append(atoms.get_potential_energy() + atoms.get_kinetic_energy()))
     dyn.run(steps)
     wall = time.perf_counter() - t0
-    del calc.calculate
-    nfev = calls[0] + getattr(calc, "batch_evaluations", 0) - batch0
     E = np.array(E)
-    return dict(wall_step_ms=1e3 * wall / steps, wall_fev_us=1e6 * wall / nfev, fev_step=nfev / steps,
-                dE=float(np.max(np.abs(E - E[0])) / len(atoms)),
-                rel=float(np.max(np.abs(E - E[0])) / abs(E[0])), label=getattr(dyn, "method", "VelocityVerlet"))
+    return dict(label=str(getattr(dyn, "method", "VelocityVerlet")), wall=wall,
+                nfev=calls[0] + getattr(calc, "batch_evaluations", 0),
+                builds=getattr(calc, "neighbour_list_builds", -1),
+                rel=float(np.max(np.abs(E - E[0])) / abs(E[0])))
+
+
+def worker(method: str, n_atoms: int, steps: int) -> dict:
+    """One measurement in this process: warm the kernels on 64 atoms, then time the real run."""
+    _run_once(method, fluid(64), 2)
+    idle = _peak_rss_mb()
+    atoms = fluid(n_atoms)
+    r = _run_once(method, atoms, steps)
+    r.update(n=len(atoms), steps=steps, peak_mb=_peak_rss_mb(), idle_mb=idle)
+    return r
 
 
 def main(argv=None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1000])
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 50000, 100000])
+    ap.add_argument("--s", type=int, nargs="+", default=[1, 2, 3, 4],
+                    help="HBVM degrees run at the smallest size; larger sizes run s = 2 (the default)")
+    ap.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "md.md"))
+    ap.add_argument("--worker", nargs=3, metavar=("METHOD", "N", "STEPS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    dt = DT_FS * units.fs
+    if args.worker:
+        method, n, steps = args.worker
+        print(json.dumps(worker(method, int(n), int(steps))))
+        return ""
     rows = []
-    for n in args.sizes:
-        atoms = fluid(n)
-        calc = PolynomialPairPotential.soft_sphere(EPS, RC)
-        warm = atoms.copy()
-        warm.calc = calc
-        warm.get_forces()                                  # load the compiled kernels first
-        calc.forces_batch(warm.positions[None], warm)
-        runs = [("batched", run(atoms, lambda a: VelocityVerlet(a, dt), args.steps, calc))]
-        for s in (1, 2, 3, 4):
-            runs.append(("batched", run(atoms, lambda a, s=s: HBVMDynamics(a, dt, s=s), args.steps, calc)))
-        runs.append(("stage by stage", run(atoms, lambda a: HBVMDynamics(a, dt, s=2), args.steps,
-                                           StageByStage.with_cutoff([EPS], RC, smoothness=4))))
-        vv = runs[0][1]
-        for path, r in runs:
-            rows.append((n, str(r["label"]), path if r["label"] != "VelocityVerlet" else "-",
-                         r["wall_step_ms"], r["wall_step_ms"] / vv["wall_step_ms"], r["wall_fev_us"],
-                         r["fev_step"], r["dE"], r["rel"]))
-            print(rows[-1], flush=True)
+    for idx, n in enumerate(args.sizes):
+        methods = ["VV"] + [str(s) for s in (args.s if idx == 0 else [2])]
+        for m in methods:
+            out = subprocess.run([sys.executable, __file__, "--worker", m, str(n), str(args.steps)],
+                                 check=True, capture_output=True, text=True).stdout
+            r = json.loads(out.strip().splitlines()[-1])
+            r["method"] = m
+            rows.append(r)
+            print({k: r[k] for k in ("n", "label", "wall", "nfev", "builds", "peak_mb", "rel")}, flush=True)
+    vv = {r["n"]: r for r in rows if r["method"] == "VV"}
     head = (f"Soft-sphere fluid phi(r) = {EPS} eV (1 - r^2/{RC}^2)^4 (cutoff {RC} A, periodic), "
-            f"Ar masses, {T_K:g} K, dt = {DT_FS:g} fs, {args.steps} steps; "
-            f"`python benchmarks/bench_md.py --steps {args.steps}` on {platform.processor() or platform.machine()}, "
-            f"one run.\n\n")
-    table = ["| atoms | method | stage forces | ms / step | x VelocityVerlet | us / force eval | "
-             "force evals / step | max abs(E-E0)/N [eV] | max rel. energy error |",
+            f"rattled simple-cubic argon (a = {LATTICE} A), {T_K:g} K, dt = {DT_FS:g} fs, "
+            f"{args.steps} steps; both integrators driven through `atoms.calc = "
+            f"PolynomialPairPotential.soft_sphere(...)` and `dyn.run({args.steps})` (timed: building "
+            f"the dynamics and the run); `python benchmarks/bench_md.py --steps {args.steps} --sizes "
+            f"{' '.join(map(str, args.sizes))}` on {platform.processor() or platform.machine()}, "
+            f"one process per row, one run.\n\n")
+    table = ["| atoms | method | ms / step | us / (step atom) | x VelocityVerlet | force evals / step | "
+             "neighbour-list builds | peak memory [MB] (idle) | max rel. energy error |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for n, m, path, ms, ratio, us, fev, de, rel in rows:
-        table.append(f"| {n} | {m} | {path} | {ms:.2f} | {ratio:.1f} | {us:.1f} | {fev:.1f} | {de:.1e} | {rel:.1e} |")
-    text = head + "\n".join(table) + "\n"
-    out = pathlib.Path(__file__).parent / "results" / "md.md"
+    for r in rows:
+        ms = 1e3 * r["wall"] / r["steps"]
+        ratio = r["wall"] / vv[r["n"]]["wall"]
+        table.append(f"| {r['n']} | {r['label']} | {ms:.2f} | {1e3 * ms / r['n']:.3f} | {ratio:.2f} | "
+                     f"{r['nfev'] / r['steps']:.1f} | {r['builds']} | {r['peak_mb']:.0f} ({r['idle_mb']:.0f}) | "
+                     f"{r['rel']:.1e} |")
+    flat = []
+    for m in sorted({r["method"] for r in rows}):
+        per = [1e6 * r["wall"] / r["steps"] / r["n"] for r in rows if r["method"] == m]
+        if len(per) > 1:
+            label = next(r["label"] for r in rows if r["method"] == m)
+            flat.append(f"{label}: largest / smallest time per step per atom over the sizes = "
+                        f"{max(per) / min(per):.2f}")
+    text = head + "\n".join(table) + "\n\n" + "\n".join(flat) + "\n"
+    out = pathlib.Path(args.out)
     out.parent.mkdir(exist_ok=True)
     out.write_text(text)
     print(text)

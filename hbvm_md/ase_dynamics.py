@@ -55,6 +55,7 @@ class _AtomsSystem(SeparableSystem):
         self.masses = np.repeat(np.asarray(atoms.get_masses(), dtype=float), 3)
         self.free = np.ones((self.n_atoms, 1))
         self.free[fixed] = 0.0
+        self.fixed = np.asarray(fixed, dtype=int)
         self.batched = batched
         self.stage_evaluations = 0
 
@@ -73,7 +74,8 @@ class _AtomsSystem(SeparableSystem):
                 self.atoms.set_positions(X[a], apply_constraint=False)
                 F[a] = self.calc.get_property("forces", self.atoms)
         self.stage_evaluations += X.shape[0]
-        F = F * self.free
+        if self.fixed.size:
+            F = F * self.free
         return F.reshape(lead + (self.dim,))
 
     def potential(self, q: np.ndarray):
@@ -89,6 +91,22 @@ class _AtomsSystem(SeparableSystem):
         if saved is not None:
             self.calc.atoms, self.calc.results = saved
         return out.reshape(q.shape[:-1]) if q.ndim > 1 else float(out[0])
+
+
+class _AtomsSystemWithHessian(_AtomsSystem):
+    """The atoms with a calculator that gives its exact Hessian (``calc.hessian(Q, atoms)``,
+    e.g. :meth:`systems.PolynomialPairPotential.hessian`), used by the Newton solver."""
+
+    def hessian(self, y: np.ndarray) -> np.ndarray:
+        """Jacobian (2m, 2m) of ``gradient`` at one state: [[d^2V/dq^2, 0], [0, M^-1]], with
+        the rows of fixed atoms zero (they feel no force)."""
+        y = np.asarray(y, dtype=float)
+        m = self.dim
+        H = np.zeros((2 * m, 2 * m))
+        K = self.calc.hessian(y[:m].reshape(self.n_atoms, 3), self.atoms)
+        H[:m, :m] = K * np.repeat(self.free[:, 0], 3)[:, None]
+        H[np.arange(m, 2 * m), np.arange(m, 2 * m)] = 1.0 / self.masses
+        return H
 
 
 class HBVMDynamics(MolecularDynamics):
@@ -110,7 +128,13 @@ class HBVMDynamics(MolecularDynamics):
         without cutoff), otherwise :func:`default_k` = s + 4, which brings the quadrature
         error below round-off for smooth potentials at usual step sizes.
     solver : {"auto", "fixed_point", "newton"}
-        Nonlinear solver of the engine (see :class:`integrators.Stepper`).
+        Nonlinear solver of the engine (see :class:`integrators.Stepper`).  "newton" (and
+        "auto" once fixed point has failed) needs d^2V/dq^2 at the start of each step: a
+        calculator with a ``hessian(Q, atoms)`` method returning the (3N, 3N) Hessian
+        (:class:`systems.PolynomialPairPotential` has an exact, compiled one) gives it in one
+        call; for any other calculator it is taken by central finite differences of the
+        forces, 6N extra force evaluations a step (2 per coordinate), which dominates the
+        cost beyond a few atoms.
     nodes : {"gauss", "lobatto"}
     trajectory, logfile, loginterval, **kwargs
         As for :class:`ase.md.md.MolecularDynamics`.
@@ -273,7 +297,8 @@ class HBVMDynamics(MolecularDynamics):
             if sys_ is not None:
                 self._stage_total += sys_.stage_evaluations
             batched = hasattr(atoms.calc, "forces_batch")
-            sys_ = _AtomsSystem(atoms, fixed, batched)
+            kind = _AtomsSystemWithHessian if callable(getattr(atoms.calc, "hessian", None)) else _AtomsSystem
+            sys_ = kind(atoms, fixed, batched)
             p = p.reshape(-1, 3) * sys_.free
             self._system = sys_
             self._stepper = Stepper(self.method, sys_, np.concatenate([q, p.ravel()]),

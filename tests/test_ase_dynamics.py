@@ -350,3 +350,30 @@ def test_temperature_k_says_nve_and_points_to_ase_thermostats():
     with pytest.raises(TypeError, match=r"HBVMDynamics is NVE .* takes no `temperature_K`; .*"
                                         r"ase\.md\.langevin\.Langevin.*NoseHooverChainNVT"):
         HBVMDynamics(atoms, 5 * units.fs, temperature_K=300)
+
+
+class _NoHessian(PolynomialPairPotential):
+    """The same potential without ``hessian``: Newton falls back to finite differences."""
+    hessian = None
+
+
+@pytest.mark.parametrize("fixed", [False, True])
+def test_newton_uses_the_calculators_exact_hessian(fixed):
+    dt, steps = 20 * units.fs, 5
+    runs = {}
+    for kind in (PolynomialPairPotential, _NoHessian):
+        atoms, calc = _thermal_cluster()
+        atoms.calc = kind(calc.coefficients)
+        if fixed:
+            atoms.set_constraint(FixAtoms([0, 5]))
+        dyn = HBVMDynamics(atoms, dt, solver="newton")
+        dyn.run(steps)
+        runs[kind] = (atoms.get_positions(), atoms.get_momenta(), dyn.stage_evaluations)
+    n = len(atoms)
+    exact, fd = runs[PolynomialPairPotential], runs[_NoHessian]
+    # finite differences cost 2 force evaluations per coordinate and step, the exact Hessian none
+    assert exact[2] < 6 * n * steps <= fd[2]
+    np.testing.assert_allclose(exact[0], fd[0], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(exact[1], fd[1], rtol=0, atol=1e-11 * np.max(np.abs(fd[1])))
+    if fixed:
+        assert np.all(exact[1][[0, 5]] == 0.0)

@@ -130,3 +130,108 @@ def test_pairs_out_of_range_and_all_pairs_with_pbc_are_refused_at_evaluation():
     per.calc = PolynomialPairPotential([0.0, -1.0, 1.0])
     with pytest.raises(ValueError, match="all-pairs mode has no cutoff.*give `cutoff`"):
         per.get_potential_energy()
+
+
+# -- the neighbour list (vesin) against a brute-force sum over periodic images ----------------
+def _image_sum(atoms, calc):
+    """Energy and forces by summing phi over all images within reach (numpy, independent of
+    any neighbour list); positions wrapped into the cell first, which changes no separation."""
+    X, cell, rc = atoms.get_positions(wrap=True), np.array(atoms.cell), calc.cutoff
+    reach = [int(np.ceil(rc / (atoms.cell.volume / np.linalg.norm(np.cross(*np.delete(cell, d, 0)))))) + 1
+             if atoms.pbc[d] else 0 for d in range(3)]
+    grid = np.stack(np.meshgrid(*[np.arange(-m, m + 1) for m in reach], indexing="ij"), -1).reshape(-1, 3)
+    D = X[None, :, None, :] - X[:, None, None, :] + (grid @ cell)[None, None]   # (i, j, image, 3)
+    u = np.sum(D * D, axis=-1)
+    u[np.arange(len(X)), np.arange(len(X)), np.all(grid == 0, axis=1).argmax()] = np.inf
+    inside = u < rc * rc
+    c = calc.coefficients
+    G = np.where(inside, np.polynomial.polynomial.polyval(np.where(inside, u, 0), c), 0.0)
+    dG = np.where(inside, np.polynomial.polynomial.polyval(np.where(inside, u, 0),
+                                                           np.polynomial.polynomial.polyder(c)), 0.0)
+    F = 2 * np.einsum("ijn,ijnc->ic", dG, D)   # F_i = sum_j 2 G'(u) D_ij
+    return 0.5 * G.sum(), F
+
+
+def _small_cells():
+    one = bulk("Ar", "fcc", a=3.6)                     # one atom, cell far smaller than 2 r_c
+    one.positions[0] += [0.3, -0.2, 0.1]
+    two = bulk("Ar", "sc", a=3.0) * (2, 1, 1)
+    two.rattle(0.2, seed=4)
+    hcp = bulk("Cu", "hcp", a=2.5, c=4.0) * (2, 2, 1)   # skewed cell
+    hcp.rattle(0.1, seed=5)
+    slab = _periodic(seed=6)
+    slab.pbc = [True, True, False]
+    unwrapped = _periodic(seed=7)
+    unwrapped.positions += np.random.default_rng(7).integers(-2, 3, (len(unwrapped), 3)) @ unwrapped.cell[:]
+    return {"one_atom": one, "two_atoms": two, "skewed": hcp, "slab": slab, "unwrapped": unwrapped}
+
+
+@pytest.mark.parametrize("name", ["one_atom", "two_atoms", "skewed", "slab", "unwrapped"])
+def test_cutoff_mode_matches_a_brute_force_image_sum(name):
+    atoms = _small_cells()[name]
+    atoms.calc = PolynomialPairPotential.with_cutoff([0.05, -0.002], 5.0)
+    E, F = _image_sum(atoms, atoms.calc)
+    assert abs(E) > 1e-3
+    assert atoms.get_potential_energy() == pytest.approx(E, rel=1e-13)
+    np.testing.assert_allclose(atoms.get_forces(), F, rtol=0, atol=1e-13 * np.max(np.abs(F)) + 1e-15)
+
+
+def test_batched_configurations_farther_apart_than_the_skin_get_their_own_lists():
+    atoms = _periodic()
+    calc = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.2)
+    atoms.calc = calc
+    Q = atoms.positions[None] + np.array([0.0, 0.3, 0.6])[:, None, None] * [1.0, 0.5, -0.2]
+    Fb = calc.forces_batch(Q, atoms)
+    assert calc.neighbour_list_builds >= 3      # one list cannot serve configurations 0.7 A apart
+    for a in range(3):
+        atoms.positions[:] = Q[a]
+        np.testing.assert_allclose(Fb[a], _image_sum(atoms, calc)[1], rtol=0, atol=1e-13)
+
+
+def test_md_run_rebuilds_the_list_when_atoms_pass_the_skin_and_stays_exact():
+    from ase import units
+    from hbvm_md import HBVMDynamics
+    from hbvm_md.md_comparison import maxwell_boltzmann
+    atoms = _periodic()
+    maxwell_boltzmann(atoms, 3000.0, seed=1)
+    calc = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.05)
+    atoms.calc = calc
+    start = atoms.positions.copy()
+    HBVMDynamics(atoms, 5 * units.fs, s=2).run(15)
+    assert np.max(np.linalg.norm(atoms.positions - start, axis=1)) > 0.05   # beyond the skin
+    assert calc.neighbour_list_builds >= 3
+    np.testing.assert_allclose(atoms.get_forces(), _image_sum(atoms, calc)[1], rtol=0, atol=1e-13)
+
+
+# -- the analytic Hessian ---------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["all_pairs", "bonded", "cutoff_periodic", "one_atom_cell"])
+def test_hessian_matches_finite_differences_of_forces(name):
+    if name == "one_atom_cell":
+        atoms = _small_cells()["two_atoms"]
+        atoms.calc = PolynomialPairPotential.with_cutoff([0.05, -0.002], 5.0)
+    else:
+        atoms = _all_setups()[name]
+    calc = atoms.calc
+    H = calc.hessian(atoms=atoms)
+    x0 = atoms.positions.copy()
+    eps = 1e-5
+    num = np.empty_like(H)
+    for k in range(3 * len(atoms)):
+        Q = np.stack([x0, x0])
+        Q[0].flat[k] += eps
+        Q[1].flat[k] -= eps
+        F = calc.forces_batch(Q, atoms)
+        num[:, k] = -(F[0] - F[1]).ravel() / (2 * eps)
+    scale = np.max(np.abs(H))
+    assert scale > 1e-3
+    np.testing.assert_allclose(H, H.T, rtol=0, atol=1e-14 * scale)
+    np.testing.assert_allclose(H, num, rtol=0, atol=1e-7 * scale)
+
+
+def test_hessian_rejects_wrong_shapes_and_missing_atoms():
+    calc = PolynomialPairPotential([0.0, 1.0])
+    with pytest.raises(ValueError, match="needs `atoms`"):
+        calc.hessian(np.zeros((2, 3)))
+    atoms = Atoms("Ar2", positions=[[0, 0, 0], [1, 0, 0]])
+    with pytest.raises(ValueError, match=r"`Q` must have shape \(2, 3\)"):
+        calc.hessian(np.zeros((3, 3)), atoms)
