@@ -34,7 +34,7 @@ def main() -> None:
     reb = (ROOT / "benchmarks/results/rebound.md").read_text()
     parts["rebound"] = "\n\n".join(
         f"**{title}**\n\n" + body.strip()
-        for title, body in re.findall(r"^## (t_end = .*?)$\n(.*?)(?=^## |\Z)", reb, re.S | re.M))
+        for title, body in re.findall(r"^## (.*?)$\n(.*?)(?=^## |\Z)", reb, re.S | re.M))
     kep = (ROOT / "benchmarks/results/kepler.md").read_text()
     parts["kepler"] = tables(kep)[0]
     md = (ROOT / "benchmarks/results/md.md").read_text()

@@ -285,3 +285,103 @@ def rebound_kepler(e: float, t_end: float, integrator: str = "ias15", dt: float 
     label = integrator if dt is None else f"{integrator}(dt={dt:.3g})"
     return Run(label, np.array([sim.t if i == len(t_eval) - 1 else tt for i, tt in enumerate(t_eval)]),
                Y, E, steps, steps, wall)
+
+
+# -- heyoka (Taylor method compiled by LLVM) on an N-body problem --------------------------
+HEYOKA_MISSING = ("heyoka is not installed, so the heyoka peer is skipped; install it with "
+                  "`pip install 'hbvm-md[bench]'` (or `pip install heyoka`)")
+
+
+def import_heyoka():
+    """The ``heyoka`` module, or ImportError with :data:`HEYOKA_MISSING` (an optional peer)."""
+    try:
+        import heyoka
+    except ImportError as err:
+        raise ImportError(HEYOKA_MISSING) from err
+    return heyoka
+
+
+class HeyokaNBody:
+    """heyoka's adaptive Taylor integrator on a Newtonian N-body problem.
+
+    ``heyoka.model.nbody`` with the scene's G and masses, ``heyoka.taylor_adaptive`` with
+    tolerance ``tol`` (default: machine epsilon of ``fp_type``).  heyoka compiles the Taylor
+    step for the system with LLVM when the integrator is built; that is a one-off per scene
+    shape (number of bodies, masses, G, tolerance, precision), measured in :attr:`compile_time`
+    and left out of :meth:`propagate`'s wall time, as numba's compile (or cache load) is left
+    out of HBVM's.
+
+    Parameters
+    ----------
+    masses : array_like (N,)
+    G : float
+    tol : float, optional
+        heyoka's relative-absolute tolerance; None: ``np.finfo(fp_type).eps``.
+    fp_type : type
+        ``float`` or ``np.longdouble`` (80-bit extended on x86-64: a high-accuracy reference).
+    compact_mode : bool
+        heyoka's compact mode (compiles much faster; heyoka's default is False).
+
+    Attributes
+    ----------
+    compile_time : float
+        Seconds spent building (compiling) the integrator.
+    order : int
+        Order of the Taylor method heyoka chose for ``tol``.
+    """
+
+    def __init__(self, masses, G: float, tol: float | None = None, fp_type=float,
+                 compact_mode: bool = False):
+        hy = import_heyoka()
+        masses = np.asarray(masses, dtype=float)
+        if masses.ndim != 1 or len(masses) < 2 or not np.all(np.isfinite(masses)) or np.any(masses < 0):
+            raise ValueError(f"`masses` must be N >= 2 finite non-negative numbers (got {masses!r})")
+        if not (np.isfinite(G) and G > 0):
+            raise ValueError(f"`G` must be a positive number (got G={G!r})")
+        self.fp_type = np.dtype(fp_type).type
+        if self.fp_type not in (np.float64, np.longdouble):
+            raise ValueError(f"`fp_type` must be float or np.longdouble (got {fp_type!r})")
+        self.tol = float(np.finfo(self.fp_type).eps) if tol is None else tol
+        if not (0 < self.tol < 1):
+            raise ValueError(f"`tol` must be in (0, 1) (got tol={tol!r})")
+        self.N = len(masses)
+        t0 = time.perf_counter()
+        self._ta = hy.taylor_adaptive(hy.model.nbody(self.N, masses=[float(m) for m in masses], Gconst=float(G)),
+                                      np.zeros(6 * self.N, dtype=self.fp_type), tol=self.fp_type(self.tol),
+                                      fp_type=self.fp_type, compact_mode=bool(compact_mode))
+        self.compile_time = time.perf_counter() - t0
+        self.order = int(self._ta.order)
+
+    def propagate(self, xv0, t_out) -> tuple[np.ndarray, float, int]:
+        """Integrate from ``xv0`` at ``t_out[0]`` and return the states at every ``t_out``.
+
+        Parameters
+        ----------
+        xv0 : array_like (N, 6) or (6N,)
+            Positions and velocities, body after body (REBOUND's ``xyzvxvyvz`` layout).
+        t_out : array_like (n,)
+            Increasing output times (``propagate_grid``).
+
+        Returns
+        -------
+        states : ndarray (n, N, 6) of ``fp_type``
+        wall : float
+            Seconds in ``propagate_grid`` (compile time excluded, see :attr:`compile_time`).
+        steps : int
+            Taylor steps taken.
+        """
+        xv0 = np.asarray(xv0, dtype=self.fp_type).reshape(-1)
+        if xv0.shape != (6 * self.N,) or not np.all(np.isfinite(xv0)):
+            raise ValueError(f"`xv0` must hold 6 N = {6 * self.N} finite numbers (got shape {np.shape(xv0)})")
+        grid = np.asarray(t_out, dtype=self.fp_type)
+        if grid.ndim != 1 or len(grid) < 1 or np.any(np.diff(grid) <= 0):
+            raise ValueError("`t_out` must be a non-empty increasing sequence of times")
+        ta = self._ta
+        ta.time = grid[0]
+        ta.state[:] = xv0
+        t0 = time.perf_counter()
+        outcome, _, _, steps, _, states = ta.propagate_grid(grid)
+        wall = time.perf_counter() - t0
+        if str(outcome) != "taylor_outcome.time_limit":
+            raise RuntimeError(f"heyoka stopped early ({outcome}) at t = {float(ta.time):.6g}")
+        return states.reshape(len(grid), self.N, 6), wall, int(steps)

@@ -6,7 +6,6 @@
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -19,6 +18,7 @@ import numpy as np
 DT_FRACTION = {"hbvm": 1 / 20, "whfast": 1 / 100, "saba(10,6,4)": 1 / 20, "leapfrog": 1 / 1000}
 DEFAULT_PEERS = ("whfast", "saba(10,6,4)", "leapfrog", "ias15")
 ADAPTIVE = ("ias15", "bs")
+HEYOKA_PEERS = ("heyoka", "heyoka(compact)")
 
 
 def _scene_factory(scene) -> Callable:
@@ -92,35 +92,87 @@ class ReboundComparison:
         return head + "\n".join(lines) + "\n"
 
 
-def _run(make, label, setup, t_end, n_samples, exact):
+def _positions(sim) -> np.ndarray:
+    N = sim.N
+    xv = np.zeros(6 * N)
+    sim.serialize_particle_data(xyzvxvyvz=xv)
+    return xv.reshape(N, 6)[:, :3].copy()
+
+
+def _summary(label, steps, wall, ts, err, final_t, setup_time=0.0, compile_time=None) -> dict:
+    return dict(method=label, steps=int(steps), wall_time_s=float(wall), setup_time_s=float(setup_time),
+                compile_time_s=compile_time, max_rel_energy_error=float(err.max()),
+                drift_slope=float(np.polyfit(ts - ts[0], err, 1)[0]) if len(ts) > 2 else 0.0,
+                final_t=float(final_t))
+
+
+def _run(make, label, setup, t_end, n_samples):
+    """One REBOUND-driven run: ``setup(sim)`` (attaching HBVM chooses k there) is inside the
+    timed region, because the user pays for it; then ``sim.integrate(t_i)`` at each output time
+    (exact_finish_time=1: REBOUND shortens the step that would overshoot an output time)."""
     sim = make()
-    drv = setup(sim)
     E0 = sim.energy()
     ts = np.linspace(0.0, t_end, n_samples + 1)[1:] + sim.t
     err = np.empty(n_samples)
     steps0 = sim.steps_done
     start = time.perf_counter()
+    drv = setup(sim)
+    setup_time = time.perf_counter() - start
     for i, t in enumerate(ts):
-        sim.integrate(t, exact_finish_time=exact)
+        sim.integrate(t, exact_finish_time=1)
         err[i] = abs(sim.energy() - E0) / abs(E0)
     wall = time.perf_counter() - start
-    N = sim.N
-    xv = np.zeros(6 * N)
-    sim.serialize_particle_data(xyzvxvyvz=xv)
-    x = xv.reshape(N, 6)[:, :3].copy()
+    x = _positions(sim)
     if drv is not None:
         drv.detach()
-    return dict(method=label, steps=int(sim.steps_done - steps0), wall_time_s=wall,
-                max_rel_energy_error=float(err.max()),
-                drift_slope=float(np.polyfit(ts - ts[0], err, 1)[0]) if n_samples > 2 else 0.0,
-                final_t=sim.t), (ts, err), x
+    return _summary(label, sim.steps_done - steps0, wall, ts, err, sim.t, setup_time), (ts, err), x, drv
+
+
+#: heyoka integrators already built in this process, by (masses, G, tol, precision, compact):
+#: heyoka compiles once per scene shape, and a benchmark should not pay that once per run.
+_HEYOKA = {}
+
+
+def heyoka_solver(sim, tol: float | None = None, fp_type=float, compact_mode: bool = False):
+    """The (cached) :class:`hbvm_md.peers.HeyokaNBody` for the bodies of ``sim``."""
+    from .peers import HeyokaNBody, import_heyoka
+    import_heyoka()              # the message on a missing heyoka, even when a solver is cached
+    m = np.zeros(sim.N)
+    sim.serialize_particle_data(m=m)
+    key = (tuple(m), float(sim.G), tol, np.dtype(fp_type).name, bool(compact_mode))
+    if key not in _HEYOKA:
+        _HEYOKA[key] = HeyokaNBody(m, sim.G, tol=tol, fp_type=fp_type, compact_mode=compact_mode)
+    return _HEYOKA[key]
+
+
+def _run_heyoka(make, label, solver, t_end, n_samples):
+    """heyoka over the same output times (``propagate_grid``); energies evaluated by REBOUND's
+    ``sim.energy()`` on the output states, as for the REBOUND-driven runs (untimed)."""
+    sim = make()
+    E0 = sim.energy()
+    xv = np.zeros(6 * sim.N)
+    sim.serialize_particle_data(xyzvxvyvz=xv)
+    ts = np.linspace(0.0, t_end, n_samples + 1) + sim.t
+    states, wall, steps = solver.propagate(xv, ts)
+    err = np.empty(n_samples)
+    for i in range(n_samples):
+        sim.set_serialized_particle_data(xyzvxvyvz=np.ascontiguousarray(states[i + 1], dtype=float).reshape(-1))
+        err[i] = abs(sim.energy() - E0) / abs(E0)
+    x = np.asarray(states[-1, :, :3], dtype=float)
+    return (_summary(label, steps, wall, ts[1:], err, ts[-1], compile_time=solver.compile_time),
+            (ts[1:], err), x)
+
+
+#: ``reference=EXTENDED``: heyoka in 80-bit extended precision at tol 1e-18 (compact mode).
+EXTENDED = "heyoka-extended"
 
 
 def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
                     hbvm: Sequence = ((6, None),), peers: Sequence = DEFAULT_PEERS,
                     n_samples: int = 200, reference: str | None = None,
                     verbose: bool = False) -> ReboundComparison:
-    """Integrate one scene with HBVM(k, s) through REBOUND and with REBOUND's integrators.
+    """Integrate one scene with HBVM(k, s) through REBOUND, with REBOUND's integrators and
+    (optionally) heyoka, over the same output times.
 
     Parameters
     ----------
@@ -133,24 +185,34 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
     t_end : float
         Length of each run, in the scene's time unit.
     hbvm : sequence of (s, k) or (s, k, dt)
-        HBVM variants; k None chooses k on the scene (:func:`hbvm_md.rebound_driver.choose_k`);
-        dt defaults to P / 35, P the shortest two-body period of the scene.
+        HBVM variants; k None chooses k on the scene when HBVM attaches
+        (:func:`hbvm_md.rebound_driver.choose_k`, timed as part of the run); dt defaults to
+        :data:`DT_FRACTION` ["hbvm"] times P, P the shortest two-body period of the scene.
     peers : sequence of str or (str, dt)
         REBOUND integrators ("whfast", "saba(10,6,4)", "leapfrog", "ias15", ...); a fixed step
-        defaults to :data:`DT_FRACTION` times P; IAS15 and BS are adaptive.
+        defaults to :data:`DT_FRACTION` times P; IAS15 and BS are adaptive.  "heyoka" and
+        "heyoka(compact)" run heyoka's Taylor integrator (:class:`hbvm_md.peers.HeyokaNBody`,
+        heyoka's default or compact mode), the second element being its tolerance (default
+        machine epsilon); its compile time is reported in ``compile_time_s``, not in the wall
+        time.  ImportError with a message when heyoka is not installed.
     n_samples : int
-        Energy samples (equally spaced, t_end / n_samples apart).  Fixed steps are rounded down
-        so that they divide that interval: every run ends exactly at t_end without a shrunken
-        step.
+        Output times t_end / n_samples apart, the same for every method: REBOUND-driven methods
+        call ``sim.integrate(t_i)`` (exact_finish_time=1), heyoka uses ``propagate_grid``.  A
+        requested step is used as given; when it does not divide the interval, REBOUND shortens
+        the step that would overshoot an output time (``steps`` counts every step taken).
     reference : str, optional
-        Label of the run the final positions are compared with; default "ias15" when it ran,
-        else the run with the smallest maximum energy error.
+        What the final positions are compared with: the label of a run, or :data:`EXTENDED`
+        (heyoka in extended precision at tol 1e-18: needs heyoka); default "ias15" when it
+        ran, else the run with the smallest maximum energy error.
     verbose : bool
         Print the table.
 
     Returns
     -------
     ReboundComparison
+        Rows also carry ``setup_time_s`` (inside the wall time: attaching HBVM and choosing k)
+        and ``compile_time_s`` (heyoka's one-off compile, outside the wall time; None for the
+        others).
     """
     from .rebound_driver import HBVMIntegrator, shortest_period
 
@@ -162,27 +224,23 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
     period = shortest_period(make())
     interval = t_end / n_samples
 
-    def fit(dt):
-        return interval / math.ceil(interval / dt - 1e-9)
-
     runs = []
     for v in hbvm:
         v = tuple(v)
         if len(v) not in (2, 3):
             raise ValueError(f"`hbvm` entries must be (s, k) or (s, k, dt) (got {v!r})")
         s, k = int(v[0]), v[1]
-        dt = fit(v[2] if len(v) == 3 and v[2] is not None else DT_FRACTION["hbvm"] * period)
-        drvs = {}
+        dt = float(v[2]) if len(v) == 3 and v[2] is not None else DT_FRACTION["hbvm"] * period
 
         def setup(sim, s=s, k=k, dt=dt):
             return HBVMIntegrator(sim, s=s, k=k, dt=dt)
-        runs.append((None, setup, dt, 1, drvs, (s, k)))
+        runs.append(("hbvm", (s, k), setup, dt))
     for p in peers:
-        name, dt = (p, None) if isinstance(p, str) else (p[0], p[1])
-        if name in ADAPTIVE:
-            dt = None
-        else:
-            dt = fit(dt if dt is not None else DT_FRACTION.get(name, 1 / 100) * period)
+        name, arg = (p, None) if isinstance(p, str) else (p[0], p[1])
+        if name in HEYOKA_PEERS:
+            runs.append(("heyoka", name, heyoka_solver(make(), tol=arg, compact_mode=name != "heyoka"), None))
+            continue
+        dt = None if name in ADAPTIVE else float(arg if arg is not None else DT_FRACTION.get(name, 1 / 100) * period)
 
         def setup(sim, name=name, dt=dt):
             # REBOUND spells SABA(10,6,4) "saba10,6,4"
@@ -190,36 +248,41 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
             if dt is not None:
                 sim.dt = dt
             return None
-        runs.append((name, setup, dt, 1, None, None))
+        runs.append(("rebound", name, setup, dt))
 
     rows, series, positions = [], {}, {}
-    for label, setup, dt, exact, _, sk in runs:
-        if sk is not None:
-            holder = {}
-
-            def setup_h(sim, setup=setup, holder=holder):
-                d = setup(sim)
-                holder["k"] = d.method.k
-                return d
+    for kind, label, setup, dt in runs:
+        if kind == "hbvm":
             # untimed warm-up over one sample interval: the first call of the compiled step in
             # a process loads it from numba's cache (or compiles it), which is not integration
-            _run(make, "hbvm", setup_h, interval, 1, exact)
-            row, ser, x = _run(make, "hbvm", setup_h, t_end, n_samples, exact)
-            label = f"HBVM({holder['k']},{sk[0]})"
-            row["method"] = label
+            _run(make, "hbvm", setup, interval, 1)
+            row, ser, x, drv = _run(make, "hbvm", setup, t_end, n_samples)
+            label = row["method"] = f"HBVM({drv.method.k},{label[0]})"
+        elif kind == "heyoka":
+            row, ser, x = _run_heyoka(make, label, setup, t_end, n_samples)
+            row["tol"], row["order"] = setup.tol, setup.order
         else:
-            row, ser, x = _run(make, label, setup, t_end, n_samples, exact)
+            row, ser, x, _ = _run(make, label, setup, t_end, n_samples)
         row["dt"] = dt
-        if label in series:          # e.g. two HBVM variants whose steps were fitted alike
+        if label in series:          # e.g. two HBVM variants that chose the same k
             label = row["method"] = f"{label} dt={dt:.4g}" if dt else f"{label} #{len(rows)}"
         rows.append(row)
         series[label] = ser
         positions[label] = x
-    if reference is None:
-        reference = "ias15" if "ias15" in positions else min(rows, key=lambda r: r["max_rel_energy_error"])["method"]
-    if reference not in positions:
-        raise ValueError(f"`reference` must be one of the runs {list(positions)} (got {reference!r})")
-    xr = positions[reference]
+    if reference == EXTENDED:
+        sim = make()
+        ref = heyoka_solver(sim, tol=1e-18, fp_type=np.longdouble, compact_mode=True)
+        xv = np.zeros(6 * sim.N)
+        sim.serialize_particle_data(xyzvxvyvz=xv)
+        states, _, _ = ref.propagate(xv, np.array([sim.t, sim.t + t_end]))
+        xr = np.asarray(states[-1, :, :3], dtype=float)
+    else:
+        if reference is None:
+            reference = "ias15" if "ias15" in positions else min(rows, key=lambda r: r["max_rel_energy_error"])["method"]
+        if reference not in positions:
+            raise ValueError(f"`reference` must be {EXTENDED!r} or one of the runs {list(positions)} "
+                             f"(got {reference!r})")
+        xr = positions[reference]
     for r in rows:
         r["final_position_diff"] = float(np.max(np.linalg.norm(positions[r["method"]] - xr, axis=1)))
     out = ReboundComparison(rows, series, reference, float(t_end), positions)

@@ -12,7 +12,8 @@ Scenes (``SCENES``):
 * ``fpu`` - stiff FPU chain, omega = 50; peers: Velocity Verlet, DOP853.
 * ``henon-heiles`` - Henon-Heiles from q = p = (0.18, 0.18); peers: Verlet, DOP853.
 * ``outer-solar-system`` - HLW's outer solar system (:func:`systems.outer_solar_system`);
-  HBVM on :class:`systems.NBody`, peers through REBOUND and DOP853; reference: IAS15.
+  HBVM on :class:`systems.NBody`, peers through REBOUND, DOP853 and (when installed) heyoka;
+  reference: IAS15.
 * ``md-cluster`` - the polynomial-pair cluster of :func:`hbvm_md.compare_md.default_cluster`
   through ASE (:class:`hbvm_md.HBVMDynamics` against ASE's VelocityVerlet); reference: HBVM at
   a quarter of the smallest step.
@@ -211,7 +212,28 @@ def scene_outer_solar_system(quick=False, k_info=None, bar=None):
     for eps in ((1e-5,) if quick else (1e-3, 1e-5, 1e-7)):
         rows.append(_rebound_nbody("outer-solar-system", "IAS15", nb, y0, T, "ias15", eps=eps, q_ref=q_ref))
     rows += _dop_rows("outer-solar-system", nb, y0, T, (1e-8,) if quick else (1e-6, 1e-8, 1e-10, 1e-12), q_ref)
+    rows += _heyoka_rows("outer-solar-system", nb, y0, T, (1e-12, None) if quick else (1e-9, 1e-12, 1e-14, None), q_ref)
     return rows, f"outer solar system (HLW), T={T:g} days (reference: IAS15, default epsilon)"
+
+
+def _heyoka_rows(scene, nb, y0, T, tols, q_ref, samples=100):
+    """heyoka (an optional peer) at each tolerance (None: machine epsilon); no rows, and a
+    note in the log, when heyoka is not installed.  Compile time is outside the wall time."""
+    from .peers import HEYOKA_MISSING, import_heyoka
+    from .rebound_comparison import _run_heyoka, heyoka_solver
+    try:
+        import_heyoka()
+    except ImportError:
+        print(f"scene {scene}: {HEYOKA_MISSING}")
+        return []
+    rows = []
+    for tol in tols:
+        solver = heyoka_solver(nb.to_rebound(y0), tol=tol)
+        r, _, x = _run_heyoka(lambda: nb.to_rebound(y0), "heyoka", solver, T, samples)
+        rows.append(_row(scene, "heyoka", "heyoka", f"tol={solver.tol:.0e}", r["steps"], 0, r["wall_time_s"],
+                         r["max_rel_energy_error"], _pos_error(x.reshape(-1), q_ref),
+                         note=f"Taylor order {solver.order} (nfev: not applicable); compile {solver.compile_time:.2f} s not timed"))
+    return rows
 
 
 def _rebound_nbody(scene, label, nb, y0, T, name, n=None, eps=None, q_ref=None, samples=100):

@@ -42,3 +42,45 @@ def test_hbvm_row_at_round_off_median_over_perturbed_starts():
         cmp = hbvm_md.compare_rebound(scene, t_end=2e4, hbvm=((6, None, 100.0),), peers=(), n_samples=40)
         errs.append(cmp.rows[0]["max_rel_energy_error"])
     assert np.median(errs) <= 3e-15, errs
+
+
+def test_requested_step_is_kept_and_attach_is_timed():
+    # 300 does not divide the output interval 500: REBOUND shortens one step per interval
+    # (300 + 200), so 40 intervals take 80 steps and the run still ends at t_end
+    cmp = hbvm_md.compare_rebound("outer_solar_system", t_end=2e4, hbvm=((6, None, 300.0),),
+                                  peers=("ias15",), n_samples=40)
+    h = cmp.rows[0]
+    assert h["dt"] == 300.0 and h["steps"] == 80 and h["final_t"] == 2e4
+    # attaching (which chooses k) is part of the timed run
+    assert 0 < h["setup_time_s"] <= h["wall_time_s"]
+    assert h["compile_time_s"] is None
+
+
+def test_heyoka_missing_is_a_clear_error(monkeypatch):
+    import sys
+    monkeypatch.setitem(sys.modules, "heyoka", None)
+    with pytest.raises(ImportError, match=r"heyoka is not installed.*pip install 'hbvm-md\[bench\]'"):
+        hbvm_md.compare_rebound("outer_solar_system", t_end=1e3, hbvm=(), peers=("heyoka",), n_samples=4)
+
+
+def test_heyoka_peer_energy_and_positions():
+    pytest.importorskip("heyoka")
+    import numpy as np
+    from hbvm_md.rebound_comparison import EXTENDED
+    nb = outer_solar_system()
+    errs, pos = [], []
+    for r in range(3):
+        def make(r=r):
+            sim = nb.to_rebound()
+            for p in sim.particles[1:]:
+                p.x *= 1 + r * 1e-13
+            return sim
+        cmp = hbvm_md.compare_rebound(make, t_end=2e4, hbvm=(), peers=("heyoka(compact)",), n_samples=40,
+                                      reference=EXTENDED)
+        row = cmp.rows[0]
+        assert row["final_t"] == 2e4 and row["steps"] > 0 and row["compile_time_s"] > 0
+        errs.append(row["max_rel_energy_error"])
+        pos.append(row["final_position_diff"])
+    # heyoka at tol = eps: round-off energy error, and the extended-precision reference agrees
+    assert np.median(errs) < 1e-14
+    assert np.median(pos) < 1e-11
