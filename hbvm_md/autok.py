@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from integrators import HBVM, ConvergenceError, integrate
+from integrators import HBVM, ConvergenceError, StepError, integrate
 
 
 @dataclass
@@ -89,7 +89,7 @@ def choose_k(s: int, system, y0, h: float, test_steps: int = 20, k_max: int | No
         try:
             r = integrate(HBVM(k, s), system, y0, h, int(test_steps))
             err = r.max_energy_error
-        except ConvergenceError:
+        except StepError:
             err = np.inf
         errors[k] = err
         if err < 0.5 * best:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators import ConvergenceError
+from integrators import StepError
 
 __all__ = ["solar_clone", "stability_member", "stability_grid", "stability_table",
            "plot_stability_map", "md_replica"]
@@ -86,7 +86,7 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
         try:
             for sim in sims:
                 sim.integrate(t)
-        except ConvergenceError as exc:
+        except StepError as exc:
             stop_reason = f"{type(exc).__name__}: {exc}"
             break
         t_done.append(t)

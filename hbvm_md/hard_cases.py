@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from integrators import HBVM, ConvergenceError, Stepper, integrate
+from integrators import HBVM, StepError, Stepper, integrate
 from systems import FPU, HenonHeiles, Kepler
 from systems.poincare import PoincareTransformed
 
@@ -154,7 +154,7 @@ def stiff_fpu(quick: bool = False, omegas=None, h_omegas=None, t_end: float | No
                 rep.facts["newton_took_over"][key] = took
                 rep.facts["hbvm_energy"][key] = run.max_energy_error
                 rep.facts["hbvm_finished"][key] = True
-            except ConvergenceError as err:
+            except StepError as err:
                 rep.outcomes.append(Outcome(f"HBVM{(method.k, method.s)}", setting, False, 0, float("nan"),
                                             float("nan"), 0.0, f"ConvergenceError: {err}"[:80]))
                 rep.facts["hbvm_finished"][key] = False
@@ -210,7 +210,7 @@ def eccentric_kepler(quick: bool = False, eccentricities=(0.9, 0.99), periods: i
             rep.outcomes.append(Outcome(f"HBVM{(k, s)} Poincare", f"e={e} {npt}/period", True, rp.steps,
                                         dH, errp, rp.wall_time, f"t_end={tph[-1]:.6g}"))
             facts["poincare"] = dict(steps=rp.steps, energy_error=dH, solution_error=errp)
-        except ConvergenceError as err_:
+        except StepError as err_:
             rep.outcomes.append(Outcome(f"HBVM{(k, s)} Poincare", f"e={e} {npt}/period", False, 0,
                                         float("nan"), float("nan"), 0.0, str(err_)[:80]))
             facts["poincare"] = None
@@ -279,7 +279,7 @@ def close_encounter(quick: bool = False, t_end: float | None = None, s: int = 6,
         setting = f"dt=P/{spo}"
         try:
             hb = _hbvm_nbody_run(nb, y0, dt, t_end, s, samples)
-        except ConvergenceError as err:
+        except StepError as err:
             hb = Run(f"HBVM(k, {s})", np.zeros(1), y0[None], np.zeros(1), 0, 0, 0.0, False,
                      f"{type(err).__name__} at t={err.t:.4g}")
         rep.outcomes.append(_outcome(hb, setting, yref, hb.message or hb.extra.get("how", "")))
@@ -320,7 +320,7 @@ def _hbvm_nbody_run(nb, y0, dt, t_end, s, samples) -> Run:
     es, ys, clock = [sim.energy()], [y0], [0.0]
     try:
         _sample(sim, nb, t_end, samples, es, ys, clock)
-    except ConvergenceError as err:
+    except StepError as err:
         return Run(label, np.zeros(len(es)), np.array(ys), np.array(es), drv.nsteps, drv.nfev,
                    clock[0], False, f"{type(err).__name__} at t={err.t:.6g}")
     return Run(label, np.linspace(0, t_end, samples + 1), np.array(ys), np.array(es), drv.nsteps,
@@ -400,7 +400,7 @@ def step_too_large(quick: bool = False, steps_sizes=(0.5, 1.0, 2.0, 3.0, 5.0), s
                                         time.perf_counter() - t0, f"{st.newton_steps} Newton steps"))
             rep.facts["raised"][h] = False
             rep.facts["energy"][h] = err
-        except ConvergenceError as e:
+        except StepError as e:
             same = np.array_equal(before[0], st.y) and before[1] == st.t and before[2] == st.nsteps
             rep.facts["state_untouched"] = rep.facts["state_untouched"] and same
             rep.outcomes.append(Outcome(repr(m), f"h={h:g}", False, st.nsteps, float("nan"), float("nan"),

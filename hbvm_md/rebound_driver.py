@@ -3,8 +3,9 @@
 How it attaches
 ---------------
 ``sim.integrator = "none"`` makes REBOUND advance only the time (t += dt, dt_last_done = dt);
-a post-timestep callback then advances the particles by ``sim.dt_last_done`` with one compiled
-HBVM step (:func:`_driver_step`, built from the pieces of :mod:`integrators.fast`).  Everything REBOUND
+a post-timestep callback then advances the particles by ``sim.dt_last_done`` with one step of
+the project's single step core (:mod:`integrators.loop`, compiled with the N-body kernel called
+statically, see :mod:`integrators.specialise`).  Everything REBOUND
 does around a step (``exact_finish_time``'s shrunken last step, heartbeats, ``steps_done``,
 simulation archives, ``sim.energy()``) is REBOUND's own.  Measured here (outer solar system,
 6 bodies): a REBOUND step with "none" and an empty Python callback costs about 1 microsecond,
@@ -14,9 +15,10 @@ would still have to call into Python (or into the numba step through a C pointer
 most that microsecond.
 
 Per step, Python does little: it reads dt_last_done, checks the particle array's address and
-N, and calls one compiled function (:func:`_driver_step`) through its compiled entry point, with
-arrays and numbers only: the N-body kernel is called statically inside (a ``cfunc`` argument
-would cost about 5 microseconds a step to unbox, measured).
+N, and makes three compiled calls through their entry points (no argument typing): the glue
+:func:`_begin` (have the particles changed? copy the state into the trial arrays), the core's
+``advance`` on the trial arrays, and the glue :func:`_commit` (trial arrays into the state, the
+particles written, the commit counted).  This module holds host glue only; no numerics.
 
 State between steps
 -------------------
@@ -38,8 +40,8 @@ and ``steps`` re-raise the stored exception after REBOUND returns.  (``sim.steps
 already counted the failed step: REBOUND increments it after the callback.)
 
 An exception raised by a Python signal handler (SIGALRM, SIGTERM turned into SystemExit) lands
-between any two bytecodes.  The compiled step writes the particles and counts the commit in one
-call, so the callback tells a committed step (kept, its Python bookkeeping finished from a
+between any two bytecodes.  :func:`_commit` writes the state and the particles and counts the
+commit in one compiled call, so the callback tells a committed step (kept, its Python bookkeeping finished from a
 record made before the call) from one not taken (REBOUND's t += h undone).  One raised on
 entering the callback, before its ``try``, is handed by ctypes to ``sys.unraisablehook``; the
 driver installs its own for the time of a run.  Measured over 400 random SIGALRMs on the outer
@@ -64,91 +66,33 @@ import weakref
 
 import numpy as np
 
-from integrators import HBVM, ConvergenceError, UnresolvedStepError
-from integrators.fast import (DIVERGED, NOT_FINITE, OK, POLISH, all_zero, coefficients, commit,
-                              guess, project, project_compensated, stage_positions,
-                              step_constants, stop_action)
-from numba import njit
-from systems.nbody import NBody, nbody_forces, nbody_potential
+from integrators import HBVM, StepError
+from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS
+from integrators.engine import Binding
+from integrators.errors import step_error
+from integrators.jit import entry_point, jit
+from systems.nbody import NBody
 
 _LOG = logging.getLogger(__name__)
 _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValueDictionary()
 _DOUBLES_PER_PARTICLE = 14       # sizeof(reb_particle) = 112 bytes in REBOUND 5.2
 
 
-RESYNC = -1
-UNRESOLVED = 3            # a status of _driver_step besides integrators.fast's OK, DIVERGED, NOT_FINITE
+RESYNC = -1               # _begin: the particles are not what the driver wrote last
 TINY_RATIO = 1e-3         # steps shorter than this times the previous one are 'slivers'
 MAX_EXTRAPOLATION = 4.0   # largest h_new / h_old the previous step's gamma is extrapolated over
 
 
-def _readonly(a: np.ndarray) -> np.ndarray:
-    # the method's arrays are read-only; a matching E keeps one compiled signature
-    a = np.ascontiguousarray(a, dtype=float).copy()
-    a.flags.writeable = False
-    return a
+def _writable(a: np.ndarray) -> np.ndarray:
+    # the method's E is read-only, an extrapolation matrix is not: one type, one compiled step
+    return np.array(a, dtype=float, order="C")
 
 
-@njit(cache=True)
-def _solve_nbody(params, q, p, cq, cp, minv, W, W_lo, C2, C2_lo, E, ht, ht_lo, h2, h2_lo,
-                 gamma, g, a, Q, F, hist, max_iter, plateau, tol, counters):
-    """:func:`integrators.fast.solve_step` with the N-body kernel called statically.
-
-    Passing the kernel as a value instead costs about 5 us a step to unbox (a cfunc from
-    Python: a third of a step of the outer solar system, measured), or makes this function
-    uncachable (a compiled kernel is embedded by address).  Keep the two alike."""
-    n = Q.shape[0]
-    guess(E, gamma, g)
-    hist[0], hist[1], hist[2] = np.inf, np.inf, 0.0
-    polish = False
-    it = 0
-    while polish or it < max_iter:
-        it += 1
-        stage_positions(q, p, cq, cp, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q)
-        nbody_forces(Q, params, F)
-        counters[2] += n
-        if polish:
-            project_compensated(W, W_lo, F, g)
-            counters[1] += it
-            return OK
-        delta, scale, fmax = project(W, W_lo, F, g)
-        counters[4] = delta
-        action = stop_action(delta, scale, fmax, it, hist, tol, plateau)
-        if action == POLISH:
-            polish = True
-        elif action < 0:
-            counters[1] += it
-            return -action
-    counters[1] += it
-    return DIVERGED
-
-
-@njit(cache=True)
-def _source_kinetic(p, minv, params):
-    """Kinetic energy of the gravitating bodies (params as in systems.nbody): test particles
-    are left out, as from ``sim.energy()``."""
-    N = int(params[1])
-    ke = 0.0
-    for i in range(N):
-        if params[2 + N + i] != 0.0:
-            for c in range(3):
-                ke += 0.5 * p[3 * i + c] * p[3 * i + c] * minv[3 * i + c]
-    return ke
-
-
-@njit(cache=True)
-def _driver_step(params, view, written, S, scratch, minv, gamma, gamma_new,
-                 h, tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo, E, max_iter, tol, counters,
-                 energy_tol, eref):
-    """One HBVM step of REBOUND's particles (view, (N, 14) over reb_particle) in place.
-
-    Returns RESYNC (nothing done) when the particles differ from ``written`` (what the last step
-    wrote: x, y, z, vx, vy, vz, m), else the status of the step.  S = [q, p, cq, cp] and gamma
-    are committed, and the particles written, only when the step succeeded.  With
-    energy_tol > 0 a step whose energy change exceeds energy_tol (|T| + |V|) returns UNRESOLVED
-    (counters[4] = the relative change); eref[0] carries the energy between steps.
-    counters[5] counts committed steps (never reset here).
-    """
+@jit
+def _begin(view, written, S, gamma, eref, S1, gamma1, eref1):
+    """RESYNC when REBOUND's particles (view, (N, 14) over reb_particle) differ from ``written``
+    (x, y, z, vx, vy, vz, m as the last commit wrote them); else OK, with the state (S: q, p and
+    their compensations; gamma; eref) copied into the trial arrays S1, gamma1, eref1."""
     N = view.shape[0]
     if written.shape[0] != N:
         return RESYNC
@@ -158,63 +102,37 @@ def _driver_step(params, view, written, S, scratch, minv, gamma, gamma_new,
                 return RESYNC
         if view[i, 9] != written[i, 6]:
             return RESYNC
-    m = S.shape[1]
-    s, n = W.shape
-    for r in range(4):
-        for j in range(m):
-            scratch[r, j] = S[r, j]
-    q, p, cq, cp = scratch[0], scratch[1], scratch[2], scratch[3]
-    for c in range(5):
-        counters[c] = 0.0
-    Q = np.empty((n, m))
-    F = np.empty((n, m))
-    g = np.empty((s, m))
-    a = np.empty((s, m))
-    hist = np.empty(3)
-    ht = np.empty(n)
-    ht_lo = np.empty(n)
-    h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
-    gamma_new[:, :] = gamma
-    if all_zero(gamma):       # first step: start from the forces at q0
-        for i in range(n):
-            Q[i] = q
-        nbody_forces(Q, params, F)
-        counters[2] += n
-        gamma_new[0] = F[0]
-    status = _solve_nbody(params, q, p, cq, cp, minv, W, W_lo, C2, C2_lo, E, ht, ht_lo, h2, h2_lo,
-                          gamma_new, g, a, Q, F, hist, max_iter, 2.0 ** -40, tol, counters)
-    counters[3] = status
-    if status != OK:
-        return status
-    commit(q, p, cq, cp, minv, h, g, X0, X0_lo, gamma_new, np.empty(m), np.empty(m))
-    for r in range(2):
-        for j in range(m):
-            if not np.isfinite(scratch[r, j]):
-                return NOT_FINITE
-    if energy_tol > 0.0:
-        if not np.isfinite(eref[0]):
-            eref[0] = _source_kinetic(S[1], minv, params) + nbody_potential(S[0], params)
-        kin = _source_kinetic(p, minv, params)
-        pot = nbody_potential(q, params)
-        change = abs(kin + pot - eref[0]) / (abs(kin) + abs(pot))
-        if not change <= energy_tol:
-            counters[4] = change
-            return UNRESOLVED
-        eref[0] = kin + pot
-    for r in range(4):
-        for j in range(m):
-            S[r, j] = scratch[r, j]
-    for i in range(N):
+    for r in range(S.shape[0]):
+        for j in range(S.shape[1]):
+            S1[r, j] = S[r, j]
+    for r in range(gamma.shape[0]):
+        for j in range(gamma.shape[1]):
+            gamma1[r, j] = gamma[r, j]
+    eref1[0] = eref[0]
+    return OK
+
+
+@jit
+def _commit(view, written, S1, gamma1, eref1, S, gamma, eref, minv, keep_gamma, commits):
+    """The trial step into the state and the particles, and the commit counted, in one compiled
+    call (a Python exception, a signal handler's, cannot land inside it: the host tells a
+    committed step from an interrupted one by ``commits``).  ``keep_gamma``: the step was a
+    sliver (exact_finish_time's last one), whose coefficients are not extrapolated from."""
+    for r in range(S.shape[0]):
+        for j in range(S.shape[1]):
+            S[r, j] = S1[r, j]
+    if not keep_gamma:
+        for r in range(gamma.shape[0]):
+            for j in range(gamma.shape[1]):
+                gamma[r, j] = gamma1[r, j]
+    eref[0] = eref1[0]
+    for i in range(view.shape[0]):
         for c in range(3):
             view[i, c] = S[0, 3 * i + c]
             view[i, 3 + c] = S[1, 3 * i + c] * minv[3 * i + c]
             written[i, c] = view[i, c]
             written[i, 3 + c] = view[i, 3 + c]
-    # the commit count changes in the same compiled call that writes the particles: the host
-    # tells a committed step from an interrupted one by it (a Python exception cannot land
-    # inside this function)
-    counters[5] += 1.0
-    return OK
+    commits[0] += 1.0
 
 
 def _rebound():
@@ -271,7 +189,23 @@ def _make_class():
 
 
 _SIM_CLASS = None
-_ENTRY: list = []          # the compiled entry point of _driver_step, once known
+_ENTRIES: dict = {}        # compiled entry points, once known (see _entry)
+_HINTS = {"diverged": "try a smaller sim.dt or a larger max_iter",
+          "not_finite": "try a smaller sim.dt, and check for particles at the same position",
+          "unresolved": "use a smaller sim.dt (or IAS15 for close encounters), or pass "
+                        "energy_tol=None to accept such steps"}
+
+
+def _entry(dispatcher):
+    """The compiled entry point of a step function once it has been compiled: later calls skip
+    numba's argument typing (several microseconds with this many arguments) and its Python code
+    (where an exception raised by a signal handler would be turned into another one)."""
+    fn = _ENTRIES.get(dispatcher)
+    if fn is None:
+        fn = entry_point(dispatcher)
+        if fn is not dispatcher:
+            _ENTRIES[dispatcher] = fn
+    return fn
 
 
 @contextlib.contextmanager
@@ -379,7 +313,7 @@ def choose_k(system, y0: np.ndarray, s: int, h: float, period: float,
 
     try:
         e_ref = err(k_ref)
-    except ConvergenceError as exc:
+    except StepError as exc:
         # the probe ran into something a step of size h does not resolve (an encounter ahead):
         # measure on the stretch before it, or keep k_ref if that is too short.  The run itself
         # reports the unresolved step when it gets there.
@@ -393,14 +327,14 @@ def choose_k(system, y0: np.ndarray, s: int, h: float, period: float,
         steps = done
         try:
             e_ref = err(k_ref)
-        except ConvergenceError:
+        except StepError:
             return k_ref
     bound = max(2 * np.finfo(float).eps, 1.5 * e_ref)
     for k in range(s, k_ref):
         try:
             if err(k) <= bound:
                 return min(k + 1, k_ref)
-        except ConvergenceError:
+        except StepError:
             continue
     return k_ref
 
@@ -512,16 +446,15 @@ class HBVMIntegrator:
         self.energy_tol = energy_tol
         self._eref = np.full(1, np.nan)    # energy after the last committed step (nan: unknown)
         m = self.method
-        # (tau, tau_lo, W, W_lo, C2, C2_lo, X0, X0_lo): E is chosen per step
-        self._coef = tuple(_readonly(a) for a in coefficients(m)[:-1])
-        self._E = m.E
+        self._E = _writable(m.E)      # E is chosen per step; one array type for every E
         self._E_cache = {}
-        self._E_zero = _readonly(np.zeros_like(m.E))
-        # per call: [-, iterations, stages, status, residual]; [5]: committed steps, cumulative
-        self._counters = np.zeros(6)
-        self._commits = 0.0         # counters[5] once the Python bookkeeping of a commit is done
+        self._E_zero = np.zeros_like(self._E)
+        self._counters = np.zeros(N_COUNTERS)   # the core's counters, over the driver's life
+        self._clock = np.zeros(2)               # the core ticks it; REBOUND keeps the time
+        self._commit_count = np.zeros(1)        # counted by _commit, in the compiled call
+        self._commits = 0.0         # _commit_count once the Python bookkeeping of a commit is done
         self._pending = None
-        self.nsteps = self.nfev = self.niter = self.resyncs = 0
+        self.nsteps = self.resyncs = 0
         self._energy_check = True
         self._error = None
         self._hook_prev = None
@@ -534,7 +467,7 @@ class HBVMIntegrator:
         self._ptr_c = ctypes.c_void_p.from_address(self._addr + type(sim)._particles.offset)
         self._view_key = None
         self._view = None
-        self._gamma = self._gamma_new = None
+        self._gamma = None
         self._h_prev = None
         self._written = None        # (N, 7): x, y, z, vx, vy, vz, m as written last step
         self._t_written = None
@@ -649,7 +582,8 @@ class HBVMIntegrator:
                     int(d["max_iter"]), float(d["tol"]) or None,
                     None if math.isnan(energy_tol) else energy_tol)
         drv._prev_integrator = str(d["prev_integrator"])
-        drv.nsteps, drv.nfev, drv.niter, drv.resyncs = (int(c) for c in d["counts"])
+        drv.nsteps, nfev, niter, drv.resyncs = (int(c) for c in d["counts"])
+        drv._counters[C_NFEV], drv._counters[C_ITER] = nfev, niter
         if bool(d["stepped"]):
             drv._set_state(d)
         return drv
@@ -665,10 +599,7 @@ class HBVMIntegrator:
             raise ValueError("the saved HBVM state does not belong to these particles; load "
                              "the simulation and the state that HBVMIntegrator.save wrote together")
         self._model(view)
-        self._S = np.array(d["S"], dtype=float)
-        self._scratch = np.empty_like(self._S)
-        self._gamma = np.array(d["gamma"], dtype=float)
-        self._gamma_new = np.zeros_like(self._gamma)
+        self._arrays(np.array(d["S"], dtype=float), np.array(d["gamma"], dtype=float))
         self._written = w.copy()
         self._eref[0] = float(d["eref"])
         h_prev, t_written = float(d["h_prev"]), float(d["t_written"])
@@ -726,9 +657,9 @@ class HBVMIntegrator:
 
         An exception can land between any two bytecodes (a signal handler's), also after the
         compiled step wrote the particles: that step is then kept and its bookkeeping finished
-        (counters[5] tells, see :func:`_driver_step`); otherwise REBOUND's t += h is undone.
+        (the commit count tells, see :func:`_commit`); otherwise REBOUND's t += h is undone.
         """
-        if self._counters[5] != self._commits:
+        if self._commit_count[0] != self._commits:
             self._finish_commit()
         elif self._t_written != self._t_c.value:
             self._restore_time(self._h_c.value)
@@ -738,22 +669,26 @@ class HBVMIntegrator:
 
     def _pend(self, h: float) -> None:
         """What a commit of the step about to be tried changes on the Python side, decided
-        before the compiled call so that :meth:`_finish_commit` can be repeated harmlessly."""
+        before the compiled calls so that :meth:`_finish_commit` can be repeated harmlessly."""
         hp = self._h_prev
-        if hp is None or abs(h) >= TINY_RATIO * abs(hp):
-            gammas, h_next = (self._gamma_new, self._gamma), h
-        else:
-            # exact_finish_time's sliver of a step (1e-16): the next step extrapolates from the
-            # last regular one, whose gamma is kept
-            gammas, h_next = (self._gamma, self._gamma_new), hp
-        self._pending = (gammas, h_next, self._t_c.value, self.nsteps + 1, self.niter, self.nfev)
+        # exact_finish_time's sliver of a step (1e-16): the next step extrapolates from the
+        # last regular one, whose gamma is kept
+        sliver = hp is not None and abs(h) < TINY_RATIO * abs(hp)
+        self._pending = (sliver, hp if sliver else h, self._t_c.value, self.nsteps + 1)
 
     def _finish_commit(self) -> None:
-        (self._gamma, self._gamma_new), self._h_prev, self._t_written, self.nsteps, niter, nfev = \
-            self._pending
-        c = self._counters
-        self.niter, self.nfev = niter + int(c[1]), nfev + int(c[2])
-        self._commits = c[5]        # last: the commit is booked
+        _, self._h_prev, self._t_written, self.nsteps = self._pending
+        self._commits = self._commit_count[0]        # last: the commit is booked
+
+    @property
+    def niter(self) -> int:
+        """Iterations done by this driver (failed attempts included)."""
+        return int(self._counters[C_ITER])
+
+    @property
+    def nfev(self) -> int:
+        """Stage evaluations (N-body force calls at one configuration) done by this driver."""
+        return int(self._counters[C_NFEV])
 
     def _particle_view(self) -> np.ndarray:
         key = (self._ptr_c.value, self._N_c.value)
@@ -778,8 +713,8 @@ class HBVMIntegrator:
         y = np.concatenate([view[:, :3].reshape(-1), nb.momenta_from_velocities(view[:, 3:6])])
         check_particles(y, nb)
         self._system = nb
-        _, _, self._params = nb.separable_kernels()
-        self._minv = 1.0 / nb.masses
+        self._binding = Binding(self.method, nb, form="separable", fast=True)
+        self._minv = self._binding.minv
         # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for
         # at most one gravitating body, at rest (the restricted problem with a star at rest):
         # then it stays zero, there is nothing to check, and test particles are not checked.
@@ -796,13 +731,11 @@ class HBVMIntegrator:
         y = self._model(view)
         dim = self._system.dim
         N = view.shape[0]
-        # S rows: q, p, and their Kahan compensations; scratch is the trial step's copy
-        self._S = np.zeros((4, dim))
-        self._S[0] = y[:dim]
-        self._S[1] = y[dim:]
-        self._scratch = np.empty_like(self._S)
-        self._gamma = np.zeros((self.method.s, dim))
-        self._gamma_new = np.zeros_like(self._gamma)
+        # S rows: q, p, and their compensations (minus the low parts of the double-double state)
+        S = np.zeros((4, dim))
+        S[0] = y[:dim]
+        S[1] = y[dim:]
+        self._arrays(S, np.zeros((self.method.s, dim)))
         self._written = np.empty((N, 7))
         self._written[:, :6] = view[:, :6]
         self._written[:, 6] = view[:, 9]
@@ -810,69 +743,61 @@ class HBVMIntegrator:
         self._eref[0] = np.nan
         self.resyncs += 1
 
+    def _arrays(self, S: np.ndarray, gamma: np.ndarray) -> None:
+        """The state (S, gamma) and the trial arrays the core's step works on: y = (q, p) and
+        cy are views of the trial S1's rows."""
+        self._S, self._gamma = S, gamma
+        self._S1, self._gamma1 = np.empty_like(S), np.empty_like(gamma)
+        self._eref1 = np.empty(1)
+        self._y1, self._cy1 = self._S1[:2].reshape(-1), self._S1[2:].reshape(-1)
+        self._yt, self._cyt = np.empty_like(self._y1), np.empty_like(self._y1)
+
     def _step(self) -> None:
         h = self._h_c.value
         view = self._particle_view()
-        hp = self._h_prev
-        if hp is None or h == hp:
-            E = self._E
-        else:
-            r = h / hp
-            if abs(r) < TINY_RATIO:
-                r = 0.0       # a sliver of a step: the previous polynomial's end value will do
-            E = self._E_cache.get(r)
-            if E is None:
-                # extrapolating a short step far beyond itself gives a useless guess: start
-                # from zero instead
-                E = (_readonly(self.method.extrapolation_matrix(r)) if abs(r) <= MAX_EXTRAPOLATION
-                     else self._E_zero)
-                if len(self._E_cache) >= 32:
-                    self._E_cache.clear()
-                self._E_cache[r] = E
+        E = self._extrapolation(h)
         if self._written is None or self._G_c.value != self._G or self._na_c.value != self._na:
             self._resync(view)
-        c = self._counters
+        begin = _entry(_begin)
+        status = begin(view, self._written, self._S, self._gamma, self._eref, self._S1,
+                       self._gamma1, self._eref1)
+        if status == RESYNC:
+            # the user changed the particles: rebuild the model (masses, params, arrays)
+            self._resync(view)
+            begin(view, self._written, self._S, self._gamma, self._eref, self._S1,
+                  self._gamma1, self._eref1)
+        b = self._binding
         etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
         self._pend(h)
-        status = self._call(self._params, view, self._written, self._S, self._scratch, self._minv,
-                            self._gamma, self._gamma_new, h, *self._coef, E, self.max_iter,
-                            self.tol, c, etol, self._eref)
-        if status == RESYNC:
-            # the user changed the particles: rebuild the model (masses, params, arrays) and
-            # step again with the new arrays
-            self._resync(view)
-            etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
-            self._pend(h)
-            status = self._call(self._params, view, self._written, self._S, self._scratch,
-                                self._minv, self._gamma, self._gamma_new, h, *self._coef, E,
-                                self.max_iter, self.tol, c, etol, self._eref)
-        if status == OK:
-            self._finish_commit()
-            return
-        self.niter += int(c[1])
-        self.nfev += int(c[2])
-        if status == UNRESOLVED:
-            raise UnresolvedStepError(
-                h, float(c[4]), self.energy_tol, int(c[1]), self._step_start(h),
-                hint="use a smaller sim.dt (or IAS15 for close encounters), or pass "
-                     "energy_tol=None to accept such steps")
-        if status == NOT_FINITE:
-            raise ConvergenceError(h, float("nan"), int(c[1]), "fixed_point", self._step_start(h),
-                                   hint="the new state is not finite; try a smaller sim.dt")
-        raise ConvergenceError(h, float(c[4]), self.max_iter, "fixed_point", self._step_start(h),
-                               hint="try a smaller sim.dt or a larger max_iter")
+        status = _entry(b.step_code.advance)(
+            False, self._y1, self._cy1, self._yt, self._cyt, b.minv, b.kin_w, b.params, h, E,
+            self._gamma1, b.g, b.c1, b.c2, *b.no_newton, self.max_iter, self.tol, etol,
+            self._eref1, b.w1, b.w2, b.wc, self._counters, self._clock)
+        if status != OK:
+            raise step_error(status, h, self._step_start(h), self._counters, "fixed_point",
+                             energy_tol=self.energy_tol, hints=_HINTS)
+        _entry(_commit)(view, self._written, self._S1, self._gamma1, self._eref1, self._S,
+                        self._gamma, self._eref, self._minv, self._pending[0], self._commit_count)
+        self._finish_commit()
 
-    def _call(self, *args):
-        # The first call of the process goes through numba's dispatcher (typing the two cfunc
-        # arguments costs about 10 us each); later calls, of every driver, use the compiled
-        # entry point of that signature (also: fewer places where an exception raised by a
-        # signal handler is turned into another one by the dispatcher's Python code).
-        if _ENTRY:
-            return _ENTRY[0](*args)
-        status = _driver_step(*args)
-        if len(_driver_step.overloads) == 1:
-            _ENTRY.append(next(iter(_driver_step.overloads.values())).entry_point)
-        return status
+    def _extrapolation(self, h: float) -> np.ndarray:
+        """E(h / h_prev): the initial guess's extrapolation matrix for this step."""
+        hp = self._h_prev
+        if hp is None or h == hp:
+            return self._E
+        r = h / hp
+        if abs(r) < TINY_RATIO:
+            r = 0.0       # a sliver of a step: the previous polynomial's end value will do
+        E = self._E_cache.get(r)
+        if E is None:
+            # extrapolating a short step far beyond itself gives a useless guess: start from
+            # zero instead
+            E = (_writable(self.method.extrapolation_matrix(r)) if abs(r) <= MAX_EXTRAPOLATION
+                 else self._E_zero)
+            if len(self._E_cache) >= 32:
+                self._E_cache.clear()
+            self._E_cache[r] = E
+        return E
 
     def _step_start(self, h: float) -> float:
         """sim.t before REBOUND's "none" integrator did t += h (exact when we wrote it)."""

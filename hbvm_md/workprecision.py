@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators import HBVM, ConvergenceError, integrate
+from integrators import HBVM, StepError, integrate
 from systems import FPU, HenonHeiles, Kepler
 
 from .autok import choose_k, k_cost
@@ -68,7 +68,7 @@ def _hbvm_rows(scene, system, y0, T, ns, svals, q_ref, gauss=(), k_info=None, ba
             h = T / n
             try:
                 kc = choose_k(s, system, y0, h)
-            except ConvergenceError:
+            except StepError:
                 rows.append(_row(scene, f"HBVM s={s} (auto k)", "HBVM", f"h=T/{n}", 0, 0, 0, np.inf, np.inf, False,
                                  "no k converged"))
                 continue
@@ -88,7 +88,7 @@ def _hbvm_rows(scene, system, y0, T, ns, svals, q_ref, gauss=(), k_info=None, ba
 def _core_run(scene, label, family, method, system, y0, h, n, q_ref, d, note=""):
     try:
         r = integrate(method, system, y0, h, n, sample_every=sample_interval(n, 200))
-    except ConvergenceError as err:
+    except StepError as err:
         return _row(scene, label, family, f"h={h:.4g}", 0, 0, 0, np.inf, np.inf, False, f"ConvergenceError: {err.solver}")
     return _row(scene, label, family, f"h={h:.4g}", r.steps, r.nfev, r.wall_time, r.max_energy_error,
                 _pos_error(r.y[-1, :d], q_ref), True, note or f"k={method.k}")
@@ -305,7 +305,7 @@ def scene_md_cluster(quick=False, k_info=None, bar=None):
         for dt in dts:
             try:
                 a, n, wall, es = run(lambda a, dt_: HBVMDynamics(a, dt_, s=s), dt)
-            except ConvergenceError:
+            except StepError:
                 rows.append(_row("md-cluster", f"HBVMDynamics(s={s})", "HBVM", f"dt={dt}fs", 0, 0, 0, np.inf,
                                  np.inf, False, "ConvergenceError"))
                 continue

@@ -1,8 +1,9 @@
-"""The stepping engine: one public :class:`Stepper` that owns time, state and counters, and
-:func:`integrate`, which runs a Stepper (or the compiled fast path) over many steps.
+"""The stepping engine: :class:`Stepper` owns time, state, counters and status; :func:`integrate`
+runs many steps.  Both call the one step of :mod:`integrators.loop` (compiled for systems with
+compiled kernels, executed as Python otherwise: the same code either way).
 
-Like scipy's ``OdeSolver``: the public ``step`` owns time, counters and status; the private
-``_solve`` does the nonlinear solve of one step and changes nothing on failure.
+Like scipy's ``OdeSolver``: the public ``step`` owns time, counters and status; the step itself
+(:func:`integrators.loop.advance`) changes nothing on failure.
 """
 from __future__ import annotations
 
@@ -11,13 +12,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import ConvergenceError
-from .forms import FullForm, SeparableForm
+from .core import C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE, OK
+from .errors import StepError, step_error
 from .protocol import adapt_system
-from .solvers import SimplifiedNewton, StopRule, fixed_point, newton
+from .specialise import specialise
 
 SOLVERS = ("auto", "fixed_point", "newton")
 FORMS = ("auto", "full", "separable")
+MAX_ITER = {"fixed_point": 60, "newton": 30}
 
 
 def _is_separable(system) -> bool:
@@ -47,7 +49,7 @@ def check_step(h) -> float:
         hf = float(h)
     except (TypeError, ValueError):
         raise ValueError(f"`h` must be a nonzero finite number (got h={h!r})") from None
-    if not np.isfinite(hf) or hf == 0.0:
+    if isinstance(h, bool) or not np.isfinite(hf) or hf == 0.0:
         raise ValueError(f"`h` must be a nonzero finite number (got h={h!r})")
     return hf
 
@@ -73,6 +75,152 @@ def check_options(solver, form, tol, max_iter, t0) -> float:
     return t0f
 
 
+_COEF_CACHE: dict = {}
+
+
+def method_arrays(method) -> tuple:
+    """(c1, c2) = ((tau, tau_lo, X0, X0_lo), (W, W_lo, C2, C2_lo, I, I_lo)): the method's arrays
+    as the step takes them (contiguous, writable copies, so that every path compiles one
+    signature)."""
+    hit = _COEF_CACHE.get(method)
+    if hit is None:
+        def c(a):
+            a = np.array(a, dtype=float, order="C")
+            a.flags.writeable = False
+            return a
+        m = method
+        hit = ((c(m.tau), c(m.tau_lo), c(m.X[0]), c(m.X_lo[0])),
+               (c(m.W), c(m.W_lo), c(m.C2), c(m.C2_lo), c(m.I), c(m.I_lo)))
+        _COEF_CACHE[method] = hit
+    return hit
+
+
+class Binding:
+    """A system bound to the step: the form, the kernels (compiled or Python), their parameters
+    and the arrays the step works in.  Built once per Stepper (and per REBOUND resync).
+
+    Parameters
+    ----------
+    method : HBVM
+    system : a system following :mod:`systems.base`
+    form : {"auto", "full", "separable"}
+    fast : bool or None
+        True: the system's compiled kernels (``separable_kernels()`` or ``full_kernels()``) are
+        required and the step is compiled; False: the step runs as Python code (calling the
+        compiled kernels when the system has them, else its numpy methods); None: compiled when
+        the system has kernels.
+    """
+
+    def __init__(self, method, system, form: str = "auto", fast: bool | None = None):
+        if form == "separable" and not _is_separable(system):
+            raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
+                             "`potential`; use form='full'")
+        self.full = not (form == "separable" or (form == "auto" and _is_separable(system)))
+        self.method, self.system = method, system
+        d = 2 * int(system.dim)
+        m = d // 2
+        kernels_attr = "full_kernels" if self.full else "separable_kernels"
+        has_kernels = hasattr(system, kernels_attr)
+        if fast and not has_kernels:
+            raise ValueError(f"`fast=True` needs a system with `{kernels_attr}()` (compiled "
+                             f"kernels for the {'full' if self.full else 'separable'} form); "
+                             f"{type(system).__name__} has none: use fast=None or fast=False")
+        if has_kernels:
+            force, potential, params = getattr(system, kernels_attr)()
+        else:
+            force, potential, params = self._python_kernels(system)
+        self.params = np.ascontiguousarray(params, dtype=float)
+        # fast=False runs the step as Python code: with the system's compiled kernels when it
+        # has them (then the numbers and counters equal the compiled run's bit for bit)
+        self.step_code = specialise(force, potential, python=fast is False)
+        self.force = force
+        self.kind = self.step_code.kind
+        self.name = f"{self.kind}-{'full' if self.full else 'separable'}"
+        if self.full:
+            self.minv = np.zeros(0)
+            self.kin_w = np.zeros(0)
+        else:
+            masses = np.asarray(system.masses, dtype=float)
+            if masses.shape != (m,):
+                raise ValueError(f"`masses` of the system must have shape ({m},) "
+                                 f"(got {masses.shape})")
+            self.minv = 1.0 / masses
+            self.kin_w = np.ascontiguousarray(getattr(system, "kinetic_weights", self.minv),
+                                              dtype=float)
+        self.c1, self.c2 = method_arrays(method)
+        u = d if self.full else m
+        s, n = method.s, method.n_stages
+        w = d if self.full else m
+        self.u = u
+        self.w1 = (np.empty(n), np.empty(n), np.empty(2), np.empty(m), np.empty(m))
+        self.w2 = (np.empty((s, u)), np.empty((n, w)), np.empty((n, w)), np.empty((n, w)),
+                   np.empty((s, u)), np.empty((n, w)), np.empty((n, w)))
+        self.wc = (np.empty((s, u), dtype=complex), np.empty((s, u), dtype=complex))
+        self.g = np.empty((s, u))
+        self.no_newton = (np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
+                          np.zeros((0, u, u), dtype=complex))
+        self._eig = None
+
+    def _python_kernels(self, system):
+        """Kernels that call the system's own (numpy) methods: the Python path."""
+        if self.full:
+            def force(Y, params, out):
+                out[...] = system.gradient(Y)
+
+            def potential(y, params):
+                return float(system.energy(y))
+        else:
+            def force(Q, params, out):
+                out[...] = system.forces(Q)
+
+            def potential(q, params):
+                return float(system.potential(q))
+        return force, potential, np.zeros(1)
+
+    def energy(self, y: np.ndarray) -> float:
+        t, v = self.step_code.energy_parts(self.full, y, self.kin_w, self.params)
+        return float(t + v)
+
+    def rhs(self, X: np.ndarray) -> np.ndarray:
+        """The kernel's output (forces, or grad H for the full form) at a stack of rows X."""
+        out = np.empty_like(X)
+        self.force(np.ascontiguousarray(X), self.params, out)
+        return out
+
+    def newton_matrices(self, y: np.ndarray, h: float, counters: np.ndarray) -> tuple:
+        """(NV, NVinv, NM): the simplified-Newton matrices of the Gauss method, I - h X_s (x) J0
+        (full form) or I - h^2 X_s^2 (x) dF/dq M^{-1} (separable), split through X_s's
+        eigenvalues (by the isospectral property they are Gauss's whatever k is).  J0 comes
+        from the system's ``hessian`` or from central differences of the kernel (2u
+        evaluations, counted)."""
+        system, u, d = self.system, self.u, int(self.system.dim)
+        if hasattr(system, "hessian"):
+            Hs = np.asarray(system.hessian(y), dtype=float)
+            if Hs.shape != (2 * d, 2 * d):
+                raise ValueError(f"`hessian(y)` of {type(system).__name__} must return shape "
+                                 f"({2 * d}, {2 * d}) (got {Hs.shape})")
+            L = np.concatenate([Hs[d:], -Hs[:d]]) if self.full else -Hs[:d, :d] * self.minv[None, :]
+        else:
+            x = y if self.full else y[:d]
+            e = 2.0 ** -26 * np.maximum(1.0, np.abs(x))
+            vals = self.rhs(np.concatenate([x + np.diag(e), x - np.diag(e)]))
+            counters[C_NFEV] += 2 * u
+            jac = ((vals[:u] - vals[u:]) / (2 * e[:, None])).T
+            L = np.concatenate([jac[d:], -jac[:d]]) if self.full else jac * self.minv[None, :]
+        if self._eig is None:
+            lam, V = np.linalg.eig(self.method.X)
+            self._eig = (lam, np.ascontiguousarray(V, dtype=complex),
+                         np.ascontiguousarray(np.linalg.inv(V), dtype=complex))
+        lam, V, Vinv = self._eig
+        mu = (h * lam) ** (1 if self.full else 2)
+        eye = np.eye(u)
+        NM = np.empty((lam.size, u, u), dtype=complex)
+        for i, m_i in enumerate(mu):
+            j = next((j for j in range(i) if abs(mu[j] - np.conj(m_i)) <= 1e-14 * (1 + abs(m_i))), None)
+            NM[i] = np.conj(NM[j]) if j is not None else np.linalg.inv(eye - m_i * L)
+        return V, Vinv, NM
+
+
 class Stepper:
     """Integrates a Hamiltonian system with HBVM(k, s), one step at a time.
 
@@ -94,106 +242,187 @@ class Stepper:
     form : {"auto", "full", "separable"}
         ``"separable"`` iterates on the momentum coefficients only (needs ``masses``,
         ``forces``, ``potential``); ``"auto"`` uses it when the system offers them.
+    fast : bool or None
+        Compiled kernels: required (True), never (False), when the system has them (None).
+    energy_tol : float, optional
+        Refuse a converged step whose energy change exceeds this, relative to |T| + |V|
+        (:class:`integrators.UnresolvedStepError`); None: no check.
 
     Attributes
     ----------
-    t, y : current time and state (y is the rounded value; a Kahan compensation is kept).
+    t, y : current time and state (copies; the state is kept as a double-double number).
     nsteps, nfev, niter, newton_steps, solver_switches : counters.
+    status : "running", or "failed" after a step raised.
     """
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
-                 tol: float | None = None, max_iter: int | None = None, form: str = "auto"):
+                 tol: float | None = None, max_iter: int | None = None, form: str = "auto",
+                 fast: bool | None = None, energy_tol: float | None = None):
         t0 = check_options(solver, form, tol, max_iter, t0)
-        system, self.y = check_state(system, y0)
+        if energy_tol is not None and not (np.isfinite(energy_tol) and energy_tol > 0):
+            raise ValueError(f"`energy_tol` must be a positive number or None (got "
+                             f"energy_tol={energy_tol!r})")
+        system, self._y = check_state(system, y0)
         self.method, self.system = method, system
-        self.t = t0
-        if form == "separable" and not _is_separable(system):
-            raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
-                             "`potential`; use form='full'")
-        use_sep = form == "separable" or (form == "auto" and _is_separable(system))
-        self.form = SeparableForm(method, system) if use_sep else FullForm(method, system)
+        self.binding = Binding(method, system, form, fast)
+        self.form = self.binding
+        self._cy = np.zeros_like(self._y)
+        self._yt, self._cyt = np.empty_like(self._y), np.empty_like(self._y)
+        self._clock = np.array([t0, 0.0])
+        self._gamma = np.zeros((method.s, self.binding.u))
+        self._h_prev = None
+        self._E_cache: dict = {}
+        self._E1 = np.array(method.E, dtype=float, order="C")   # writable: one array type for E
+        self._eref = np.full(1, np.nan)
+        self.counters = np.zeros(N_COUNTERS)
         self.solver_option = solver
         self._solver = "newton" if solver == "newton" else "fixed_point"
-        self.tol, self.max_iter = tol, max_iter
-        self._yc = np.zeros_like(self.y)   # Kahan compensation of y
-        self._tc = 0.0                     # and of t
-        self._gamma = None                 # previous step's coefficients (initial guesses)
-        self._h_prev = None
-        self.nsteps = self.nfev = self.niter = self.newton_steps = self.solver_switches = 0
+        self.tol, self.max_iter, self.energy_tol = tol, max_iter, energy_tol
+        self.solver_switches = 0
         self.status = "running"
 
     # -- public ------------------------------------------------------------------------
-    def step(self, h: float) -> np.ndarray:
-        """Advance by one step of size h and return the new state.
+    @property
+    def y(self) -> np.ndarray:
+        return self._y.copy()
 
-        Raises ConvergenceError (with the state, time and counters unchanged) when the
-        nonlinear iteration fails, also after the automatic switch to Newton.
-        """
-        h = check_step(h)
-        gamma, it, fev, solver_used = self._solve(h)
-        inc = self.form.increment(self.y, gamma, h)
-        if not np.all(np.isfinite(inc)):
-            raise ConvergenceError(h, float("nan"), it, solver_used, self.t,
-                                   hint="the new state is not finite; try a smaller step size h")
-        # commit: compensated sums of y and t (Brouwer's law for the round-off)
-        yk = inc - self._yc
-        ynew = self.y + yk
-        self._yc = (ynew - self.y) - yk
-        self.y = ynew
-        tk = h - self._tc
-        tnew = self.t + tk
-        self._tc = (tnew - self.t) - tk
-        self.t = tnew
-        self._gamma, self._h_prev = gamma, h
-        self.nsteps += 1
-        self.niter += it
-        self.nfev += fev
-        if solver_used == "newton":
-            self.newton_steps += 1
-        return self.y
+    @property
+    def t(self) -> float:
+        return float(self._clock[0])
+
+    @property
+    def nsteps(self) -> int:
+        return int(self.counters[C_STEPS])
+
+    @property
+    def niter(self) -> int:
+        return int(self.counters[C_ITER])
+
+    @property
+    def nfev(self) -> int:
+        return int(self.counters[C_NFEV])
+
+    @property
+    def newton_steps(self) -> int:
+        return int(self.counters[C_NEWTON])
 
     @property
     def solver(self) -> str:
         """The solver the next step will use."""
         return self._solver
 
-    # -- private -----------------------------------------------------------------------
-    def _guess(self, h: float) -> np.ndarray:
-        if self._gamma is None:
-            return self.form.start(self.y)
-        return self.method.extrapolation_matrix(h / self._h_prev) @ self._gamma
+    def step(self, h: float) -> np.ndarray:
+        """Advance by one step of size h and return (a copy of) the new state.
 
-    def _solve(self, h: float):
-        y0 = self.y
-        start_fev = 0 if self._gamma is not None else 1
-        g0 = self._guess(h)
-        phi = self.form.phi(y0, h)
-        n = self.form.stage_count()
+        Raises a :class:`integrators.StepError` (ConvergenceError, NonFiniteError,
+        UnresolvedStepError) with the state, time and coefficients unchanged when the step
+        fails, also after the automatic switch to Newton."""
+        h = check_step(h)
+        status = self._advance(h, self._solver)
+        if status in (DIVERGED, NOT_FINITE) and self.solver_option == "auto" and self._solver == "fixed_point":
+            status = self._advance(h, "newton")
+            if status == OK:
+                self._solver = "newton"
+                self.solver_switches += 1
+            else:
+                self._fail(status, h, "auto")
+        elif status != OK:
+            self._fail(status, h, self.solver_option)
+        self._after_step(h)
+        return self._y.copy()
+
+    def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
+        """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
+
+        Fixed-point steps run in one call of the step loop (compiled when the kernels are);
+        on failure with solver="auto" the run goes on with Newton.  A failure raises with the
+        samples so far in the exception's ``result``."""
+        h = check_step(h)
+        b = self.binding
+        nsamp = steps // sample_every + 1
+        out_t, out_y, out_e = np.empty(nsamp), np.empty((nsamp, self._y.size)), np.empty(nsamp)
+        start = self.nsteps
+        t_start = time.perf_counter()
         if self._solver == "fixed_point":
-            rule = StopRule(self.max_iter or 60, self.tol)
-            try:
-                g, it = fixed_point(phi, g0, rule, h, self.t)
-                return g, it, start_fev + it * n, "fixed_point"
-            except ConvergenceError as err:
-                if self.solver_option != "auto":
-                    raise
-                first_failure = err
-            self._solver = "newton"
-            self.solver_switches += 1
-            try:
-                return self._newton(phi, g0, y0, h, n, start_fev)
-            except ConvergenceError:
-                self._solver = "fixed_point"
-                self.solver_switches -= 1
-                raise first_failure from None
-        return self._newton(phi, g0, y0, h, n, start_fev)
+            E = self._E(h)
+            b.step_code.run(b.full, self._y, self._cy, self._yt, self._cyt, b.minv, b.kin_w,
+                            b.params, h, E, self._gamma, b.g, b.c1, b.c2, *b.no_newton,
+                            self._max_iter("fixed_point"), float(self.tol or 0.0),
+                            float(self.energy_tol or 0.0), self._eref, b.w1, b.w2, b.wc,
+                            self.counters, steps, sample_every, self._clock, out_t, out_y, out_e)
+            done = self.nsteps - start
+            if done > 0:
+                self._h_prev = h
+            k = done // sample_every + 1
+            status = int(self.counters[C_STATUS])
+            if done < steps and status == OK:     # the step loop's contract, checked
+                raise RuntimeError(f"internal error: the step loop stopped after {done} of "
+                                   f"{steps} steps without a failure status")
+            if done < steps and status != OK:
+                if self.solver_option == "auto" and status in (DIVERGED, NOT_FINITE):
+                    self._solver = "newton"          # for the rest of the run, as step() does
+                    self.solver_switches += 1
+                else:
+                    try:
+                        self._fail(status, h, self.solver_option)
+                    except StepError as err:
+                        err.result = self._result(out_t[:k], out_y[:k], out_e[:k], h, t_start,
+                                                  "failed", str(err))
+                        raise
+        else:
+            out_t[0], out_y[0], out_e[0] = self.t, self._y, b.energy(self._y)
+            done, k = 0, 1
+        try:
+            for i in range(done, steps):
+                self.step(h)
+                if (i + 1) % sample_every == 0:
+                    out_t[k], out_y[k], out_e[k] = self.t, self._y, b.energy(self._y)
+                    k += 1
+        except StepError as err:
+            err.result = self._result(out_t[:k], out_y[:k], out_e[:k], h, t_start,
+                                      "failed", str(err))
+            raise
+        return self._result(out_t, out_y, out_e, h, t_start, "finished", "")
 
-    def _newton(self, phi, g0, y0, h, n, start_fev):
-        L, power = self.form.linear_part(y0, h)
-        lin = SimplifiedNewton(self.method.X, L, h, power)
-        rule = StopRule(self.max_iter or 30, self.tol)
-        g, it = newton(phi, g0, rule, h, lin, self.t)
-        return g, it, start_fev + it * n + (2 * L.shape[0] if not hasattr(self.system, "hessian") else 0), "newton"
+    # -- private -----------------------------------------------------------------------
+    def _max_iter(self, solver: str) -> int:
+        return int(self.max_iter or MAX_ITER[solver])
+
+    def _E(self, h: float) -> np.ndarray:
+        if self._h_prev is None or h == self._h_prev:
+            return self._E1
+        r = h / self._h_prev
+        E = self._E_cache.get(r)
+        if E is None:
+            if len(self._E_cache) > 32:
+                self._E_cache.clear()
+            E = self._E_cache[r] = np.ascontiguousarray(self.method.extrapolation_matrix(r))
+        return E
+
+    def _advance(self, h: float, solver: str) -> int:
+        b = self.binding
+        newton = (b.newton_matrices(self._y, h, self.counters) if solver == "newton"
+                  else b.no_newton)
+        return b.step_code.advance(b.full, self._y, self._cy, self._yt, self._cyt, b.minv,
+                                   b.kin_w, b.params, h, self._E(h), self._gamma, b.g, b.c1, b.c2,
+                                   *newton, self._max_iter(solver), float(self.tol or 0.0),
+                                   float(self.energy_tol or 0.0), self._eref, b.w1, b.w2, b.wc,
+                                   self.counters, self._clock)
+
+    def _after_step(self, h: float) -> None:
+        self._h_prev = h          # the step itself advanced the compensated clock
+
+    def _fail(self, status: int, h: float, solver: str) -> None:
+        self.counters[C_STATUS] = status
+        self.status = "failed"
+        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self.energy_tol)
+
+    def _result(self, t, y, e, h, t_start, status, message) -> "IntegrationResult":
+        self.status = "running" if status == "finished" else status
+        return IntegrationResult(np.array(t), np.array(y), np.array(e), self.method, h,
+                                 self.nsteps, self.nfev, self.niter, self.binding.name,
+                                 time.perf_counter() - t_start, self.newton_steps,
+                                 self.solver_switches, status=status, message=message)
 
 
 @dataclass
@@ -207,9 +436,13 @@ class IntegrationResult:
     energy : ndarray (n_samples,)
     steps, nfev, iterations, newton_steps, solver_switches : int
     path : str
-        "compiled" (numba fast path), "separable" or "full" (numpy).
+        "compiled-separable", "compiled-full", "python-separable" or "python-full": which
+        binding of the one step ran (:mod:`integrators.specialise`).
     wall_time : float
         Seconds spent in the integration loop.
+    status, message : str
+        "finished", or "failed" with the error's message (a failed :func:`integrate` raises
+        and carries this result in the exception's ``result``).
     """
 
     t: np.ndarray
@@ -224,6 +457,8 @@ class IntegrationResult:
     wall_time: float
     newton_steps: int = 0
     solver_switches: int = 0
+    status: str = "finished"
+    message: str = ""
     extra: dict = field(default_factory=dict)
 
     @property
@@ -245,36 +480,10 @@ class IntegrationResult:
         return float(np.polyfit(self.t - self.t[0], self.energy_error, 1)[0]) if len(self.t) > 2 else 0.0
 
 
-def _fast_kind(system, solver, fast, form="auto") -> str | None:
-    """Which compiled loop to run: "separable" (``separable_kernels``), "full" (``full_kernels``,
-    any Hamiltonian) or None (the numpy engine)."""
-    sep = hasattr(system, "separable_kernels") and _is_separable(system)
-    full = hasattr(system, "full_kernels")
-    if fast is None:
-        if solver not in ("auto", "fixed_point"):
-            return None
-        if sep and form != "full":
-            return "separable"
-        # an explicit form='separable' asks for the numpy separable engine
-        return "full" if full and form != "separable" else None
-    if fast and not (sep or full):
-        raise ValueError("`fast=True` needs a system with `separable_kernels()` (compiled force "
-                         "and potential) or `full_kernels()` (compiled gradient and energy); use "
-                         "fast=False for the numpy path")
-    if fast and solver == "newton":
-        raise ValueError("the compiled fast path iterates by fixed point; use fast=False with "
-                         "solver='newton'")
-    if fast and form == "full" and not full:
-        raise ValueError("the compiled fast path iterates on the separable form; use fast=False "
-                         "with form='full'")
-    if not fast:
-        return None
-    return "separable" if sep and form != "full" else "full"
-
-
 def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver: str = "auto",
               sample_every: int = 1, fast: bool | None = None, tol: float | None = None,
-              max_iter: int | None = None, form: str = "auto") -> IntegrationResult:
+              max_iter: int | None = None, form: str = "auto",
+              energy_tol: float | None = None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0.
 
     Parameters
@@ -282,109 +491,18 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
     sample_every : int
         Keep t, y and H every this many steps (and at step 0).
     fast : bool or None
-        Use a compiled loop: the separable form for systems with ``separable_kernels``, the full
-        form for systems with ``full_kernels`` (see :mod:`systems.base`).  None: when available
-        and the solver is not "newton".  With solver="auto" a compiled loop falls back to the
-        numpy engine (and its Newton switch) from a step where fixed point fails.
+        Compiled kernels required (True), never (False), or when the system has them (None).
     Other parameters as for :class:`Stepper`.
+
+    Raises
+    ------
+    StepError
+        A step failed; ``err.result`` holds the samples up to the last committed step.
     """
     h = check_step(h)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"`steps` must be an integer >= 0 (got steps={steps!r})")
     if isinstance(sample_every, bool) or not isinstance(sample_every, (int, np.integer)) or sample_every < 1:
         raise ValueError(f"`sample_every` must be an integer >= 1 (got sample_every={sample_every!r})")
-    t0 = check_options(solver, form, tol, max_iter, t0)
-    system, y0 = check_state(system, y0)
-    kind = _fast_kind(system, solver, fast, form)
-    if kind == "separable":
-        return _integrate_fast(method, system, y0, h, int(steps), t0, solver, int(sample_every), tol, max_iter)
-    if kind == "full":
-        return _integrate_full(method, system, y0, h, int(steps), t0, solver, int(sample_every), tol, max_iter)
-    st = Stepper(method, system, y0, t0, solver, tol, max_iter, form)
-    return _run_stepper(st, h, int(steps), int(sample_every))
-
-
-def _run_stepper(st: Stepper, h, steps, sample_every, offset=0, ts=None, ys=None, wall0=0.0):
-    """Run ``steps`` steps, sampling when the global step count (offset + i) is a multiple."""
-    ts = [st.t] if ts is None else ts
-    ys = [st.y.copy()] if ys is None else ys
-    t_start = time.perf_counter()
-    for i in range(steps):
-        st.step(h)
-        if (offset + i + 1) % sample_every == 0:
-            ts.append(st.t)
-            ys.append(st.y.copy())
-    wall = wall0 + time.perf_counter() - t_start
-    Y = np.array(ys)
-    energy = np.asarray(st.system.energy(Y), dtype=float)
-    return IntegrationResult(np.array(ts), Y, energy, st.method, h, st.nsteps, st.nfev, st.niter,
-                             st.form.name, wall, st.newton_steps, st.solver_switches)
-
-
-def _integrate_fast(method, system, y0, h, steps, t0, solver, sample_every, tol, max_iter):
-    """The compiled separable form (``system.separable_kernels()``)."""
-    from .fast import coefficients, integrate_separable
-    force, potential, params = system.separable_kernels()
-    d = system.dim
-    q, p = y0[:d].copy(), y0[d:].copy()
-    cq, cp = np.zeros(d), np.zeros(d)
-    minv = 1.0 / np.asarray(system.masses, dtype=float)
-    nsamp = steps // sample_every + 1
-    out_t, out_q, out_p, out_e = np.empty(nsamp), np.empty((nsamp, d)), np.empty((nsamp, d)), np.empty(nsamp)
-    counters = np.zeros(5)
-    gamma = np.zeros((method.s, d))
-    t_start = time.perf_counter()
-    integrate_separable(force, potential, np.ascontiguousarray(params, dtype=float), q, p, cq, cp,
-                        minv, h, steps, sample_every, float(t0), *coefficients(method),
-                        int(max_iter or 60), 2.0 ** -40, float(tol or 0.0), out_t, out_q, out_p,
-                        out_e, counters, gamma)
-    wall = time.perf_counter() - t_start
-    return _finish_compiled(method, system, h, steps, t0, solver, sample_every, tol, max_iter,
-                            "separable", counters, np.concatenate([q, p]), np.concatenate([cq, cp]),
-                            gamma, out_t, np.concatenate([out_q, out_p], axis=1), out_e, wall)
-
-
-def _integrate_full(method, system, y0, h, steps, t0, solver, sample_every, tol, max_iter):
-    """The compiled full form (``system.full_kernels()``)."""
-    from .fast import integrate_full
-    gradient, energy, params = system.full_kernels()
-    d = y0.size
-    y, cy = y0.copy(), np.zeros(d)
-    nsamp = steps // sample_every + 1
-    out_t, out_y, out_e = np.empty(nsamp), np.empty((nsamp, d)), np.empty(nsamp)
-    counters = np.zeros(5)
-    gamma = np.zeros((method.s, d))
-    m = method
-    c = np.ascontiguousarray
-    t_start = time.perf_counter()
-    integrate_full(gradient, energy, c(params, dtype=float), y, cy, h, steps, sample_every,
-                   float(t0), c(m.W), c(m.W_lo), c(m.I), c(m.I_lo), c(m.E), int(max_iter or 60),
-                   2.0 ** -40, float(tol or 0.0), out_t, out_y, out_e, counters, gamma)
-    wall = time.perf_counter() - t_start
-    return _finish_compiled(method, system, h, steps, t0, solver, sample_every, tol, max_iter,
-                            "full", counters, y, cy, gamma, out_t, out_y, out_e, wall)
-
-
-def _finish_compiled(method, system, h, steps, t0, solver, sample_every, tol, max_iter, form,
-                     counters, y, yc, gamma, out_t, out_y, out_e, wall) -> IntegrationResult:
-    """The result of a compiled loop; on a failed step with solver="auto" the numpy engine (with
-    its switch to Newton) goes on from the last good step, keeping its coefficients and the
-    compensation of the state."""
-    from .fast import OK
-    done, iters, nfev, status = (int(counters[0]), int(counters[1]), int(counters[2]),
-                                 int(counters[3]))
-    path = "compiled" if form == "separable" else "compiled-full"
-    if status == OK:
-        return IntegrationResult(out_t, out_y, out_e, method, h, done, nfev, iters, path, wall)
-    t_fail = t0 + done * h
-    if solver != "auto":
-        raise ConvergenceError(h, float(counters[4]), int(max_iter or 60), "fixed_point", t_fail)
-    st = Stepper(method, system, y, t_fail, solver, tol, max_iter, form)
-    st._yc = yc.copy()
-    st.nsteps, st.niter, st.nfev = done, iters, nfev
-    if done > 0:   # the compiled loop keeps the last good step's coefficients in gamma
-        st._gamma, st._h_prev = gamma.copy(), h
-    k = done // sample_every + 1
-    res = _run_stepper(st, h, steps - done, sample_every, done, list(out_t[:k]), list(out_y[:k]), wall)
-    res.path = f"compiled+{form}"
-    return res
+    st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+    return st.run(h, int(steps), int(sample_every))

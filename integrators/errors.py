@@ -1,25 +1,55 @@
-"""Named errors of the integrators package."""
+"""Named errors of a failed HBVM step, and the one table from status codes to them.
+
+A failed step changes nothing: the caller's state, time and coefficients are as before it.
+When :func:`integrators.integrate` fails, the exception's ``result`` holds what was computed up
+to the last committed step (like scipy's ``solve_ivp``).
+"""
 from __future__ import annotations
 
+from .core import DIVERGED, NOT_FINITE, UNRESOLVED
 
-class ConvergenceError(RuntimeError):
-    """The nonlinear system of an HBVM step did not converge.
 
-    The caller's state is exactly as it was before the step.
+def _rebuild(cls, args, state):
+    err = cls.__new__(cls)
+    RuntimeError.__init__(err, *args)
+    err.__dict__.update(state)
+    return err
+
+
+class StepError(RuntimeError):
+    """Base class: an HBVM step was not taken.
 
     Attributes
     ----------
     h : float
-        The step size that was attempted.
-    residual : float
-        The last increment of the iteration (max norm).
-    iterations : int
-        Iterations done before giving up.
-    solver : str
-        The solver that failed: "fixed_point", "newton", or "auto" when the fixed point
-        iteration and then Newton both failed (the hint then suggests a smaller step only).
+        The step size that was attempted (in the caller's time unit).
     t : float or None
         Time at the start of the failed step, when known.
+    iterations : int
+        Iterations the failed step did.
+    solver : str
+        The solver that failed: "fixed_point", "newton", or "auto" when the fixed-point
+        iteration and then Newton both failed (the hint then suggests a smaller step only).
+    result : IntegrationResult or None
+        Set by :func:`integrators.integrate`: the samples up to the last committed step, with
+        ``status`` "failed" and ``message``.
+    """
+
+    result = None
+
+    def __reduce__(self):
+        # the subclasses' __init__ take other arguments than args: copy and pickle (dask sends
+        # errors between processes) rebuild from the message and the attributes
+        return _rebuild, (type(self), self.args, self.__dict__)
+
+    def _where(self) -> str:
+        return f"HBVM step of size h={self.h:.6g}" + ("" if self.t is None else f" at t={self.t:.17g}")
+
+
+class ConvergenceError(StepError):
+    """The nonlinear system of an HBVM step did not converge to round-off (or to ``tol``).
+
+    Attributes (besides :class:`StepError`'s): ``residual``, the last increment (max norm).
     """
 
     def __init__(self, h: float, residual: float, iterations: int, solver: str,
@@ -29,35 +59,62 @@ class ConvergenceError(RuntimeError):
             # "auto" (fixed point, then Newton) has tried Newton already: do not suggest it
             hint = ("try a smaller step size h" if solver in ("newton", "auto") else
                     "try a smaller step size h, or solver='newton' for a stiff problem")
-        where = "" if t is None else f" at t={t:.17g}"
-        super().__init__(
-            f"HBVM step of size h={h:.6g}{where} did not converge: {solver} iteration stopped after "
-            f"{iterations} iterations with increment {residual:.3e}; {hint}")
+        self.hint = hint
+        what = ("fixed_point iteration failed, then the newton iteration stopped" if solver == "auto"
+                else f"{solver} iteration stopped")
+        super().__init__(f"{self._where()} did not converge: {what} after {iterations} "
+                         f"iterations with increment {residual:.3e}; {hint}")
 
 
-class UnresolvedStepError(ConvergenceError):
+class NonFiniteError(ConvergenceError):
+    """A force, an energy or the new state of an HBVM step is not finite (nan or inf): two
+    bodies at the same place, a step far too large, or a model that breaks down there."""
+
+    def __init__(self, h: float, iterations: int, solver: str, t: float | None = None,
+                 hint: str | None = None):
+        self.h, self.residual, self.iterations, self.solver, self.t = h, float("nan"), iterations, solver, t
+        self.hint = hint or "try a smaller step size h, and check the state for coincident particles"
+        RuntimeError.__init__(self, f"{self._where()} produced non-finite values (nan or inf) "
+                                    f"after {iterations} iterations; {self.hint}")
+
+
+class UnresolvedStepError(StepError):
     """An HBVM step converged but changed the energy by more than the caller's tolerance.
 
     HBVM conserves H up to the quadrature error of the line integral; a step that changes H
     visibly does not resolve the motion (a close encounter passed within a fraction of a step,
     or the iteration found a spurious root of the nonlinear system).  Nothing was committed.
 
-    Attributes
-    ----------
-    h, t : float
-        The step size and the time at the start of the step.
-    change : float
-        |H(y1) - H(y0)| relative to the size of the energy terms (|T| + |V|).
-    tolerance : float
-        The tolerance it exceeded.
+    Attributes (besides :class:`StepError`'s): ``change``, |H(y1) - H(y0)| relative to the size
+    of the energy terms (|T| + |V|); ``tolerance``, the tolerance it exceeded.
     """
 
     def __init__(self, h: float, change: float, tolerance: float, iterations: int,
-                 t: float | None = None, hint: str | None = None):
-        RuntimeError.__init__(
-            self, f"HBVM step of size h={h:.6g}" + ("" if t is None else f" at t={t:.17g}")
-            + f" changed the energy by {change:.3e} (relative), more than energy_tol="
-            f"{tolerance:.1e}: the step does not resolve the motion; "
-            + (hint or "use a smaller step"))
-        self.h, self.residual, self.iterations, self.solver, self.t = h, change, iterations, "fixed_point", t
-        self.change, self.tolerance = change, tolerance
+                 t: float | None = None, hint: str | None = None, solver: str = "fixed_point"):
+        self.h, self.t, self.iterations, self.solver = h, t, iterations, solver
+        self.change, self.tolerance, self.residual = change, tolerance, change
+        self.hint = hint or "use a smaller step"
+        super().__init__(f"{self._where()} changed the energy by {change:.3e} (relative), more "
+                         f"than energy_tol={tolerance:.1e}: the step does not resolve the motion; "
+                         f"{self.hint}")
+
+
+def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
+               energy_tol: float | None = None, hints: dict | None = None) -> StepError:
+    """The exception for a failed step's status code (the one table of the project).
+
+    ``counters`` is the step's counter array (layout in :mod:`integrators.core`); ``solver``
+    the solver that failed, or "auto" when the automatic switch to Newton failed too; ``hints``
+    maps "diverged", "not_finite" and "unresolved" to a host's own advice (REBOUND's sim.dt,
+    ASE's timestep)."""
+    from .core import C_CHANGE, C_LAST, C_LASTIT
+    hints = hints or {}
+    it = int(counters[C_LASTIT])
+    if status == DIVERGED:
+        return ConvergenceError(h, float(counters[C_LAST]), it, solver, t, hints.get("diverged"))
+    if status == NOT_FINITE:
+        return NonFiniteError(h, it, solver, t, hints.get("not_finite"))
+    if status == UNRESOLVED:
+        return UnresolvedStepError(h, float(counters[C_CHANGE]), float(energy_tol or 0.0), it, t,
+                                   hints.get("unresolved"), solver)
+    raise ValueError(f"unknown step status {status!r}")

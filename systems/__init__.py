@@ -5,7 +5,7 @@ are imported lazily.
 """
 from importlib import import_module
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, HamiltonianSystem, SeparableSystem
+from .base import HamiltonianSystem, SeparableSystem
 from .fpu import FPU
 from .henon_heiles import HenonHeiles
 from .kepler import Kepler
@@ -19,7 +19,7 @@ _LAZY = {
     "solar_system": "systems.solar",
 }
 
-__all__ = ["HamiltonianSystem", "SeparableSystem", "FORCE_SIGNATURE", "POTENTIAL_SIGNATURE",
+__all__ = ["HamiltonianSystem", "SeparableSystem",
            "Kepler", "HenonHeiles", "FPU", "Pendulum", "Morse", "PoincareTransformed",
            "PoincareKepler", "distance_power", *_LAZY]
 

@@ -33,25 +33,24 @@ Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per deg
 freedom), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
 engine then iterates on the momentum coefficients only.
 ``separable_kernels()``
-    Returns ``(force, potential, params)`` for the compiled fast path: ``force`` a numba
-    ``cfunc`` of signature :data:`FORCE_SIGNATURE` writing -grad V at each row of Q (n, m) into
-    ``out``; ``potential`` a ``cfunc`` of signature :data:`POTENTIAL_SIGNATURE`; ``params`` a
-    float64 array handed to both.
+    Returns ``(force, potential, params)`` for the compiled step: ``force(Q, params, out)`` a
+    numba ``njit`` function writing -grad V at each row of Q (n, m) into ``out`` (n, m);
+    ``potential(q, params)`` one returning V(q) for q (m,); ``params`` a float64 array handed
+    to both.  Define them at module level (importable by module and name): the step is then
+    compiled with them called statically and cached on disk (:mod:`integrators.specialise`).
 ``full_kernels()``
-    For a system that is not separable: ``(gradient, energy, params)``, a ``cfunc`` of signature
-    :data:`FORCE_SIGNATURE` writing grad H at each row of a stack of states Y (n, 2m) into
-    ``out``, and one of :data:`POTENTIAL_SIGNATURE` returning H(y); the engine then runs the
-    compiled full form (see :class:`systems.poincare.PoincareKepler`).
+    For a system that is not separable: ``(gradient, energy, params)``, ``gradient`` writing
+    grad H at each row of a stack of states Y (n, 2m) into ``out`` and ``energy`` returning H(y);
+    the engine then runs the compiled full form (see :class:`systems.poincare.PoincareKepler`).
+
+A system without kernels runs the same step as Python code calling ``forces`` / ``gradient``
+and ``potential`` / ``energy`` (slower, the same numbers to round-off).
 
 Writing your own is a small class; see :class:`HamiltonianSystem` and :class:`SeparableSystem`.
 """
 from __future__ import annotations
 
 import numpy as np
-from numba import types
-
-FORCE_SIGNATURE = types.void(types.float64[:, ::1], types.float64[::1], types.float64[:, ::1])
-POTENTIAL_SIGNATURE = types.float64(types.float64[::1], types.float64[::1])
 
 
 class HamiltonianSystem:

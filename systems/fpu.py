@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import cfunc
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+from integrators.jit import jit
+
+from .base import SeparableSystem
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
+@jit
 def _fpu_force(Q, params, out):
     w2 = params[0] * params[0]
     n = Q.shape[1]
@@ -32,7 +33,7 @@ def _fpu_force(Q, params, out):
             out[r, 2 * i + 1] -= f
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
+@jit
 def _fpu_potential(q, params):
     w2 = params[0] * params[0]
     n = q.shape[0]

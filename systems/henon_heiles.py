@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import cfunc
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+from integrators.jit import jit
+
+from .base import SeparableSystem
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
+@jit
 def _hh_force(Q, params, out):
     for i in range(Q.shape[0]):
         x, y = Q[i, 0], Q[i, 1]
@@ -15,7 +16,7 @@ def _hh_force(Q, params, out):
         out[i, 1] = -y - x * x + y * y
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
+@jit
 def _hh_potential(q, params):
     x, y = q[0], q[1]
     return 0.5 * (x * x + y * y) + x * x * y - y * y * y / 3.0

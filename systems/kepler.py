@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import cfunc
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+from integrators.jit import jit
+
+from .base import SeparableSystem
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
+@jit
 def _kepler_force(Q, params, out):
     mu = params[0]
     for i in range(Q.shape[0]):
@@ -18,7 +19,7 @@ def _kepler_force(Q, params, out):
         out[i, 1] = f * y
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
+@jit
 def _kepler_potential(q, params):
     return -params[0] / np.sqrt(q[0] * q[0] + q[1] * q[1])
 

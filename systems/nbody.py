@@ -28,18 +28,15 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from numba import cfunc, njit
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+from integrators.jit import jit
+
+from .base import SeparableSystem
 
 
-@njit(cache=True)
+@jit
 def nbody_forces(Q, params, out):
-    """dp/dt at each row of Q (n, 3N) into out; params as in the module docstring.
-
-    A plain compiled function, so that compiled callers (the REBOUND driver's step) call it
-    statically; :data:`_nbody_force` wraps it as the ``cfunc`` of the generic fast path.
-    """
+    """dp/dt at each row of Q (n, 3N) into out; params as in the module docstring."""
     G = params[0]
     N = int(params[1])
     for r in range(Q.shape[0]):
@@ -68,7 +65,7 @@ def nbody_forces(Q, params, out):
                 out[r, 3 * j + 2] -= cj * dz
 
 
-@njit(cache=True)
+@jit
 def nbody_potential(q, params):
     """V(q) of the sources, q (3N,)."""
     G = params[0]
@@ -87,16 +84,6 @@ def nbody_potential(q, params):
             dz = q[3 * j + 2] - q[3 * i + 2]
             v -= gi * gj / np.sqrt(dx * dx + dy * dy + dz * dz)
     return G * v
-
-
-@cfunc(FORCE_SIGNATURE, cache=True)
-def _nbody_force(Q, params, out):
-    nbody_forces(Q, params, out)
-
-
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
-def _nbody_potential(q, params):
-    return nbody_potential(q, params)
 
 
 class NBody(SeparableSystem):
@@ -227,8 +214,14 @@ class NBody(SeparableSystem):
         src = np.repeat(self.is_source, 3)
         return 0.5 * np.sum(np.where(src, p * p / self.masses, 0.0), axis=-1)
 
+    @property
+    def kinetic_weights(self) -> np.ndarray:
+        """1 / m per degree of freedom for the sources, 0 for test particles (the kinetic
+        energy :meth:`kinetic` counts)."""
+        return np.where(np.repeat(self.is_source, 3), 1.0 / self.masses, 0.0)
+
     def separable_kernels(self):
-        return _nbody_force, _nbody_potential, self._params.copy()
+        return nbody_forces, nbody_potential, self._params.copy()
 
     # -- hosts -------------------------------------------------------------------------
     def to_rebound(self, y=None):

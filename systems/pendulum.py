@@ -2,18 +2,19 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import cfunc
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, SeparableSystem
+from integrators.jit import jit
+
+from .base import SeparableSystem
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
+@jit
 def _pendulum_force(Q, params, out):
     for i in range(Q.shape[0]):
         out[i, 0] = -params[0] * np.sin(Q[i, 0])
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
+@jit
 def _pendulum_potential(q, params):
     return -params[0] * np.cos(q[0])
 
@@ -47,7 +48,7 @@ class Pendulum(SeparableSystem):
         return _pendulum_force, _pendulum_potential, np.array([self.w2])
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
+@jit
 def _morse_force(Q, params, out):
     D, a = params[0], params[1]
     for i in range(Q.shape[0]):
@@ -55,7 +56,7 @@ def _morse_force(Q, params, out):
         out[i, 0] = -2.0 * D * a * (e - e * e)
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
+@jit
 def _morse_potential(q, params):
     e = 1.0 - np.exp(-params[1] * q[0])
     return params[0] * e * e

@@ -27,9 +27,10 @@ from typing import Callable
 
 import numpy as np
 
-from numba import cfunc
 
-from .base import FORCE_SIGNATURE, POTENTIAL_SIGNATURE, HamiltonianSystem
+from integrators.jit import jit
+
+from .base import HamiltonianSystem
 
 
 def distance_power(alpha: float, indices=None) -> tuple[Callable, Callable]:
@@ -179,7 +180,7 @@ class PoincareTransformed(HamiltonianSystem):
         return np.concatenate([dq, zero, dp, gq], axis=-1)
 
 
-@cfunc(FORCE_SIGNATURE, cache=True)
+@jit
 def _kepler_poincare_gradient(Y, params, out):
     # Y = (q1, q2, t, p1, p2, e); K = g (H + e), g = |q|^alpha, H = |p|^2 / 2 - mu / |q|
     mu, alpha = params[0], params[1]
@@ -198,7 +199,7 @@ def _kepler_poincare_gradient(Y, params, out):
         out[i, 5] = g
 
 
-@cfunc(POTENTIAL_SIGNATURE, cache=True)
+@jit
 def _kepler_poincare_energy(Y, params):
     mu, alpha = params[0], params[1]
     r = np.sqrt(Y[0] * Y[0] + Y[1] * Y[1])

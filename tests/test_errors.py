@@ -116,11 +116,14 @@ class Oscillator(HamiltonianSystem):
 
 
 def test_fast_needs_kernels_and_compatible_options():
-    with pytest.raises(ValueError, match=r"`fast=True` needs a system with `separable_kernels\(\)`.*fast=False"):
+    with pytest.raises(ValueError, match=r"`fast=True` needs a system with `(separable|full)_kernels\(\)`.*fast=False"):
         integrate(HBVM(2, 2), Oscillator(), [1.0, 0.0], 0.1, 5, fast=True)
-    with pytest.raises(ValueError, match=r"compiled fast path iterates by fixed point; use fast=False with solver='newton'"):
-        integrate(HBVM(2, 2), KEP, Y0, 0.1, 5, fast=True, solver="newton")
-    with pytest.raises(ValueError, match=r"compiled fast path iterates on the separable form; use fast=False with form='full'"):
+    # Newton runs on the compiled step too, and matches the Python step exactly
+    fast = integrate(HBVM(2, 2), KEP, Y0, 0.1, 5, fast=True, solver="newton")
+    slow = integrate(HBVM(2, 2), KEP, Y0, 0.1, 5, fast=False, solver="newton")
+    assert fast.path == "compiled-separable" and slow.path == "python-separable"
+    assert np.array_equal(fast.y, slow.y) and (fast.iterations, fast.nfev) == (slow.iterations, slow.nfev)
+    with pytest.raises(ValueError, match=r"`fast=True` needs a system with `full_kernels\(\)` \(compiled kernels for the full form\); Kepler has none"):
         integrate(HBVM(2, 2), KEP, Y0, 0.1, 5, fast=True, form="full")
     with pytest.raises(ValueError, match=r"`form='separable'` needs a system with `masses`, `forces` and `potential`; use form='full'"):
         Stepper(HBVM(2, 2), Oscillator(), [1.0, 0.0], form="separable")
@@ -171,7 +174,7 @@ def test_user_defined_system_integrates_and_oscillator_is_exact():
     h, n = 0.3, 100
     for solver in ("fixed_point", "newton"):
         res = integrate(m, osc, [1.0, 0.0], h, n, solver=solver)
-        assert res.path == "full"
+        assert res.path == "python-full"
         assert res.max_energy_error <= 1e-13
         R = m.stability_function(-1j * h)      # q + i p rotates as exp(-i t)
         z = (1.0 + 0.0j) * R ** n

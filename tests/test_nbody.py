@@ -78,7 +78,7 @@ def test_outer_solar_system_to_rebound_and_back():
 def test_engine_conserves_energy_on_outer_solar_system():
     nb = outer_solar_system()
     res = integrate(HBVM(8, 6), nb, nb.initial_state(), 100.0, 200, sample_every=10)
-    assert res.path == "compiled"
+    assert res.path == "compiled-separable"
     assert res.max_energy_error < 2e-15
 
 

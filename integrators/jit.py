@@ -1,0 +1,42 @@
+"""How the project compiles: numba's ``njit`` with an on-disk cache when one can be written.
+
+A read-only installation (no writable ``__pycache__`` beside the sources and no writable user
+cache directory) makes ``njit(cache=True)`` fail at import ("no locator available"); there the
+functions are compiled in memory, with one warning.  Under ``NUMBA_DISABLE_JIT=1`` everything
+runs as plain Python.
+"""
+from __future__ import annotations
+
+import warnings
+
+from numba import njit
+
+_warned = False
+
+
+def jit(fn):
+    """``njit(cache=True, error_model="numpy")(fn)``, or without the cache when none can be
+    written.  numpy's error model makes a division by zero an inf or a nan, which the step
+    reports as a clear error, instead of an exception raised inside compiled code."""
+    global _warned
+    try:
+        return njit(cache=True, error_model="numpy")(fn)
+    except RuntimeError as exc:       # numba: "cannot cache function ...: no locator available"
+        if "cache" not in str(exc):
+            raise
+        if not _warned:
+            _warned = True
+            warnings.warn(f"hbvm-md: compiled code cannot be cached on disk ({exc}); it is "
+                          "compiled in memory in every process. Set NUMBA_CACHE_DIR to a writable "
+                          "folder to cache it.", RuntimeWarning, stacklevel=2)
+        return njit(error_model="numpy")(fn)
+
+
+def entry_point(dispatcher):
+    """The compiled entry point of a dispatcher's only signature (skips numba's argument
+    typing, several microseconds a call with many arguments), or the dispatcher itself when it
+    has none or several yet, or is a plain Python function (``NUMBA_DISABLE_JIT``)."""
+    overloads = getattr(dispatcher, "overloads", None)
+    if overloads is not None and len(overloads) == 1:
+        return next(iter(overloads.values())).entry_point
+    return dispatcher

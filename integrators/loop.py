@@ -1,0 +1,208 @@
+"""One HBVM(k, s) step, written once: :func:`advance` (and :func:`run`, many steps of it).
+
+Every path of the project runs this code: the compiled engine, the REBOUND and ASE adapters and
+the Python path for user systems.  The force kernel is not an argument: the two module globals
+``_force`` and ``_potential`` are bound by :mod:`integrators.specialise`, which
+
+* for compiled kernels (numba ``njit`` functions importable by module and name) writes this
+  file's text with the two kernel imports appended into a module named by a hash of every
+  source it depends on, and compiles that with an on-disk cache: the kernel is called
+  statically (no unboxing cost a call) and the cache can never be stale;
+* for anything else (a user's Python ``gradient``, ASE's calculators) executes this file's code
+  as Python with the kernels bound to Python callables, calling the same compiled pieces of
+  :mod:`integrators.core`.
+
+Kernels: ``_force(X, params, out)`` writes, for each row of X (n, w), -grad V(q) (separable
+form, rows are positions) or grad H(y) (full form, rows are states) into ``out``;
+``_potential(x, params)`` returns V(q) (separable) or H(y) (full).
+
+The implementer's contract (what a caller provides): the state as a double-double pair
+(y, cy) of shape (2m,), q = y[:m], p = y[m:]; trial copies (yt, cyt); ``gamma`` the previous
+step's coefficients (s, u), all zero before the first step (u = m for the separable form, 2m
+for the full form); ``E`` the extrapolation matrix for h_new / h_old; the method's arrays
+c1 = (tau, tau_lo, X0, X0_lo), c2 = (W, W_lo, C2, C2_lo, I, I_lo); Newton matrices (NV, NVinv,
+NM) with NM of shape (0, u, u) for fixed-point iteration; work arrays w1 = (ht, ht_lo, hist,
+dq, dq_lo), w2 = (a, X, F, G, pg, Xp, Fp), wc = (Rt, Z) from ``integrators.engine.Workspace``; and the
+float64 ``counters`` (layout in :mod:`integrators.core`).  :func:`advance` returns a status
+code; it changes y, cy, gamma and eref only when the step succeeded.
+"""
+import numpy as np
+
+from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
+                              C_STEPS, DIVERGED, EPS, ITERATE, ROUNDOFF_ULPS, NOT_FINITE, OK, POLISH, UNRESOLVED,
+                              all_finite, all_zero, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
+                              full_stages,
+                              guess, max_abs, newton_update, project, project_compensated,
+                              stage_positions, step_constants, stop_action, symplectic, tick,
+                              weighted_kinetic)
+
+_force = None        # bound by integrators.specialise
+_potential = None
+
+
+def evaluate(full, X, params, F, G):
+    """F <- the right-hand side at the stages X: forces (separable) or J grad H (full)."""
+    if full:
+        _force(X, params, G)
+        symplectic(G, F)
+    else:
+        _force(X, params, F)
+
+
+def energy_parts(full, y, kin_w, params):
+    """(T, V) of the separable form (kinetic weights kin_w), or (H, 0) of the full form."""
+    if full:
+        return _potential(y, params), 0.0
+    m = kin_w.shape[0]
+    return weighted_kinetic(y[m:], kin_w), _potential(y[:m], params)
+
+
+def run(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, NVinv, NM,
+        max_iter, tol, etol, eref, w1, w2, wc, counters, nsteps, sample_every, clock, out_t,
+        out_y, out_e):
+    """``nsteps`` steps of size h from the double-double state (y, cy), each committed in place
+    when it succeeds; samples of (t, y, H) at steps 0, sample_every, 2 sample_every, ... (none
+    when sample_every is 0).  Returns OK, or the status of the first failed step (also left in
+    counters[C_STATUS]), with everything as after the last committed step.  The clock (t, its
+    compensation) is read from and written back to ``clock``.
+
+    With etol > 0 a converged step whose energy change exceeds etol (relative to |T| + |V|,
+    or |H| for the full form) is refused as UNRESOLVED, its change in counters[C_CHANGE];
+    eref[0] carries the energy between steps (nan: not known yet).
+
+    The step is written inside the loop, not called: a call with this many arrays costs about
+    half a microsecond a step (measured on Kepler, where a step costs one)."""
+    t, ct = clock[0], clock[1]
+    tau, tau_lo, X0, X0_lo = c1
+    W, W_lo, C2, C2_lo, I, I_lo = c2
+    ht, ht_lo, hist, dq, dq_lo = w1
+    a, X, F, G, pg, Xp, Fp = w2
+    Rt, Z = wc
+    isample = 0
+    if sample_every > 0:
+        out_t[0] = t
+        copy1(out_y[0], y)
+        e0, e1 = energy_parts(full, y, kin_w, params)
+        out_e[0] = e0 + e1
+        isample = 1
+    for istep in range(nsteps):
+        # a failed step leaves no trace in the counters of work (they count committed steps)
+        work_iter, work_nfev, work_newton = counters[C_ITER], counters[C_NFEV], counters[C_NEWTON]
+        h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
+        if all_zero(gamma):
+            # no previous step: start from the right-hand side at y0, evaluated once
+            u = g.shape[1]
+            for j in range(u):
+                X[0, j] = y[j]
+            evaluate(full, X[:1], params, F[:1], G[:1])
+            counters[C_NFEV] += 1
+            for i in range(g.shape[0]):
+                for j in range(u):
+                    g[i, j] = F[0, j] if i == 0 else 0.0
+        else:
+            guess(E, gamma, g)
+        # the iteration: fixed point g <- P_s^T Omega f(stages(g)) (eq. (hbvm_sys)), or simplified
+        # Newton when NM is not empty; the same stop rule either way (core.stop_action), then one
+        # compensated evaluation (the polish) whose rounding is what the step keeps.  It is written
+        # here, with the kernel called directly and the arrays passed one by one, because one more
+        # call level or a tuple argument costs tens of nanoseconds an iteration (measured).
+        n = X.shape[0]
+        newton = NM.shape[0] > 0
+        hist[0] = np.inf
+        hist[1] = 0.0
+        yscale = EPS * max_abs(y)
+        lip = 0.0
+        xmax = 0.0
+        polish = False
+        status = DIVERGED      # unless the loop ends otherwise: max_iter reached
+        it = 0
+        while polish or it < max_iter:
+            it += 1
+            if full:
+                full_stages(y, cy, g, I, I_lo, h, X)
+                _force(X, params, G)
+                symplectic(G, F)
+            else:
+                stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X)
+                _force(X, params, F)
+            counters[C_NFEV] += n
+            if it <= 3:          # the force's Lipschitz constant, for the round-off floor
+                if it > 1:
+                    lip, xmax = lipschitz_probe(X, F, Xp, Fp, lip)
+                else:
+                    copy2(Xp, X)
+                    copy2(Fp, F)
+            if polish:
+                if newton:      # a last Newton update from the compensated residual: a plain
+                    # fixed-point polish would amplify the error by h L |X_s| (stiff problems)
+                    project_compensated(W, W_lo, F, pg)
+                    newton_update(g, pg, NV, NVinv, NM, Rt, Z)
+                else:
+                    project_compensated(W, W_lo, F, g)
+                status = OK
+                break
+            if newton:
+                unused, fscale, fmax = project(W, W_lo, F, pg)
+                delta, scale = newton_update(g, pg, NV, NVinv, NM, Rt, Z)
+            else:
+                delta, scale, fmax = project(W, W_lo, F, g)
+            counters[C_LAST] = delta
+            hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
+            action = stop_action(delta, scale, fmax, ROUNDOFF_ULPS * EPS * xmax * lip, hstate,
+                                 it, hist, tol)
+            if action == POLISH:
+                polish = True
+            elif action != ITERATE:
+                status = -action
+                break
+        counters[C_ITER] += it
+        counters[C_LASTIT] = it
+        if newton:
+            counters[C_NEWTON] += 1
+        if status != OK:
+            return fail(counters, status, work_iter, work_nfev, work_newton)
+        copy1(yt, y)
+        copy1(cyt, cy)
+        if full:
+            commit_full(yt, cyt, h, g)
+        else:
+            commit_separable(yt, cyt, minv, h, g, X0, X0_lo, dq, dq_lo)
+        if not all_finite(yt):
+            return fail(counters, NOT_FINITE, work_iter, work_nfev, work_newton)
+        if etol > 0.0:
+            if not np.isfinite(eref[0]):
+                t0, v0 = energy_parts(full, y, kin_w, params)
+                eref[0] = t0 + v0
+            t1, v1 = energy_parts(full, yt, kin_w, params)
+            scale = abs(t1) + abs(v1)
+            change = abs(t1 + v1 - eref[0])
+            if scale > 0.0:
+                change = change / scale
+            if not change <= etol:
+                counters[C_CHANGE] = change
+                return fail(counters, UNRESOLVED, work_iter, work_nfev, work_newton)
+            eref[0] = t1 + v1
+        copy1(y, yt)
+        copy1(cy, cyt)
+        copy2(gamma, g)
+        counters[C_STEPS] += 1
+        t, ct = tick(t, ct, h)
+        clock[0] = t
+        clock[1] = ct
+        if sample_every > 0 and (istep + 1) % sample_every == 0:
+            out_t[isample] = t
+            copy1(out_y[isample], y)
+            e0, e1 = energy_parts(full, y, kin_w, params)
+            out_e[isample] = e0 + e1
+            isample += 1
+    counters[C_STATUS] = OK
+    return OK
+
+
+def advance(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, NVinv, NM,
+            max_iter, tol, etol, eref, w1, w2, wc, counters, clock):
+    """One step of :func:`run` (no samples); returns its status."""
+    no_samples = np.empty(0)
+    return run(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, NVinv, NM,
+               max_iter, tol, etol, eref, w1, w2, wc, counters, 1, 0, clock, no_samples,
+               np.empty((0, 0)), no_samples)
