@@ -3,7 +3,7 @@
 An ensemble of Kepler orbits (e = 0.6, the same orbit rotated by random angles, so the
 rounding errors differ while the exact energy is the same) is integrated for 1e7 steps with
 HBVM(k, s) on the compiled fast path, with k chosen at round-off by
-:func:`hbvm_md.autok.choose_k`.  The root-mean-square relative energy error over the ensemble
+:func:`hbvm_md.reports.autok.choose_k`.  The root-mean-square relative energy error over the ensemble
 is fitted against the step count on a log-log scale; Brouwer's law predicts slope 1/2
 (a random walk of rounding errors; Kahan-compensated sums keep the systematic part out).
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hbvm_md.autok import choose_k
+from hbvm_md.reports.autok import choose_k
 from integrators import HBVM, integrate
 from systems import Kepler
 

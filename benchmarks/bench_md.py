@@ -36,7 +36,7 @@ from ase.build import bulk
 from ase.md.verlet import VelocityVerlet
 
 from hbvm_md import HBVMDynamics
-from hbvm_md.md_comparison import maxwell_boltzmann
+from hbvm_md.reports.md_comparison import maxwell_boltzmann
 from systems import PolynomialPairPotential
 
 EPS, RC, DT_FS, T_K, LATTICE = 0.1, 4.0, 5.0, 300.0, 3.5

@@ -40,8 +40,8 @@ import time
 import numpy as np
 
 from hbvm_md import compare_rebound
-from hbvm_md.peers import HEYOKA_MISSING, HeyokaNBody, import_heyoka
-from hbvm_md.rebound_comparison import EXTENDED
+from hbvm_md.reports.peers import HEYOKA_MISSING, HeyokaNBody, import_heyoka
+from hbvm_md.reports.rebound_comparison import EXTENDED
 from systems import outer_solar_system, solar_system
 
 HERE = os.path.dirname(os.path.abspath(__file__))

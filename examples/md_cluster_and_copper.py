@@ -17,8 +17,8 @@ import argparse
 from ase.build import bulk
 from ase.calculators.emt import EMT
 
-from hbvm_md.md_comparison import compare_md, default_cluster
-from hbvm_md.plots import energy_error_plot
+from hbvm_md.reports.md_comparison import compare_md, default_cluster
+from hbvm_md.reports.plots import energy_error_plot
 
 
 def main(argv=None):

@@ -10,7 +10,7 @@ import argparse
 import rebound
 
 from hbvm_md import HBVMIntegrator, compare_rebound
-from hbvm_md.plots import energy_error_plot
+from hbvm_md.reports.plots import energy_error_plot
 from systems import outer_solar_system, solar_system
 
 

@@ -14,11 +14,11 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "HBVMDynamics": "hbvm_md.ase_dynamics",
-    "compare_md": "hbvm_md.md_comparison",
-    "MDComparison": "hbvm_md.md_comparison",
+    "compare_md": "hbvm_md.reports.md_comparison",
+    "MDComparison": "hbvm_md.reports.md_comparison",
     "HBVMIntegrator": "hbvm_md.rebound_driver",
-    "compare_rebound": "hbvm_md.rebound_comparison",
-    "ReboundComparison": "hbvm_md.rebound_comparison",
+    "compare_rebound": "hbvm_md.reports.rebound_comparison",
+    "ReboundComparison": "hbvm_md.reports.rebound_comparison",
     "run_ensemble": "hbvm_md.ensemble",
 }
 

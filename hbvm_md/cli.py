@@ -55,7 +55,7 @@ def _positive_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
-    from .names import scene_key
+    from .reports.names import scene_key
     p = _Parser(prog="hbvm-md", description="Energy-conserving HBVM(k, s) integrators for ASE and "
                 "REBOUND: demos, work-precision benchmarks, spectra and hard cases.")
     p.add_argument("--version", action="version", version=f"hbvm-md {__version__}")
@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="work-precision diagrams (error against wall time) per scene",
                        description="Sweep step sizes (tolerances for adaptive peers) per scene and "
                        "plot energy and solution error against wall time; writes CSV, PNG, markdown.")
-    from .workprecision import SCENES
+    from .reports.workprecision import SCENES
     b.add_argument("--out", default=f"{DEFAULT_OUT}/bench", help=f"output folder (default ./{DEFAULT_OUT}/bench)")
     b.add_argument("--scenes", nargs="+", type=scene_key, choices=list(SCENES), default=None, metavar="SCENE",
                    help=f"scenes to run (default all: {', '.join(SCENES)})")
@@ -98,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "encounter, chaotic Henon-Heiles, steps too large)",
                        description="Run each hard case and print, per method, whether it finished, "
                        "its energy error, solution error and wall time.")
-    from .hard_cases import CASES
+    from .reports.hard_cases import CASES
     h.add_argument("--case", nargs="+", type=scene_key, choices=list(CASES), default=None, metavar="CASE",
                    help=f"cases to run (default all: {', '.join(CASES)})")
     h.add_argument("--quick", action="store_true", help="small sizes (for CI)")
@@ -114,8 +114,8 @@ def _say(*a):
 
 # -- demo ----------------------------------------------------------------------------------
 def cmd_demo(args) -> int:
-    from .plots import energy_error_plot
-    from .progress import progress
+    from .reports.plots import energy_error_plot
+    from .reports.progress import progress
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _say(f"hbvm-md demo: writing into {out.resolve()}")
@@ -125,7 +125,7 @@ def cmd_demo(args) -> int:
     # the outer solar system through REBOUND
     t0 = time.perf_counter()
     try:
-        from .rebound_comparison import compare_rebound
+        from .reports.rebound_comparison import compare_rebound
         cmp = compare_rebound("outer-solar-system", t_end=t_end, n_samples=200)
         _say(f"\n== Outer solar system (HLW), {t_end:g} days, through REBOUND "
              f"({time.perf_counter() - t0:.1f} s)\n")
@@ -140,7 +140,7 @@ def cmd_demo(args) -> int:
     n_atoms = args.atoms or (13 if args.quick else 38)
     md_steps = args.md_steps or (100 if args.quick else 2000)
     try:
-        from .md_comparison import compare_md, default_cluster
+        from .reports.md_comparison import compare_md, default_cluster
         atoms, calc = default_cluster(n_atoms=n_atoms)
         mdc = _call_compare_md(compare_md, atoms, calc, md_steps)
         _say(f"\n== Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, through ASE "
@@ -178,7 +178,7 @@ def _call_compare_md(compare_md, atoms, calc, steps):
 
 # -- bench ---------------------------------------------------------------------------------
 def cmd_bench(args) -> int:
-    from .workprecision import bench
+    from .reports.workprecision import bench
     out = Path(args.out)
     _say(f"hbvm-md bench: writing into {out.resolve()}")
     res = bench(out, scenes=args.scenes, quick=args.quick, log=_say)
@@ -263,8 +263,8 @@ def isospectral_check(method) -> tuple[np.ndarray, np.ndarray]:
 
 # -- hard cases ----------------------------------------------------------------------------
 def cmd_hard_cases(args) -> int:
-    from .hard_cases import CASES
-    from .progress import progress
+    from .reports.hard_cases import CASES
+    from .reports.progress import progress
     names = args.case or list(CASES)
     bar = progress(total=len(names), desc="hard cases")
     for n in names:

@@ -301,7 +301,7 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     """
     from distributed import as_completed
 
-    from .progress import progress as progress_bar
+    from .reports.progress import progress as progress_bar
 
     if not callable(task):
         raise TypeError(f"`task` must be a callable task(param) -> dict (got {type(task).__name__})")

@@ -11,7 +11,7 @@ compiled code once per worker.
   survives, the divergence of its shadow clone and the energy error; :func:`stability_grid`
   makes the parameters of a map and :func:`plot_stability_map` draws it.
 * :func:`md_replica` -- an ASE scene (the polynomial-pair cluster of
-  :func:`hbvm_md.md_comparison.default_cluster`) with seeded Maxwell-Boltzmann velocities
+  :func:`hbvm_md.reports.md_comparison.default_cluster`) with seeded Maxwell-Boltzmann velocities
   through :class:`hbvm_md.HBVMDynamics`.
 
 The divergence of two clones started ``delta`` apart (relative, in position) is the classic
@@ -315,7 +315,7 @@ def md_replica(seed: int, *, atoms=None, n_atoms: int = 13, steps: int = 200, dt
     seed : int
     atoms : ase.Atoms, optional
         The scene, with its calculator (both must pickle); default the polynomial-pair cluster
-        of ``n_atoms`` atoms (:func:`hbvm_md.md_comparison.default_cluster`).
+        of ``n_atoms`` atoms (:func:`hbvm_md.reports.md_comparison.default_cluster`).
     steps, dt_fs, temperature_K, s, k
         As in :func:`hbvm_md.compare_md`.
 
@@ -325,7 +325,7 @@ def md_replica(seed: int, *, atoms=None, n_atoms: int = 13, steps: int = 200, dt
         seed and the HBVM row of :func:`hbvm_md.compare_md` (max_rel_dE, drift_slope, ...)
         without its wall time.
     """
-    from .md_comparison import compare_md, default_cluster
+    from .reports.md_comparison import compare_md, default_cluster
     if atoms is None:
         atoms, _ = default_cluster(n_atoms=n_atoms)
     cmp = compare_md(atoms, timesteps_fs=(dt_fs,), methods=(("HBVM", s) if k is None else ("HBVM", s, k),),

@@ -14,7 +14,7 @@ from ase.md.verlet import VelocityVerlet
 
 from hbvm_md import HBVMDynamics
 from hbvm_md.ase_dynamics import default_k
-from hbvm_md.md_comparison import default_cluster, maxwell_boltzmann
+from hbvm_md.reports.md_comparison import default_cluster, maxwell_boltzmann
 from integrators import HBVM, ConvergenceError, NonFiniteError, integrate
 from systems import FPU, PolynomialPairPotential
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hbvm_md.cli import main
-from hbvm_md.progress import _Quiet, progress
+from hbvm_md.reports.progress import _Quiet, progress
 
 
 @pytest.mark.parametrize("cmd", [[], ["demo"], ["bench"], ["spectrum"], ["hard-cases"]])
@@ -113,7 +113,7 @@ def test_spectrum_reports_a_failed_check(monkeypatch, capsys):
 
 
 def test_demo_refuses_one_atom_before_running_anything(capsys, monkeypatch):
-    import hbvm_md.rebound_comparison as rc
+    import hbvm_md.reports.rebound_comparison as rc
     monkeypatch.setattr(rc, "compare_rebound", lambda *a, **k: pytest.fail("ran the solar system"))
     with pytest.raises(SystemExit) as ex:
         main(["demo", "--atoms", "1", "--quick"])
@@ -123,9 +123,9 @@ def test_demo_refuses_one_atom_before_running_anything(capsys, monkeypatch):
 
 @pytest.mark.parametrize("name", ["outer_solar_system", "outer-solar-system", "Outer Solar System"])
 def test_scene_names_accept_underscores_and_hyphens(name):
-    from hbvm_md.names import scene_key
-    from hbvm_md.rebound_comparison import _scene_factory
-    from hbvm_md.workprecision import SCENES
+    from hbvm_md.reports.names import scene_key
+    from hbvm_md.reports.rebound_comparison import _scene_factory
+    from hbvm_md.reports.workprecision import SCENES
     assert scene_key(name) == "outer-solar-system" and scene_key(name) in SCENES
     assert _scene_factory(name)().N == 6
     with pytest.raises(ValueError, match="'_' or '-' alike"):
@@ -138,6 +138,6 @@ def test_case_names_accept_underscores(capsys):
 
 
 def test_energy_plot_draws_magnitudes_of_signed_errors():
-    from hbvm_md.plots import plotted_error
+    from hbvm_md.reports.plots import plotted_error
     got = plotted_error([0.0, -5.6e-8, 3e-16, float("nan")])
     assert got[0] == 1e-17 and got[1] == 5.6e-8 and got[2] == 3e-16 and np.isnan(got[3])

@@ -4,7 +4,7 @@ import pytest
 from ase import units
 
 from hbvm_md import MDComparison, compare_md
-from hbvm_md.md_comparison import default_cluster, maxwell_boltzmann
+from hbvm_md.reports.md_comparison import default_cluster, maxwell_boltzmann
 
 
 def test_compare_md_rows_series_and_table(capsys):

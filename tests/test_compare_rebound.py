@@ -66,7 +66,7 @@ def test_heyoka_missing_is_a_clear_error(monkeypatch):
 def test_heyoka_peer_energy_and_positions():
     pytest.importorskip("heyoka")
     import numpy as np
-    from hbvm_md.rebound_comparison import EXTENDED
+    from hbvm_md.reports.rebound_comparison import EXTENDED
     nb = outer_solar_system()
     errs, pos = [], []
     for r in range(3):

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from hbvm_md import hard_cases as hc
+from hbvm_md.reports import hard_cases as hc
 from integrators import HBVM, ConvergenceError, Stepper
 from systems import HenonHeiles
 

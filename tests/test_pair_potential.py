@@ -191,7 +191,7 @@ def test_batched_configurations_farther_apart_than_the_skin_get_their_own_lists(
 def test_md_run_rebuilds_the_list_when_atoms_pass_the_skin_and_stays_exact():
     from ase import units
     from hbvm_md import HBVMDynamics
-    from hbvm_md.md_comparison import maxwell_boltzmann
+    from hbvm_md.reports.md_comparison import maxwell_boltzmann
     atoms = _periodic()
     maxwell_boltzmann(atoms, 3000.0, seed=1)
     calc = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.05)

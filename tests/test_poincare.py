@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from hbvm_md.hard_cases import kepler_exact
+from hbvm_md.reports.hard_cases import kepler_exact
 from integrators import HBVM, integrate
 from systems import HenonHeiles, Kepler
 from systems.poincare import PoincareTransformed, distance_power

@@ -228,7 +228,7 @@ def test_unresolved_close_encounter_is_refused_not_silent():
     encounter scene): at P/20000 that is within half a step.  Without the energy check a later
     passage of the same kind converged to a spurious root and jumped the energy from 2e-8 to
     3.6 (measured); with it the step is refused, nothing committed."""
-    from hbvm_md.hard_cases import encounter_scene
+    from hbvm_md.reports.hard_cases import encounter_scene
     from integrators import UnresolvedStepError
     nb = encounter_scene()
     sim = nb.to_rebound(nb.initial_state())

@@ -198,7 +198,7 @@ def test_test_particles_may_share_a_position():
 
 # -- 5. attaching ----------------------------------------------------------------------------
 def test_k_probe_survives_an_encounter_ahead(caplog):
-    from hbvm_md.hard_cases import encounter_scene
+    from hbvm_md.reports.hard_cases import encounter_scene
     nb = encounter_scene()
     sim = nb.to_rebound(nb.initial_state())
     with caplog.at_level(logging.WARNING, logger="hbvm_md.rebound_driver"):

@@ -59,7 +59,7 @@ def energy_error_plot(series: dict, path, title: str, time_label: str = "t") -> 
 
 def work_precision_plot(rows: list, path, title: str) -> Path:
     """Work-precision diagram: error against wall time, energy error (left) and solution error
-    (right), one line per method (rows of :func:`hbvm_md.workprecision.sweep`).
+    (right), one line per method (rows of :func:`hbvm_md.reports.workprecision.sweep`).
 
     Unfinished runs are left out.  Returns the PNG path.
     """

@@ -18,7 +18,7 @@ Scenes (``SCENES``):
   through ASE (:class:`hbvm_md.HBVMDynamics` against ASE's VelocityVerlet); reference: HBVM at
   a quarter of the smallest step.
 
-HBVM(k, s) runs for several s with k chosen by :func:`hbvm_md.autok.choose_k`; Gauss-Legendre is
+HBVM(k, s) runs for several s with k chosen by :func:`hbvm_md.reports.autok.choose_k`; Gauss-Legendre is
 HBVM(s, s).
 """
 from __future__ import annotations
@@ -268,7 +268,7 @@ def scene_md_cluster(quick=False, k_info=None, bar=None):
     from ase.md.verlet import VelocityVerlet
     from ase import units
 
-    from .ase_dynamics import HBVMDynamics
+    from ..ase_dynamics import HBVMDynamics
     from .md_comparison import default_cluster
     from ase.md.velocitydistribution import MaxwellBoltzmannDistribution, Stationary
     atoms0, calc = default_cluster(20 if quick else 38)

@@ -148,7 +148,7 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
     """
     from ase.md.verlet import VelocityVerlet
 
-    from .ase_dynamics import HBVMDynamics
+    from ..ase_dynamics import HBVMDynamics
 
     calc = atoms.calc if calculator is None else calculator
     if calc is None:

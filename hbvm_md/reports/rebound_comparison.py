@@ -134,7 +134,7 @@ _HEYOKA = {}
 
 
 def heyoka_solver(sim, tol: float | None = None, fp_type=float, compact_mode: bool = False):
-    """The (cached) :class:`hbvm_md.peers.HeyokaNBody` for the bodies of ``sim``."""
+    """The (cached) :class:`hbvm_md.reports.peers.HeyokaNBody` for the bodies of ``sim``."""
     from .peers import HeyokaNBody, import_heyoka
     import_heyoka()              # the message on a missing heyoka, even when a solver is cached
     m = np.zeros(sim.N)
@@ -191,7 +191,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
     peers : sequence of str or (str, dt)
         REBOUND integrators ("whfast", "saba(10,6,4)", "leapfrog", "ias15", ...); a fixed step
         defaults to :data:`DT_FRACTION` times P; IAS15 and BS are adaptive.  "heyoka" and
-        "heyoka(compact)" run heyoka's Taylor integrator (:class:`hbvm_md.peers.HeyokaNBody`,
+        "heyoka(compact)" run heyoka's Taylor integrator (:class:`hbvm_md.reports.peers.HeyokaNBody`,
         heyoka's default or compact mode), the second element being its tolerance (default
         machine epsilon); its compile time is reported in ``compile_time_s``, not in the wall
         time.  ImportError with a message when heyoka is not installed.
@@ -214,7 +214,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         and ``compile_time_s`` (heyoka's one-off compile, outside the wall time; None for the
         others).
     """
-    from .rebound_driver import HBVMIntegrator, shortest_period
+    from ..rebound_driver import HBVMIntegrator, shortest_period
 
     if not (np.isfinite(t_end) and t_end > 0):
         raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")
