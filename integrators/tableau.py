@@ -20,6 +20,9 @@ from . import quadrature as _q
 NODE_FAMILIES = ("gauss", "lobatto")
 
 
+MAX_K = 128      # quadrature nodes at most (see HBVM.__init__)
+
+
 def _check_int(name: str, value, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ValueError(f"`{name}` must be an integer >= {minimum} (got {name}={value!r}); "
@@ -168,6 +171,13 @@ class HBVM:
         if k < s:
             raise ValueError(f"`k` must be >= `s` (got k={k}, s={s}); HBVM(k, s) needs at least "
                              f"s quadrature steps, e.g. k={s}")
+        if k > MAX_K:
+            raise ValueError(f"`k` must be <= {MAX_K} (got k={k}, s={s}): {MAX_K} nodes integrate "
+                             f"polynomials of degree {2 * MAX_K - 1} exactly, far beyond what double "
+                             f"precision resolves, and building the quadrature costs O(k^3) in "
+                             f"40-digit arithmetic (minutes for thousands of nodes); for a "
+                             f"polynomial H of degree nu > {2 * MAX_K}/s, HBVM({MAX_K}, s) already "
+                             f"conserves it to round-off")
         if not isinstance(nodes, str) or nodes not in NODE_FAMILIES:
             raise ValueError(f"`nodes` must be one of {NODE_FAMILIES} (got nodes={nodes!r})")
         d = _build(k, s, nodes)

@@ -1,0 +1,326 @@
+"""The one step core (issue: "One HBVM step: a single compiled core behind every path"): every
+path runs the same step, failures are clear errors, compiled code is never stale."""
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import numpy as np
+import pytest
+
+from integrators import (HBVM, ConvergenceError, NonFiniteError, StepError, Stepper,
+                         UnresolvedStepError, integrate)
+from systems import HamiltonianSystem, NBody, outer_solar_system
+from systems.poincare import PoincareKepler
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class Polynomial1D(HamiltonianSystem):
+    """H = (p^2 + q^2) / 2 + sum c_ij q^i p^j over 3 <= i + j <= 4: not separable, degree 4."""
+
+    dim = 1
+    polynomial_degree = 4
+    TERMS = [(i, n - i) for n in (3, 4) for i in range(n + 1)]
+
+    def __init__(self, coefficients):
+        self.c = np.asarray(coefficients, dtype=float)
+
+    def energy(self, y):
+        y = np.asarray(y, dtype=float)
+        q, p = y[..., 0], y[..., 1]
+        return 0.5 * (p * p + q * q) + sum(c * q ** i * p ** j for c, (i, j) in zip(self.c, self.TERMS))
+
+    def gradient(self, y):
+        y = np.asarray(y, dtype=float)
+        q, p = y[..., 0], y[..., 1]
+        dq = q + sum(c * i * q ** max(i - 1, 0) * p ** j for c, (i, j) in zip(self.c, self.TERMS) if i)
+        dp = p + sum(c * j * q ** i * p ** max(j - 1, 0) for c, (i, j) in zip(self.c, self.TERMS) if j)
+        return np.stack([dq, dp], axis=-1)
+
+
+def test_quartic_reproduction_is_exact_with_the_default_solver():
+    """H = (p^2 + q^2)/2 + q^2 p^2 / 2, y0 = (1, 0.5), h = 0.7: the first version accepted
+    unconverged steps here (energy error 1e-9, no error raised)."""
+    sys_ = Polynomial1D([0, 0, 0, 0, 0, 0, 0.5, 0, 0])
+    for solver in ("auto", "fixed_point", "newton"):
+        res = integrate(HBVM(4, 2), sys_, [1.0, 0.5], 0.7, 200, solver=solver)
+        assert res.steps == 200 and res.max_energy_error <= 1e-13, (solver, res.max_energy_error)
+
+
+def test_random_nonseparable_polynomials_are_exact_or_raise():
+    """A sweep over random quartic Hamiltonians and step sizes: HBVM(2s, s) conserves them
+    exactly, so every run is exact to 1e-12 or raises a clean StepError; most succeed."""
+    rng = np.random.default_rng(2026)
+    ok = failed = 0
+    for trial in range(24):
+        s = 1 + trial % 2
+        sys_ = Polynomial1D(rng.uniform(-0.3, 0.3, size=9))
+        y0 = rng.uniform(-0.6, 0.6, size=2)
+        h = rng.uniform(0.1, 0.9)
+        try:
+            res = integrate(HBVM(2 * s, s), sys_, y0, h, 100, sample_every=5)
+        except StepError:
+            failed += 1
+            continue
+        assert res.max_energy_error <= 1e-12, (trial, h, res.max_energy_error)
+        ok += 1
+    assert ok >= 18, (ok, failed)
+
+
+def test_coincident_bodies_raise_one_clean_error(capfd):
+    """Two bodies at one position: a NonFiniteError on every path, nothing printed."""
+    nb = NBody([1.0, 1e-3, 1e-3])
+    y0 = np.zeros(18)
+    y0[3] = y0[6] = 1.0          # bodies 1 and 2 both at x = 1
+    y0[13] = y0[16] = 1.0
+    for fast in (True, False):
+        with pytest.raises(NonFiniteError, match=r"produced non-finite values.*coincident"):
+            integrate(HBVM(6, 3), nb, y0, 0.01, 10, fast=fast)
+    out, err = capfd.readouterr()
+    assert "Exception ignored" not in err and "ZeroDivision" not in err
+
+
+def _three_body():
+    nb = NBody([1.0, 1e-3, 3e-4], G=1.0)
+    x = np.array([[0.0, 0, 0], [1.0, 0, 0], [0, 1.6, 0.1]])
+    v = np.array([[0.0, 0, 0], [0, 1.0, 0.05], [-0.78, 0, 0]])
+    return nb, nb.state(x, v)
+
+
+def test_every_separable_path_takes_the_same_steps():
+    """Compiled engine, the same step run as Python, and HBVMIntegrator: the same states bit
+    for bit and the same counters exactly (they run one step with one kernel)."""
+    nb, y0 = _three_body()
+    m, h, n = HBVM(8, 4), 0.05, 200
+    fast = integrate(m, nb, y0, h, n, sample_every=n)
+    slow = integrate(m, nb, y0, h, n, sample_every=n, fast=False)
+    assert (fast.path, slow.path) == ("compiled-separable", "python-separable")
+    assert np.array_equal(fast.y, slow.y)
+    assert (fast.steps, fast.iterations, fast.nfev) == (slow.steps, slow.iterations, slow.nfev)
+    from hbvm_md import HBVMIntegrator
+    sim = nb.to_rebound(y0)
+    drv = HBVMIntegrator(sim, s=4, k=8, dt=h, energy_tol=None)
+    sim.steps(n)
+    q = np.array([[p.x, p.y, p.z] for p in sim.particles]).ravel()
+    assert np.array_equal(q, fast.y[-1, :9])
+    assert (drv.nsteps, drv.niter, drv.nfev) == (fast.steps, fast.iterations, fast.nfev)
+    # the full form of the same Hamiltonian: another iteration, the same solution to round-off
+    full = integrate(m, nb, y0, h, n, sample_every=n, form="full")
+    assert full.path == "python-full"
+    assert np.max(np.abs(full.y[-1] - fast.y[-1])) <= 1e-12
+
+
+def test_compiled_and_python_full_form_agree_exactly():
+    from systems import Kepler, PoincareTransformed
+    kep = Kepler(0.9)
+    sys_ = PoincareTransformed.for_kepler(kep, alpha=1.0)
+    assert isinstance(sys_, PoincareKepler)
+    y0 = sys_.extend(kep.initial_state(), t=0.0)
+    fast = integrate(HBVM(8, 4), sys_, y0, 0.05, 300, sample_every=300)
+    slow = integrate(HBVM(8, 4), sys_, y0, 0.05, 300, sample_every=300, fast=False)
+    assert (fast.path, slow.path) == ("compiled-full", "python-full")
+    assert np.array_equal(fast.y, slow.y)
+    assert (fast.iterations, fast.nfev) == (slow.iterations, slow.nfev)
+
+
+def test_ase_path_runs_the_same_step():
+    """HBVMDynamics with a gravity calculator (Python forces) against the compiled N-body
+    engine on the same three bodies: the same solution to round-off."""
+    from ase import Atoms
+    from ase.calculators.calculator import Calculator, all_changes
+
+    from hbvm_md import HBVMDynamics
+
+    class Gravity(Calculator):
+        implemented_properties = ["energy", "forces"]
+
+        def __init__(self, masses):
+            super().__init__()
+            self.m = np.asarray(masses, dtype=float)
+
+        def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+            super().calculate(atoms, properties, system_changes)
+            x = self.atoms.positions
+            f = np.zeros_like(x)
+            e = 0.0
+            for i in range(len(x)):
+                for j in range(i + 1, len(x)):
+                    d = x[j] - x[i]
+                    r = np.sqrt(d @ d)
+                    f[i] += self.m[i] * self.m[j] * d / r ** 3
+                    f[j] -= self.m[i] * self.m[j] * d / r ** 3
+                    e -= self.m[i] * self.m[j] / r
+            self.results = {"energy": e, "forces": f}
+
+    nb, y0 = _three_body()
+    atoms = Atoms("H3", positions=y0[:9].reshape(3, 3), masses=nb.body_masses)
+    atoms.set_momenta(y0[9:].reshape(3, 3))
+    atoms.calc = Gravity(nb.body_masses)
+    dyn = HBVMDynamics(atoms, 0.05, s=4, k=8)
+    dyn.run(100)
+    ref = integrate(HBVM(8, 4), nb, y0, 0.05, 100, sample_every=100)
+    assert np.max(np.abs(atoms.positions.ravel() - ref.y[-1, :9])) <= 1e-12
+    assert np.max(np.abs(atoms.get_momenta().ravel() - ref.y[-1, 9:])) <= 1e-12
+
+
+def test_failed_integrate_keeps_the_samples_so_far():
+    nb, y0 = _three_body()
+    y0 = y0.copy()
+    y0[12:15] = [0.0, 0.05e-3, 0.0]           # the planet nearly at rest: it falls onto the star
+    with pytest.raises(StepError) as info:
+        integrate(HBVM(6, 3), nb, y0, 0.05, 400, sample_every=4, energy_tol=1e-10)
+    res = info.value.result
+    assert res is not None and res.status == "failed" and res.message == str(info.value)
+    assert 0 < res.steps < 400 and len(res.t) == res.steps // 4 + 1
+    assert np.all(np.isfinite(res.y)) and res.t[-1] <= info.value.t
+
+
+def test_unresolved_step_is_a_sibling_of_convergence_error():
+    assert issubclass(UnresolvedStepError, StepError) and not issubclass(UnresolvedStepError, ConvergenceError)
+    assert issubclass(NonFiniteError, ConvergenceError)
+    import copy
+    import pickle
+    err = UnresolvedStepError(0.1, 2e-3, 1e-10, 5, t=3.0, hint="smaller")
+    for clone in (copy.copy(err), pickle.loads(pickle.dumps(err))):
+        assert type(clone) is UnresolvedStepError and str(clone) == str(err)
+        assert (clone.h, clone.t, clone.change, clone.tolerance) == (0.1, 3.0, 2e-3, 1e-10)
+
+
+def test_stepper_returns_copies_and_keeps_status():
+    nb, y0 = _three_body()
+    st = Stepper(HBVM(4, 2), nb, y0, solver="fixed_point")
+    y1 = st.step(0.01)
+    y1[:] = 1e9                                # the caller's array, not the state
+    assert np.all(st.y < 1e3)
+    st.y[:] = 1e9
+    assert np.all(st.y < 1e3)
+    assert st.status == "running"
+    with pytest.raises(StepError):
+        st.step(40.0)
+    assert st.status == "failed" and st.nsteps == 1
+
+
+def test_k_has_a_cap_with_a_reason():
+    with pytest.raises(ValueError, match=r"`k` must be <= 128 \(got k=5000, s=2\).*double precision"):
+        HBVM(5000, 2)
+    with pytest.raises(ValueError, match=r"`k` must be <= 128"):
+        HBVM.for_polynomial_degree(10000, 2)
+
+
+def test_compiled_code_is_rebuilt_when_a_kernel_source_changes(tmp_path, monkeypatch):
+    """The step module is named by a hash of its sources: editing the kernel's file gives a
+    new module (a stale cache cannot be loaded), and the new force is the one used."""
+    from integrators.specialise import specialise
+    src = textwrap.dedent('''
+        from integrators.jit import jit
+
+        @jit
+        def force(Q, params, out):
+            for i in range(Q.shape[0]):
+                out[i, 0] = -{K} * Q[i, 0]
+
+        @jit
+        def potential(q, params):
+            return 0.5 * {K} * q[0] * q[0]
+    ''')
+    mod = tmp_path / "hbvm_test_kernel.py"
+    mod.write_text(src.format(K="1.0"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("HBVM_MD_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr("integrators.specialise._cache_dir", None)
+    kern = importlib.import_module("hbvm_test_kernel")
+    first = specialise(kern.force, kern.potential)
+    name1 = first.run.py_func.__module__
+    mod.write_text(src.format(K="4.0"))
+    kern = importlib.reload(kern)
+    second = specialise(kern.force, kern.potential)
+    name2 = second.run.py_func.__module__
+    assert name1 != name2 and name1.startswith("_hbvm_md_step_")
+    assert (tmp_path / "cache" / f"{name2}.py").exists()
+
+    class Spring(HamiltonianSystem):
+        dim, masses = 1, np.ones(1)
+
+        def potential(self, q):
+            return 2.0 * np.asarray(q)[..., 0] ** 2
+
+        def forces(self, q):
+            return -4.0 * np.asarray(q)
+
+        def energy(self, y):
+            y = np.asarray(y)
+            return 0.5 * y[..., 1] ** 2 + self.potential(y[..., :1])
+
+        def gradient(self, y):
+            return np.concatenate([-self.forces(np.asarray(y)[..., :1]), np.asarray(y)[..., 1:]], axis=-1)
+
+        def separable_kernels(self):
+            return kern.force, kern.potential, np.zeros(1)
+    res = integrate(HBVM(2, 2), Spring(), [1.0, 0.0], np.pi / 40, 10)   # a quarter period of omega = 2
+    assert abs(res.y[-1, 0]) < 1e-5 and res.max_energy_error < 1e-14   # cos(pi / 4) with K = 1
+
+
+def test_no_writable_cache_folder_falls_back_with_one_warning(tmp_path, monkeypatch):
+    import integrators.specialise as sp
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv("HBVM_MD_CACHE_DIR", str(blocker / "cache"))
+    monkeypatch.setenv("HOME", str(blocker))
+    monkeypatch.setattr(sp.numba.config, "CACHE_DIR", "")
+    monkeypatch.setattr(sp, "_cache_dir", None)
+    with pytest.warns(RuntimeWarning, match="no writable cache folder"):
+        folder = sp.cache_dir()
+    assert folder.is_dir() and os.access(folder, os.W_OK)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert sp.cache_dir() == folder
+
+
+def test_jit_without_a_cache_locator_compiles_in_memory(monkeypatch):
+    import integrators.jit as jm
+    real = jm.njit
+
+    def njit(*args, **kwargs):
+        if kwargs.get("cache"):
+            raise RuntimeError("cannot cache function 'f': no locator available for file 'x'")
+        return real(*args, **kwargs)
+    monkeypatch.setattr(jm, "njit", njit)
+    monkeypatch.setattr(jm, "_warned", False)
+
+    def f(x):
+        return 2.0 * x
+    with pytest.warns(RuntimeWarning, match="cannot be cached on disk"):
+        g = jm.jit(f)
+    assert g(3.0) == 6.0
+
+
+def test_everything_runs_with_numba_disabled():
+    """NUMBA_DISABLE_JIT=1: the same step as plain Python, through the engine and REBOUND, with
+    the same numbers to round-off."""
+    code = textwrap.dedent('''
+        import numpy as np
+        from integrators import HBVM, integrate
+        from systems import outer_solar_system
+        from hbvm_md import HBVMIntegrator
+        nb = outer_solar_system()
+        r = integrate(HBVM(7, 6), nb, nb.initial_state(), 250.0, 4, sample_every=4)
+        sim = nb.to_rebound()
+        HBVMIntegrator(sim, s=6, k=7, dt=250.0)
+        sim.steps(4)
+        print(repr(r.y[-1].tolist()), r.path, sim.particles[1].x)
+    ''')
+    env = dict(os.environ, NUMBA_DISABLE_JIT="1", PYTHONPATH=ROOT)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    y_txt, path, x1 = out.stdout.rsplit(" ", 2)
+    nb = outer_solar_system()
+    ref = integrate(HBVM(7, 6), nb, nb.initial_state(), 250.0, 4, sample_every=4)
+    assert path == "python-separable"
+    assert np.max(np.abs(np.array(eval(y_txt)) - ref.y[-1])) <= 1e-12
+    assert abs(float(x1) - ref.y[-1, 3]) <= 1e-12
