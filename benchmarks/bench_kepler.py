@@ -6,9 +6,9 @@ For s = 2..8 at h = 2 pi / 100 (as in HLW Table VIII.6.1), two values of k:
 * the "round-off" k: the smallest k >= s whose maximum relative energy error over 10 periods
   is at most ``ROUNDOFF`` (measured by this script, not assumed).
 
-Each runs 1000 periods through the compiled fast path (numba, fixed point); the numpy
-(generic) path is timed over 10 periods only, because it is about two orders of magnitude
-slower.  Reported: max relative energy error, fixed-point iterations per step, microseconds per
+Each runs 1000 periods through the compiled step (numba, fixed point); the same step run as
+Python code (``fast=False``) is timed over 10 periods only, because it is one to two orders of
+magnitude slower.  Reported: max relative energy error, fixed-point iterations per step, microseconds per
 step (wall time of the integration loop; the compiled driver is warmed up first).  Written to
 ``benchmarks/results/kepler.md`` and printed.
 
@@ -94,12 +94,12 @@ def to_markdown(rows, cmd: str, periods: int, slow_periods: int) -> str:
         f"Energy error: max over the run of |H - H0| / |H0| (compiled path, {periods} periods, "
         f"sampled every 10 steps). \"round-off k\": smallest k whose max error over 10 periods is "
         f"<= {ROUNDOFF:g}. Iterations: fixed-point iterations per step. Timings: wall time of the "
-        f"integration loop per step (compiled: best of {REPEAT} runs; numpy: one run); the numpy (generic) path over {slow_periods} periods "
+        f"integration loop per step (compiled: best of {REPEAT} runs; Python: one run); the same step run as Python code (`fast=False`, what a system without compiled kernels runs) over {slow_periods} periods "
         f"only. Solution error: max |y(T) - y0| after {periods} periods (the exact orbit "
         f"returns to its start).",
         "",
         "| s | k | method | max energy error | solution error | iterations/step | compiled us/step "
-        "| numpy us/step | numpy / compiled |",
+        "| Python us/step | Python / compiled |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
