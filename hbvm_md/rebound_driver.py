@@ -750,7 +750,6 @@ class HBVMIntegrator:
         self._S1, self._gamma1 = np.empty_like(S), np.empty_like(gamma)
         self._eref1 = np.empty(1)
         self._y1, self._cy1 = self._S1[:2].reshape(-1), self._S1[2:].reshape(-1)
-        self._yt, self._cyt = np.empty_like(self._y1), np.empty_like(self._y1)
 
     def _step(self) -> None:
         h = self._h_c.value
@@ -770,9 +769,9 @@ class HBVMIntegrator:
         etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
         self._pend(h)
         status = _entry(b.step_code.advance)(
-            False, self._y1, self._cy1, self._yt, self._cyt, b.minv, b.kin_w, b.params, h, E,
-            self._gamma1, b.g, b.c1, b.c2, *b.no_newton, self.max_iter, self.tol, etol,
-            self._eref1, b.w1, b.w2, b.wc, self._counters, self._clock)
+            False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, E, self._gamma1, b.c1,
+            b.c2, *b.no_newton, self.max_iter, self.tol, etol, self._eref1, self._counters,
+            b.work, b.cwork, self._clock)
         if status != OK:
             raise step_error(status, h, self._step_start(h), self._counters, "fixed_point",
                              energy_tol=self.energy_tol, hints=_HINTS)

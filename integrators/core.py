@@ -362,6 +362,53 @@ def commit_full(y, cy, h, g):
         dd_add(y, cy, j, d_hi, d_lo)
 
 
+def work_sizes(n: int, s: int, u: int, m: int, d: int) -> tuple:
+    """(float, complex) lengths of the work buffers :func:`carve` cuts for k = n stages, s
+    coefficient blocks of width u, m masses and a state of length d."""
+    return 4 * n + 2 + 2 * m + 3 * s * u + 5 * n * u + 2 * d, 2 * s * u
+
+
+@jit
+def carve(work, cwork, n, s, u, m, d):
+    """The step's work arrays as views of two buffers (one array argument each instead of
+    seventeen, which a host calling one step at a time pays for: about 0.1 microsecond each to
+    unbox, or to allocate): ht, ht_lo (n), hist (2), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
+    Xp, Fp (n, u), yt, cyt (d), Rt, Z (s, u) complex."""
+    o = 0
+    ht = work[o:o + n]
+    o += n
+    ht_lo = work[o:o + n]
+    o += n
+    hist = work[o:o + 2]
+    o += 2
+    dq = work[o:o + m]
+    o += m
+    dq_lo = work[o:o + m]
+    o += m
+    a = work[o:o + s * u].reshape((s, u))
+    o += s * u
+    pg = work[o:o + s * u].reshape((s, u))
+    o += s * u
+    g = work[o:o + s * u].reshape((s, u))
+    o += s * u
+    X = work[o:o + n * u].reshape((n, u))
+    o += n * u
+    F = work[o:o + n * u].reshape((n, u))
+    o += n * u
+    G = work[o:o + n * u].reshape((n, u))
+    o += n * u
+    Xp = work[o:o + n * u].reshape((n, u))
+    o += n * u
+    Fp = work[o:o + n * u].reshape((n, u))
+    o += n * u
+    yt = work[o:o + d]
+    o += d
+    cyt = work[o:o + d]
+    Rt = cwork[:s * u].reshape((s, u))
+    Z = cwork[s * u:2 * s * u].reshape((s, u))
+    return ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, Rt, Z
+
+
 @jit
 def fail(counters, status, work_iter, work_nfev, work_newton):
     """Record a failed step's status and take its work back out of the counters (they count

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core import C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE, OK
+from .core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
+                   OK, work_sizes)
 from .errors import StepError, step_error
 from .protocol import adapt_system
 from .specialise import specialise
@@ -79,9 +80,9 @@ _COEF_CACHE: dict = {}
 
 
 def method_arrays(method) -> tuple:
-    """(c1, c2) = ((tau, tau_lo, X0, X0_lo), (W, W_lo, C2, C2_lo, I, I_lo)): the method's arrays
-    as the step takes them (contiguous, writable copies, so that every path compiles one
-    signature)."""
+    """(c1, c2) = ((tn, ts), (Wp, Cp)): the method's arrays packed as the step takes them,
+    tn = [tau, tau_lo], ts = [X0, X0_lo], Wp = [W, W_lo], Cp = [C2, C2_lo, I, I_lo] (contiguous,
+    read-only, so that every path compiles one signature; see :mod:`integrators.loop`)."""
     hit = _COEF_CACHE.get(method)
     if hit is None:
         def c(a):
@@ -89,8 +90,8 @@ def method_arrays(method) -> tuple:
             a.flags.writeable = False
             return a
         m = method
-        hit = ((c(m.tau), c(m.tau_lo), c(m.X[0]), c(m.X_lo[0])),
-               (c(m.W), c(m.W_lo), c(m.C2), c(m.C2_lo), c(m.I), c(m.I_lo)))
+        hit = ((c([m.tau, m.tau_lo]), c([m.X[0], m.X_lo[0]])),
+               (c([m.W, m.W_lo]), c([m.C2, m.C2_lo, m.I, m.I_lo])))
         _COEF_CACHE[method] = hit
     return hit
 
@@ -149,16 +150,12 @@ class Binding:
                                               dtype=float)
         self.c1, self.c2 = method_arrays(method)
         u = d if self.full else m
-        s, n = method.s, method.n_stages
-        w = d if self.full else m
+        s = method.s
         self.u = u
-        self.w1 = (np.empty(n), np.empty(n), np.empty(2), np.empty(m), np.empty(m))
-        self.w2 = (np.empty((s, u)), np.empty((n, w)), np.empty((n, w)), np.empty((n, w)),
-                   np.empty((s, u)), np.empty((n, w)), np.empty((n, w)))
-        self.wc = (np.empty((s, u), dtype=complex), np.empty((s, u), dtype=complex))
-        self.g = np.empty((s, u))
         self.no_newton = (np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
                           np.zeros((0, u, u), dtype=complex))
+        nf, nc = work_sizes(method.n_stages, s, u, self.minv.shape[0], d)
+        self.work, self.cwork = np.empty(nf), np.empty(nc, dtype=complex)
         self._eig = None
 
     def _python_kernels(self, system):
@@ -267,7 +264,6 @@ class Stepper:
         self.binding = Binding(method, system, form, fast)
         self.form = self.binding
         self._cy = np.zeros_like(self._y)
-        self._yt, self._cyt = np.empty_like(self._y), np.empty_like(self._y)
         self._clock = np.array([t0, 0.0])
         self._gamma = np.zeros((method.s, self.binding.u))
         self._h_prev = None
@@ -345,11 +341,11 @@ class Stepper:
         t_start = time.perf_counter()
         if self._solver == "fixed_point":
             E = self._E(h)
-            b.step_code.run(b.full, self._y, self._cy, self._yt, self._cyt, b.minv, b.kin_w,
-                            b.params, h, E, self._gamma, b.g, b.c1, b.c2, *b.no_newton,
+            b.step_code.run(b.full, self._y, self._cy, b.minv, b.kin_w,
+                            b.params, h, E, self._gamma, b.c1, b.c2, *b.no_newton,
                             self._max_iter("fixed_point"), float(self.tol or 0.0),
-                            float(self.energy_tol or 0.0), self._eref, b.w1, b.w2, b.wc,
-                            self.counters, steps, sample_every, self._clock, out_t, out_y, out_e)
+                            float(self.energy_tol or 0.0), self._eref,
+                            self.counters, b.work, b.cwork, steps, sample_every, self._clock, out_t, out_y, out_e)
             done = self.nsteps - start
             if done > 0:
                 self._h_prev = h
@@ -403,11 +399,11 @@ class Stepper:
         b = self.binding
         newton = (b.newton_matrices(self._y, h, self.counters) if solver == "newton"
                   else b.no_newton)
-        return b.step_code.advance(b.full, self._y, self._cy, self._yt, self._cyt, b.minv,
-                                   b.kin_w, b.params, h, self._E(h), self._gamma, b.g, b.c1, b.c2,
+        return b.step_code.advance(b.full, self._y, self._cy, b.minv,
+                                   b.kin_w, b.params, h, self._E(h), self._gamma, b.c1, b.c2,
                                    *newton, self._max_iter(solver), float(self.tol or 0.0),
-                                   float(self.energy_tol or 0.0), self._eref, b.w1, b.w2, b.wc,
-                                   self.counters, self._clock)
+                                   float(self.energy_tol or 0.0), self._eref,
+                                   self.counters, b.work, b.cwork, self._clock)
 
     def _after_step(self, h: float) -> None:
         self._h_prev = h          # the step itself advanced the compensated clock

@@ -19,18 +19,21 @@ form, rows are positions) or grad H(y) (full form, rows are states) into ``out``
 The implementer's contract (what a caller provides): the state as a double-double pair
 (y, cy) of shape (2m,), q = y[:m], p = y[m:]; trial copies (yt, cyt); ``gamma`` the previous
 step's coefficients (s, u), all zero before the first step (u = m for the separable form, 2m
-for the full form); ``E`` the extrapolation matrix for h_new / h_old; the method's arrays
-c1 = (tau, tau_lo, X0, X0_lo), c2 = (W, W_lo, C2, C2_lo, I, I_lo); Newton matrices (NV, NVinv,
-NM) with NM of shape (0, u, u) for fixed-point iteration; work arrays w1 = (ht, ht_lo, hist,
-dq, dq_lo), w2 = (a, X, F, G, pg, Xp, Fp), wc = (Rt, Z) from ``integrators.engine.Workspace``; and the
-float64 ``counters`` (layout in :mod:`integrators.core`).  :func:`advance` returns a status
+for the full form); ``E`` the extrapolation matrix for h_new / h_old; the method's arrays packed
+as c1 = (tn, ts) with tn = [tau, tau_lo] (2, k) and ts = [X0, X0_lo] (2, s), c2 = (Wp, Cp) with
+Wp = [W, W_lo] (2, s, k) and Cp = [C2, C2_lo, I, I_lo] (4, k, s) (``integrators.engine.
+method_arrays``); Newton matrices (NV, NVinv, NM) with NM of shape (0, u, u) for fixed-point
+iteration; the float64 ``counters`` (layout in :mod:`integrators.core`); and two work buffers
+(``work`` float, ``cwork`` complex, sized by ``core.work_sizes``) that ``core.carve`` cuts into
+the step's work arrays: a host that calls one step at a time (REBOUND, ASE) pays about 0.1
+microsecond for each array argument it passes or array the step allocates.  :func:`advance` returns a status
 code; it changes y, cy, gamma and eref only when the step succeeded.
 """
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
                               C_STEPS, DIVERGED, EPS, ITERATE, ROUNDOFF_ULPS, NOT_FINITE, OK, POLISH, UNRESOLVED,
-                              all_finite, all_zero, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
+                              all_finite, all_zero, carve, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages,
                               guess, max_abs, newton_update, project, project_compensated,
                               stage_positions, step_constants, stop_action, symplectic, tick,
@@ -57,9 +60,8 @@ def energy_parts(full, y, kin_w, params):
     return weighted_kinetic(y[m:], kin_w), _potential(y[:m], params)
 
 
-def run(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, NVinv, NM,
-        max_iter, tol, etol, eref, w1, w2, wc, counters, nsteps, sample_every, clock, out_t,
-        out_y, out_e):
+def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,
+        etol, eref, counters, work, cwork, nsteps, sample_every, clock, out_t, out_y, out_e):
     """``nsteps`` steps of size h from the double-double state (y, cy), each committed in place
     when it succeeds; samples of (t, y, H) at steps 0, sample_every, 2 sample_every, ... (none
     when sample_every is 0).  Returns OK, or the status of the first failed step (also left in
@@ -73,11 +75,15 @@ def run(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, N
     The step is written inside the loop, not called: a call with this many arrays costs about
     half a microsecond a step (measured on Kepler, where a step costs one)."""
     t, ct = clock[0], clock[1]
-    tau, tau_lo, X0, X0_lo = c1
-    W, W_lo, C2, C2_lo, I, I_lo = c2
-    ht, ht_lo, hist, dq, dq_lo = w1
-    a, X, F, G, pg, Xp, Fp = w2
-    Rt, Z = wc
+    tn, ts = c1
+    Wp, Cp = c2
+    tau, tau_lo, X0, X0_lo = tn[0], tn[1], ts[0], ts[1]
+    W, W_lo, C2, C2_lo, I, I_lo = Wp[0], Wp[1], Cp[0], Cp[1], Cp[2], Cp[3]
+    n = tau.shape[0]
+    s, u = gamma.shape
+    m = minv.shape[0]
+    ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, Rt, Z = carve(
+        work, cwork, n, s, u, m, y.shape[0])
     isample = 0
     if sample_every > 0:
         out_t[0] = t
@@ -199,10 +205,10 @@ def run(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, N
     return OK
 
 
-def advance(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, NVinv, NM,
-            max_iter, tol, etol, eref, w1, w2, wc, counters, clock):
+def advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,
+            etol, eref, counters, work, cwork, clock):
     """One step of :func:`run` (no samples); returns its status."""
     no_samples = np.empty(0)
-    return run(full, y, cy, yt, cyt, minv, kin_w, params, h, E, gamma, g, c1, c2, NV, NVinv, NM,
-               max_iter, tol, etol, eref, w1, w2, wc, counters, 1, 0, clock, no_samples,
-               np.empty((0, 0)), no_samples)
+    return run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter,
+               tol, etol, eref, counters, work, cwork, 1, 0, clock, no_samples, np.empty((0, 0)),
+               no_samples)
