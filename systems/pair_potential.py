@@ -25,10 +25,10 @@ from __future__ import annotations
 import numpy as np
 import vesin
 from ase.calculators.calculator import Calculator, PropertyNotImplementedError, all_changes
-from numba import njit
+from integrators.jit import jit
 
 
-@njit(cache=True)
+@jit
 def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
     """F[a] = -grad E at each configuration X[a] (shapes (n, N, 3)).
 
@@ -73,7 +73,7 @@ def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
                 F[a, k, c] = Ft[k, a, c]
 
 
-@njit(cache=True)
+@jit
 def _pair_properties(X, ii, jj, shift, ctype, C, rc2, F, e_atom, virial):
     """One configuration X (N, 3): forces F (N, 3), per-atom energies (N,) (half of each pair
     to each atom) and the virial sum_p 2 G'(u) D D^T (3, 3)."""
@@ -109,7 +109,7 @@ def _pair_properties(X, ii, jj, shift, ctype, C, rc2, F, e_atom, virial):
                 virial[c, b] += f * d[c] * d[b]
 
 
-@njit(cache=True)
+@jit
 def _pair_hessian(X, ii, jj, shift, ctype, C, rc2, H):
     """H (3N, 3N) = d^2 E / dx dx at one configuration X (N, 3).
 
@@ -148,7 +148,7 @@ def _pair_hessian(X, ii, jj, shift, ctype, C, rc2, H):
                 H[3 * j + a, 3 * i + b] -= B[a, b]
 
 
-@njit(cache=True)
+@jit
 def _max_displacement2(X, ref):
     """max over configurations a and atoms i of |X[a, i] - ref[i]|^2 (X (n, N, 3), ref (N, 3))."""
     worst = 0.0

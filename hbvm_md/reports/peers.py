@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from integrators.jit import jit
 
 from integrators.engine import check_state, check_step
 
@@ -82,7 +82,7 @@ def from_integration(method: str, res) -> Run:
 
 
 # -- Stormer-Verlet ------------------------------------------------------------------------
-@njit(cache=True)
+@jit
 def _verlet_compiled(force, potential, params, q, p, minv, h, nsteps, sample_every,
                      out_q, out_p, out_e):
     m = q.shape[0]
