@@ -67,9 +67,10 @@ import weakref
 import numpy as np
 
 from integrators import HBVM, StepError
-from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS
-from integrators.engine import Binding
-from integrators.errors import step_error
+from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, next_step
+from integrators.core import step_error as error_estimate
+from integrators.engine import DEFAULT_EPSILON, Binding, check_adaptive
+from integrators.errors import StepSizeError, step_error
 from integrators.jit import entry_point, jit
 from systems.nbody import NBody
 
@@ -369,7 +370,7 @@ class HBVMIntegrator:
         Degree of the method (order 2s).
     k : int, optional
         Quadrature nodes (k >= s).  None: measured on the scene at attach time for ``sim.dt``
-        (:func:`choose_k`).
+        (:func:`choose_k`) with a fixed step, s + 4 with adaptive steps.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
     max_iter : int
@@ -378,6 +379,20 @@ class HBVMIntegrator:
         Relative tolerance of the iteration; None iterates to round-off.
     nodes : {"gauss", "lobatto"}
         Quadrature of the line integral.
+    adaptive : bool or None
+        Step-size control (None, the default: adaptive unless ``dt`` is given, as with IAS15).
+        Each step's error estimate, the weight of its last Legendre coefficient
+        max|gamma_(s-1)| / max|gamma_0| (no extra force evaluation), is kept below ``epsilon``;
+        a step whose estimate, iteration or energy check fails is retried smaller within the
+        same REBOUND step, which then records the step taken (``sim.t``,
+        ``sim.dt_last_done``); ``sim.dt`` shows the next step proposed.  HBVM conserves the
+        energy at any step size, so changing it costs nothing in energy.
+    epsilon : float
+        Precision of the adaptive control (dimensionless, like IAS15's); the default gives
+        round-off energy error on the scenes of the README.
+    min_dt : float
+        Smallest step the adaptive control may take; below it a step that cannot be resolved
+        raises :class:`integrators.StepSizeError`.
     energy_tol : float or None
         A step that changes the energy of the gravitating bodies by more than this, relative to
         |T| + |V|, is refused with :class:`integrators.UnresolvedStepError` (nothing committed).
@@ -409,7 +424,8 @@ class HBVMIntegrator:
 
     def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
                  max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
-                 energy_tol: float | None = 1e-10):
+                 energy_tol: float | None = 1e-10, adaptive: bool | None = None,
+                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
@@ -427,17 +443,33 @@ class HBVMIntegrator:
         if energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
             raise ValueError(f"`energy_tol` must be a positive number or None (got "
                              f"energy_tol={energy_tol!r}); None switches the energy check off")
+        if adaptive is None:
+            adaptive = dt is None      # like IAS15: no step to choose unless one is given
+        if not isinstance(adaptive, (bool, np.bool_)):
+            raise TypeError(f"`adaptive` must be True, False or None (got adaptive={adaptive!r})")
+        epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s) if adaptive else (epsilon, min_dt)
+        check_simulation(sim)
         if dt is not None:
             h = _step_size("dt", dt)
+        elif adaptive:
+            # the first step tried: the controller takes it from there
+            period = shortest_period(sim) if sim.N > 1 else math.inf
+            h = period / 50 if math.isfinite(period) else _step_size("sim.dt", sim.dt)
+            h = math.copysign(h, sim.dt) if sim.dt != 0 else h
         else:
             h = _step_size("sim.dt", sim.dt)
-        check_simulation(sim)
-        if k is None and sim.N > 1:
+        if k is None and adaptive:
+            # the steps vary (pericentres, encounters): no single step to probe k on; s + 4
+            # keeps the quadrature at round-off for the steps the control takes (measured on
+            # Kepler e = 0.9 and 0.99 and the outer solar system, README)
+            method = HBVM(method.s + 4, method.s, nodes=nodes)
+        elif k is None and sim.N > 1:
             nb = NBody.from_rebound(sim)
             check_particles(nb.initial_state(), nb)
             method = HBVM(choose_k(nb, nb.initial_state(), method.s, h, shortest_period(sim)),
                           method.s, nodes=nodes)
         self._attach(sim, method, h, int(max_iter), tol, energy_tol)
+        self.adaptive, self.epsilon, self.min_dt = bool(adaptive), float(epsilon), float(min_dt)
 
     def _attach(self, sim, method: HBVM, h: float, max_iter: int, tol, energy_tol) -> None:
         self.method = method
@@ -454,12 +486,13 @@ class HBVMIntegrator:
         self._commit_count = np.zeros(1)        # counted by _commit, in the compiled call
         self._commits = 0.0         # _commit_count once the Python bookkeeping of a commit is done
         self._pending = None
-        self.nsteps = self.resyncs = 0
+        self.nsteps = self.resyncs = self.rejected = 0
         self._energy_check = True
         self._error = None
         self._hook_prev = None
         self._addr = ctypes.addressof(sim)
         self._h_c = ctypes.c_double.from_address(self._addr + type(sim).dt_last_done.offset)
+        self._dt_c = ctypes.c_double.from_address(self._addr + type(sim).dt.offset)
         self._t_c = ctypes.c_double.from_address(self._addr + type(sim).t.offset)
         self._G_c = ctypes.c_double.from_address(self._addr + type(sim).G.offset)
         self._na_c = ctypes.c_size_t.from_address(self._addr + type(sim).N_active.offset)
@@ -565,6 +598,8 @@ class HBVMIntegrator:
         d = dict(s=self.method.s, k=self.method.k, nodes=self.method.nodes,
                  max_iter=self.max_iter, tol=self.tol,
                  energy_tol=nan if self.energy_tol is None else self.energy_tol,
+                 adaptive=self.adaptive, epsilon=self.epsilon, min_dt=self.min_dt,
+                 rejected=self.rejected,
                  prev_integrator=self._prev_integrator, stepped=self._written is not None,
                  counts=np.array([self.nsteps, self.nfev, self.niter, self.resyncs]))
         if self._written is not None:
@@ -581,6 +616,8 @@ class HBVMIntegrator:
         drv._attach(sim, HBVM(int(d["k"]), int(d["s"]), nodes=str(d["nodes"])), sim.dt,
                     int(d["max_iter"]), float(d["tol"]) or None,
                     None if math.isnan(energy_tol) else energy_tol)
+        drv.adaptive, drv.epsilon = bool(d["adaptive"]), float(d["epsilon"])
+        drv.min_dt, drv.rejected = float(d["min_dt"]), int(d["rejected"])
         drv._prev_integrator = str(d["prev_integrator"])
         drv.nsteps, nfev, niter, drv.resyncs = (int(c) for c in d["counts"])
         drv._counters[C_NFEV], drv._counters[C_ITER] = nfev, niter
@@ -754,30 +791,69 @@ class HBVMIntegrator:
     def _step(self) -> None:
         h = self._h_c.value
         view = self._particle_view()
-        E = self._extrapolation(h)
         if self._written is None or self._G_c.value != self._G or self._na_c.value != self._na:
             self._resync(view)
-        begin = _entry(_begin)
-        status = begin(view, self._written, self._S, self._gamma, self._eref, self._S1,
-                       self._gamma1, self._eref1)
-        if status == RESYNC:
+        if _entry(_begin)(view, self._written, self._S, self._gamma, self._eref, self._S1,
+                          self._gamma1, self._eref1) == RESYNC:
             # the user changed the particles: rebuild the model (masses, params, arrays)
             self._resync(view)
-            begin(view, self._written, self._S, self._gamma, self._eref, self._S1,
-                  self._gamma1, self._eref1)
-        b = self._binding
-        etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
+        if self.adaptive:
+            h, h_next = self._adaptive_trial(view, h)
+        else:
+            status = self._trial(view, h, copy=False)
+            if status != OK:
+                raise step_error(status, h, self._step_start(h), self._counters, "fixed_point",
+                                 energy_tol=self.energy_tol, hints=_HINTS)
         self._pend(h)
-        status = _entry(b.step_code.advance)(
-            False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, E, self._gamma1, b.c1,
-            b.c2, *b.no_newton, self.max_iter, self.tol, etol, self._eref1, self._counters,
-            b.work, b.cwork, self._clock)
-        if status != OK:
-            raise step_error(status, h, self._step_start(h), self._counters, "fixed_point",
-                             energy_tol=self.energy_tol, hints=_HINTS)
         _entry(_commit)(view, self._written, self._S1, self._gamma1, self._eref1, self._S,
                         self._gamma, self._eref, self._minv, self._pending[0], self._commit_count)
         self._finish_commit()
+        if self.adaptive:
+            self._dt_c.value = h_next
+
+    def _trial(self, view, h: float, copy: bool = True) -> int:
+        """One core step of size h from the state into the trial arrays (nothing committed);
+        ``copy=False`` when :func:`_begin` has just copied the state there."""
+        b = self._binding
+        if copy:
+            _entry(_begin)(view, self._written, self._S, self._gamma, self._eref, self._S1,
+                           self._gamma1, self._eref1)
+        etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
+        return _entry(b.step_code.advance)(
+            False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, self._extrapolation(h),
+            self._gamma1, b.c1, b.c2, *b.no_newton, self.max_iter, self.tol, etol,
+            self._eref1, self._counters, b.work, b.cwork, self._clock)
+
+    def _adaptive_trial(self, view, h: float) -> tuple[float, float]:
+        """Trial steps from REBOUND's dt_last_done down until one is accepted (its error
+        estimate <= epsilon, its iteration and energy check passed); sim.t and dt_last_done
+        then record the step taken.  Returns (h taken, h proposed next)."""
+        t_start = self._step_start(h)
+        s = self.method.s
+        first = True
+        while True:
+            work = self._counters.copy()
+            status = self._trial(view, h, copy=not first)
+            first = False
+            if status == OK:
+                err = _entry(error_estimate)(self._gamma1, self._y1)
+                if err <= self.epsilon:
+                    h_next = next_step(h, err, self.epsilon, s)
+                    if h != self._h_c.value:
+                        self._h_c.value = h                # what REBOUND records as done
+                        self._t_c.value = t_start + h
+                    return h, h_next
+                self._counters[:] = work                   # a rejected step leaves no trace
+                cause = f"error estimate {err:.3e} > epsilon={self.epsilon:.3e}"
+                h_new = next_step(h, err, self.epsilon, s)
+            else:
+                cause = str(step_error(status, h, t_start, self._counters, "fixed_point",
+                                       energy_tol=self.energy_tol, hints=_HINTS))
+                h_new = 0.25 * h
+            self.rejected += 1
+            if abs(h_new) < self.min_dt or h_new == 0.0 or t_start + h_new == t_start:
+                raise StepSizeError(h, self.min_dt, t_start, cause)
+            h = h_new
 
     def _extrapolation(self, h: float) -> np.ndarray:
         """E(h / h_prev): the initial guess's extrapolation matrix for this step."""

@@ -3,9 +3,9 @@
 No ASE, no REBOUND here.
 """
 from .engine import IntegrationResult, Stepper, integrate
-from .errors import ConvergenceError, NonFiniteError, StepError, UnresolvedStepError
+from .errors import ConvergenceError, NonFiniteError, StepError, StepSizeError, UnresolvedStepError
 from .tableau import HBVM, gauss_collocation_tableau, gauss_matrix, gauss_spectrum
 
 __all__ = ["HBVM", "Stepper", "integrate", "IntegrationResult", "ConvergenceError", "UnresolvedStepError",
-           "NonFiniteError", "StepError",
+           "NonFiniteError", "StepError", "StepSizeError",
            "gauss_spectrum", "gauss_matrix", "gauss_collocation_tableau"]

@@ -33,6 +33,7 @@ from .jit import jit
 
 EPS = np.finfo(float).eps
 ROUNDOFF_ULPS = 64.0     # a stalled increment within this many ulps of its round-off is converged
+LIPSCHITZ_ULPS = 4.0     # ... within this many ulps of the stage values' rounding times L
 STATE_ULPS = 16.0        # ... and so is one that moves the new state by at most this many ulps
 
 # status codes of a step (one table maps them to exceptions: integrators.errors.raise_for_status)
@@ -308,7 +309,7 @@ def stop_action(delta, scale, fmax, floor, hstate, it, hist, tol):
     ``tol * scale`` (when a tolerance is given), or when it stopped decreasing at its round-off
     level: within ROUNDOFF_ULPS ulps of the larger of the coefficients and the stage forces
     (the rounding of W F), below ``floor`` (the stage values' rounding propagated through the
-    force, ROUNDOFF_ULPS eps max|stage| L with L the force's Lipschitz constant measured on the
+    force, LIPSCHITZ_ULPS eps max|stage| L with L the force's Lipschitz constant measured on the
     first iterations: eps |q| omega^2 for a stiff spring, which no scale of gamma shows), or
     moving the new state by at most STATE_ULPS of its largest component (``hstate`` =
     |h| delta / (eps max |y|)).  An increment that stops decreasing above those levels is not
@@ -418,6 +419,65 @@ def fail(counters, status, work_iter, work_nfev, work_newton):
     counters[C_NEWTON] = work_newton
     counters[C_STATUS] = status
     return status
+
+
+@jit
+def step_error(gamma, y):
+    """The local error estimate of a step from its own coefficients, at no extra evaluation:
+    max |gamma_{s-1}| / max |gamma_0|, the weight of the highest Legendre coefficient of sigma'
+    (about h^(s-1) times a derivative of f), as IAS15 weighs its last coefficient.  0 when
+    gamma_0 vanishes."""
+    s, u = gamma.shape
+    top = 0.0
+    low = 0.0
+    for j in range(u):
+        if abs(gamma[s - 1, j]) > top:
+            top = abs(gamma[s - 1, j])
+        if abs(gamma[0, j]) > low:
+            low = abs(gamma[0, j])
+    if low == 0.0:
+        return 0.0
+    return top / low
+
+
+@jit
+def shifted_legendre(x, s, out):
+    """out[j] = P_j(x), the orthonormal shifted Legendre polynomials on [0, 1] (Bonnet's
+    recurrence on L_j(2x - 1), times sqrt(2j + 1)), j < s."""
+    z = 2.0 * x - 1.0
+    lm, l0 = 0.0, 1.0
+    for j in range(s):
+        out[j] = np.sqrt(2.0 * j + 1.0) * l0
+        lm, l0 = l0, ((2.0 * j + 1.0) * z * l0 - j * lm) / (j + 1.0)
+
+
+@jit
+def extrapolation_matrix(r, t, w, E):
+    """E_ij = int_0^1 P_i(x) P_j(1 + r x) dx by the s-point Gauss rule (t, w) on [0, 1], exact
+    for these degrees: the previous step's polynomial continued over a step r times as long."""
+    s = E.shape[0]
+    a = np.empty(s)
+    b = np.empty(s)
+    for i in range(s):
+        for j in range(s):
+            E[i, j] = 0.0
+    for q in range(t.shape[0]):
+        shifted_legendre(t[q], s, a)
+        shifted_legendre(1.0 + r * t[q], s, b)
+        for i in range(s):
+            for j in range(s):
+                E[i, j] += w[q] * a[i] * b[j]
+
+
+def next_step(h: float, err: float, epsilon: float, s: int, safety: float = 0.7,
+              shrink: float = 0.2, grow: float = 2.0) -> float:
+    """The step size a controller proposes after a step of size h with error estimate err:
+    h (epsilon / err)^(1 / (s - 1)) times ``safety``, limited to [shrink h, grow h]
+    (err ~ h^(s-1), see :func:`step_error`)."""
+    if err <= 0.0:
+        return h * grow
+    f = safety * (epsilon / err) ** (1.0 / (s - 1))
+    return h * min(grow, max(shrink, f))
 
 
 @jit

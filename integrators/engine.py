@@ -14,7 +14,8 @@ import numpy as np
 
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, work_sizes)
-from .errors import StepError, step_error
+from .core import next_step, step_error as error_estimate
+from .errors import StepError, StepSizeError, step_error
 from .protocol import adapt_system
 from .specialise import specialise
 
@@ -275,6 +276,7 @@ class Stepper:
         self._solver = "newton" if solver == "newton" else "fixed_point"
         self.tol, self.max_iter, self.energy_tol = tol, max_iter, energy_tol
         self.solver_switches = 0
+        self.rejected = 0
         self.status = "running"
 
     # -- public ------------------------------------------------------------------------
@@ -380,6 +382,77 @@ class Stepper:
             raise
         return self._result(out_t, out_y, out_e, h, t_start, "finished", "")
 
+    def step_adaptive(self, h: float, epsilon: float, min_dt: float) -> tuple[float, float]:
+        """One adaptive step: try h, and on rejection (the error estimate from the step's own
+        coefficients above ``epsilon``, a failed iteration or energy check) retry smaller.
+        Returns (the step taken, the next step proposed).  A rejected attempt leaves no trace
+        in the state, the time or the counters.  Raises :class:`integrators.StepSizeError`
+        when no step down to ``min_dt`` is accepted."""
+        s = self.method.s
+        while True:
+            snap = (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
+                    self._clock.copy(), self.counters.copy(), self._h_prev, self._solver,
+                    self.solver_switches)
+            try:
+                self.step(h)
+            except StepError as err:
+                cause = f"{type(err).__name__}: {err}"
+                h_new = 0.25 * h
+            else:
+                err_est = error_estimate(self._gamma, self._y)
+                if err_est <= epsilon:
+                    return h, next_step(h, err_est, epsilon, s)
+                (self._y[:], self._cy[:], self._gamma[:], self._eref[:], self._clock[:],
+                 self.counters[:]) = snap[:6]
+                self._h_prev, self._solver, self.solver_switches = snap[6:]
+                cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
+                h_new = next_step(h, err_est, epsilon, s)
+            self.rejected += 1
+            self.status = "running"
+            if abs(h_new) < min_dt:
+                self.status = "failed"
+                raise StepSizeError(h, min_dt, self.t, cause)
+            h = h_new
+
+    def run_adaptive(self, h: float, t_end: float, epsilon: float, min_dt: float,
+                     sample_every: int = 1, sample_times=None) -> "IntegrationResult":
+        """Adaptive steps from t to t_end, h the first step tried: samples every
+        ``sample_every`` accepted steps, and at each of ``sample_times`` (the steps are
+        shortened to land on them exactly, and on t_end)."""
+        t_start = time.perf_counter()
+        marks = sorted(float(x) for x in (sample_times if sample_times is not None else ()))
+        marks = [x for x in marks if (x - self.t) * (t_end - self.t) > 0 and abs(x) <= abs(t_end)]
+        marks.append(float(t_end))
+        ts, ys, es = [self.t], [self._y.copy()], [self.binding.energy(self._y)]
+        hs = []
+        n = 0
+        sign = 1.0 if t_end >= self.t else -1.0
+        h = abs(h) * sign
+        try:
+            for mark in marks:
+                while (mark - self.t) * sign > 0:
+                    remaining = (mark - self._clock[0]) + self._clock[1]
+                    last = abs(h) >= abs(remaining)
+                    done, h_next = self.step_adaptive(remaining if last else h, epsilon, min_dt)
+                    hs.append(done)
+                    if last and done == remaining:
+                        self._clock[:] = mark, 0.0          # exactly on the requested time
+                    else:                                   # (else keep h for what follows)
+                        h = h_next
+                    n += 1
+                    if n % sample_every == 0 or self.t == mark:
+                        ts.append(self.t)
+                        ys.append(self._y.copy())
+                        es.append(self.binding.energy(self._y))
+        except StepError as err:
+            err.result = self._result(ts, ys, es, h, t_start, "failed", str(err))
+            raise
+        res = self._result(ts, ys, es, h, t_start, "finished", "")
+        res.extra.update(adaptive=True, epsilon=epsilon, rejected=self.rejected,
+                         h_min=float(np.min(np.abs(hs))) if hs else float("nan"),
+                         h_max=float(np.max(np.abs(hs))) if hs else float("nan"))
+        return res
+
     # -- private -----------------------------------------------------------------------
     def _max_iter(self, solver: str) -> int:
         return int(self.max_iter or MAX_ITER[solver])
@@ -476,18 +549,49 @@ class IntegrationResult:
         return float(np.polyfit(self.t - self.t[0], self.energy_error, 1)[0]) if len(self.t) > 2 else 0.0
 
 
-def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver: str = "auto",
-              sample_every: int = 1, fast: bool | None = None, tol: float | None = None,
-              max_iter: int | None = None, form: str = "auto",
-              energy_tol: float | None = None) -> IntegrationResult:
-    """Integrate ``steps`` steps of size h with HBVM ``method`` from y0.
+DEFAULT_EPSILON = 1e-5      # adaptive steps: round-off energy on the scenes measured (README)
+
+
+def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
+    """(epsilon, min_dt) checked for an adaptive run of a method with s blocks."""
+    if isinstance(epsilon, bool) or not isinstance(epsilon, (int, float, np.number)) \
+            or not (np.isfinite(epsilon) and 0 < epsilon < 1):
+        raise ValueError(f"`epsilon` must be a number in (0, 1) (got epsilon={epsilon!r}); "
+                         f"{DEFAULT_EPSILON:g}, the default, gives round-off energy error")
+    if min_dt is None:
+        min_dt = 0.0
+    if isinstance(min_dt, bool) or not isinstance(min_dt, (int, float, np.number)) \
+            or not (np.isfinite(min_dt) and min_dt >= 0):
+        raise ValueError(f"`min_dt` must be a finite number >= 0 (got min_dt={min_dt!r})")
+    if s < 2:
+        raise ValueError(f"adaptive steps need s >= 2 (got s={s}): the error estimate is the "
+                         "weight of gamma_(s-1) against gamma_0")
+    return float(epsilon), float(min_dt)
+
+
+def integrate(method, system, y0, h: float, steps: int | None = None, t0: float = 0.0,
+              solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
+              tol: float | None = None, max_iter: int | None = None, form: str = "auto",
+              energy_tol: float | None = None, *, adaptive: bool = False,
+              t_end: float | None = None, epsilon: float = DEFAULT_EPSILON,
+              min_dt: float | None = None, sample_times=None) -> IntegrationResult:
+    """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
+    ``adaptive=True`` from t0 to ``t_end`` with h the first step.
 
     Parameters
     ----------
     sample_every : int
-        Keep t, y and H every this many steps (and at step 0).
+        Keep t, y and H every this many (accepted) steps, and at the start.
     fast : bool or None
         Compiled kernels required (True), never (False), or when the system has them (None).
+    adaptive : bool
+        Step-size control from each step's own coefficients (:meth:`Stepper.step_adaptive`):
+        the error estimate max|gamma_(s-1)| / max|gamma_0| is kept below ``epsilon`` (a
+        dimensionless precision parameter, like IAS15's); a step that fails its iteration or
+        energy check is retried smaller, down to ``min_dt`` (default 0).  The energy stays at
+        round-off whatever the steps: HBVM conserves H at any step size.
+    t_end, sample_times
+        Adaptive runs end exactly at t_end and also land exactly on each of sample_times.
     Other parameters as for :class:`Stepper`.
 
     Raises
@@ -496,6 +600,18 @@ def integrate(method, system, y0, h: float, steps: int, t0: float = 0.0, solver:
         A step failed; ``err.result`` holds the samples up to the last committed step.
     """
     h = check_step(h)
+    if adaptive:
+        if steps is not None:
+            raise ValueError("give `t_end` (not `steps`) with adaptive=True: the number of "
+                             "steps is what the control chooses")
+        if t_end is None or not np.isfinite(float(t_end)) or float(t_end) == float(t0):
+            raise ValueError(f"`t_end` must be a finite time other than t0 with adaptive=True "
+                             f"(got t_end={t_end!r})")
+        epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
+        st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+        return st.run_adaptive(h, float(t_end), epsilon, min_dt, int(sample_every), sample_times)
+    if steps is None:
+        raise ValueError("`steps` is required without adaptive=True")
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"`steps` must be an integer >= 0 (got steps={steps!r})")
     if isinstance(sample_every, bool) or not isinstance(sample_every, (int, np.integer)) or sample_every < 1:

@@ -99,6 +99,18 @@ class UnresolvedStepError(StepError):
                          f"{self.hint}")
 
 
+class StepSizeError(StepError):
+    """An adaptive step could not be resolved even at the smallest step allowed (``min_dt``):
+    its error estimate stayed above ``epsilon``, or its iteration or energy check failed."""
+
+    def __init__(self, h: float, min_dt: float, t: float | None, cause: str):
+        self.h, self.t, self.iterations, self.solver, self.min_dt = h, t, 0, "fixed_point", min_dt
+        self.hint = ("lower min_dt, raise epsilon, or check the state (two bodies on top of each "
+                     "other, a singular force)")
+        super().__init__(f"{self._where()}: the adaptive step fell below min_dt={min_dt:.6g} "
+                         f"without being resolved ({cause}); {self.hint}")
+
+
 def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
                energy_tol: float | None = None, hints: dict | None = None) -> StepError:
     """The exception for a failed step's status code (the one table of the project).

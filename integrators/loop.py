@@ -32,7 +32,7 @@ code; it changes y, cy, gamma and eref only when the step succeeded.
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
-                              C_STEPS, DIVERGED, EPS, ITERATE, ROUNDOFF_ULPS, NOT_FINITE, OK, POLISH, UNRESOLVED,
+                              C_STEPS, DIVERGED, EPS, ITERATE, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH, UNRESOLVED,
                               all_finite, all_zero, carve, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages,
                               guess, max_abs, newton_update, project, project_compensated,
@@ -154,7 +154,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 delta, scale, fmax = project(W, W_lo, F, g)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
-            action = stop_action(delta, scale, fmax, ROUNDOFF_ULPS * EPS * xmax * lip, hstate,
+            action = stop_action(delta, scale, fmax, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
                                  it, hist, tol)
             if action == POLISH:
                 polish = True

@@ -299,9 +299,13 @@ class HBVM:
         """
         if ratio == 1.0:
             return self.E
-        t, w = np.polynomial.legendre.leggauss(self.s)
-        t, w = (t + 1) / 2, w / 2
-        return (w[:, None] * _legendre_basis(t, self.s)).T @ _legendre_basis(1 + ratio * t, self.s)
+        # compiled: an adaptive run needs it at every step (a new ratio each time)
+        from .core import extrapolation_matrix
+        t, w = np.polynomial.legendre.leggauss(self.s) if self.s not in _GAUSS else _GAUSS[self.s]
+        _GAUSS[self.s] = (t, w)
+        E = np.empty((self.s, self.s))
+        extrapolation_matrix(float(ratio), (t + 1) / 2, w / 2, E)
+        return E
 
     # -- stepping (delegated to the engine) ---------------------------------------------
     def step(self, system, y, h: float, solver: str = "auto"):
@@ -315,6 +319,9 @@ class HBVM:
         """Integrate ``steps`` steps of size h; see :func:`integrators.engine.integrate`."""
         from .engine import integrate
         return integrate(self, system, y0, h, steps, **options)
+
+
+_GAUSS: dict = {}
 
 
 def _legendre_basis(t: np.ndarray, s: int) -> np.ndarray:

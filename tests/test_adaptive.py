@@ -1,0 +1,153 @@
+"""Adaptive steps (issue: "Energy-exact adaptive steps, in the engine and through REBOUND")."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from integrators import HBVM, Stepper, StepSizeError, integrate
+from systems import Kepler
+
+
+def _kepler_errors(e, orbits, starts=3, **kw):
+    kep = Kepler(e)
+    out = []
+    for r in range(starts):
+        y0 = kep.initial_state() * (1 + r * 1e-13)
+        res = integrate(HBVM(10, 6), kep, y0, 0.01, adaptive=True, t_end=2 * math.pi * orbits,
+                        sample_every=20, **kw)
+        out.append(res)
+    return out
+
+
+def test_adaptive_kepler_keeps_energy_at_round_off_and_lands_on_t_end():
+    runs = _kepler_errors(0.9, 20)
+    assert np.median([r.max_energy_error for r in runs]) <= 2e-14
+    for r in runs:
+        assert r.t[-1] == 2 * math.pi * 20 and r.status == "finished"
+        assert r.extra["h_max"] > 20 * r.extra["h_min"]       # the step follows the orbit
+    # one orbit: back at the start
+    kep = Kepler(0.9)
+    res = integrate(HBVM(10, 6), kep, kep.initial_state(), 0.01, adaptive=True, t_end=2 * math.pi)
+    assert np.max(np.abs(res.y[-1] - kep.initial_state())) <= 1e-9
+
+
+def test_adaptive_lands_exactly_on_sample_times():
+    kep = Kepler(0.6)
+    times = [0.5, 1.7, 3.0]
+    res = integrate(HBVM(8, 4), kep, kep.initial_state(), 0.3, adaptive=True, t_end=4.0,
+                    sample_every=10 ** 6, sample_times=times)
+    assert list(res.t) == [0.0, 0.5, 1.7, 3.0, 4.0]
+    fixed = integrate(HBVM(8, 4), kep, kep.initial_state(), 4.0 / 4000, 4000, sample_every=1000)
+    assert np.max(np.abs(res.y[-1] - fixed.y[-1])) <= 1e-9
+
+
+def test_a_rejected_step_leaves_no_trace():
+    """Rejections are undone: the accepted step equals a plain step of the same size from the
+    same state, in state, time and counters."""
+    kep = Kepler(0.9)
+    m = HBVM(10, 6)
+    ad = Stepper(m, kep, kep.initial_state())
+    done, _ = ad.step_adaptive(2.0, 1e-8, 0.0)          # far too long: rejected, then shrunk
+    assert ad.rejected >= 1 and done < 2.0
+    plain = Stepper(m, kep, kep.initial_state())
+    plain.step(done)
+    assert np.array_equal(ad.y, plain.y) and ad.t == plain.t
+    assert (ad.nsteps, ad.niter, ad.nfev) == (plain.nsteps, plain.niter, plain.nfev)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"epsilon": 0.0}, r"`epsilon` must be a number in \(0, 1\) \(got epsilon=0.0\)"),
+    ({"epsilon": "tight"}, r"`epsilon` must be a number in \(0, 1\)"),
+    ({"min_dt": -1.0}, r"`min_dt` must be a finite number >= 0 \(got min_dt=-1.0\)"),
+    ({"min_dt": float("nan")}, r"`min_dt` must be a finite number >= 0"),
+])
+def test_bad_adaptive_arguments_are_named(kw, match):
+    kep = Kepler(0.6)
+    with pytest.raises(ValueError, match=match):
+        integrate(HBVM(6, 3), kep, kep.initial_state(), 0.1, adaptive=True, t_end=1.0, **kw)
+
+
+def test_adaptive_needs_t_end_and_s_at_least_2():
+    kep = Kepler(0.6)
+    with pytest.raises(ValueError, match=r"`t_end` must be a finite time"):
+        integrate(HBVM(6, 3), kep, kep.initial_state(), 0.1, adaptive=True)
+    with pytest.raises(ValueError, match=r"give `t_end` \(not `steps`\)"):
+        integrate(HBVM(6, 3), kep, kep.initial_state(), 0.1, 10, adaptive=True, t_end=1.0)
+    with pytest.raises(ValueError, match=r"adaptive steps need s >= 2 \(got s=1\)"):
+        integrate(HBVM(2, 1), kep, kep.initial_state(), 0.1, adaptive=True, t_end=1.0)
+
+
+def test_unresolvable_step_raises_with_the_partial_result():
+    kep = Kepler(0.99)
+    with pytest.raises(StepSizeError, match=r"fell below min_dt=0.05 without being resolved") as info:
+        integrate(HBVM(10, 6), kep, kep.initial_state(), 0.05, adaptive=True, t_end=10.0,
+                  min_dt=0.05)
+    assert info.value.result.status == "failed"
+
+
+# -- through REBOUND -------------------------------------------------------------------------
+def test_rebound_adaptive_is_the_default_without_dt():
+    from hbvm_md import HBVMIntegrator
+    from systems import outer_solar_system
+    sim = outer_solar_system().to_rebound()
+    drv = HBVMIntegrator(sim)
+    assert drv.adaptive and drv.method.k == 10
+    e0 = sim.energy()
+    sim.integrate(12345.6)
+    assert sim.t == 12345.6 and drv.nsteps > 10
+    assert sim.dt != 0.001 and sim.dt > 50                     # the step the control chose
+    assert abs(sim.energy() - e0) <= 1e-14 * abs(e0)
+    fixed = HBVMIntegrator(outer_solar_system().to_rebound(), dt=100.0)
+    assert not fixed.adaptive
+
+
+def test_rebound_adaptive_resolves_the_close_encounter():
+    """Two Jupiters within their Hill radii (the hard case that stopped every fixed step, over
+    its T = 200 with 200 outputs): adaptive steps shrink through the encounter and keep the
+    energy (median over 3 starts moved by 1e-13)."""
+    from hbvm_md import HBVMIntegrator
+    from hbvm_md.reports.hard_cases import encounter_scene
+    worst = []
+    for r in range(3):
+        sim = encounter_scene().to_rebound()
+        sim.particles[2].x *= 1 + r * 1e-13
+        drv = HBVMIntegrator(sim)
+        e0 = sim.energy()
+        w = 0.0
+        for t in np.linspace(0, 200.0, 201)[1:]:
+            sim.integrate(t)
+            w = max(w, abs((sim.energy() - e0) / e0))
+        assert sim.t == 200.0 and drv.rejected > 0
+        worst.append(w)
+    assert np.median(worst) <= 1e-13, worst
+
+
+def test_rebound_adaptive_copy_and_restart_continue_bit_for_bit(tmp_path):
+    from hbvm_md import HBVMIntegrator
+    from hbvm_md.reports.hard_cases import encounter_scene
+    sim = encounter_scene().to_rebound()
+    HBVMIntegrator(sim, epsilon=1e-6)
+    sim.integrate(5.0)
+    copy = sim.copy()
+    path = tmp_path / "run.bin"
+    HBVMIntegrator.of(sim).save(path)
+    loaded, drv2 = HBVMIntegrator.load(path)
+    assert drv2.adaptive and drv2.epsilon == 1e-6
+    for s_ in (sim, copy, loaded):
+        s_.integrate(20.0)
+    x = [np.array([[p.x, p.y, p.z, p.vx, p.vy, p.vz] for p in s_.particles]) for s_ in (sim, copy, loaded)]
+    assert np.array_equal(x[0], x[1]) and np.array_equal(x[0], x[2])
+
+
+def test_rebound_adaptive_bad_arguments():
+    from hbvm_md import HBVMIntegrator
+    from systems import outer_solar_system
+    sim = outer_solar_system().to_rebound()
+    dt0 = sim.dt
+    with pytest.raises(ValueError, match=r"`epsilon` must be a number in \(0, 1\)"):
+        HBVMIntegrator(sim, epsilon=2.0)
+    with pytest.raises(TypeError, match=r"`adaptive` must be True, False or None"):
+        HBVMIntegrator(sim, adaptive="yes")
+    assert sim.dt == dt0 and str(sim.integrator) != "none"
