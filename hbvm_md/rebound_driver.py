@@ -836,7 +836,7 @@ class HBVMIntegrator:
             status = self._trial(view, h, copy=not first)
             first = False
             if status == OK:
-                err = _entry(error_estimate)(self._gamma1, self._y1)
+                err = _entry(error_estimate)(self._gamma1, self._minv)
                 if err <= self.epsilon:
                     h_next = next_step(h, err, self.epsilon, s)
                     if h != self._h_c.value:

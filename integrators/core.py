@@ -422,19 +422,23 @@ def fail(counters, status, work_iter, work_nfev, work_newton):
 
 
 @jit
-def step_error(gamma, y):
+def step_error(gamma, w):
     """The local error estimate of a step from its own coefficients, at no extra evaluation:
-    max |gamma_{s-1}| / max |gamma_0|, the weight of the highest Legendre coefficient of sigma'
-    (about h^(s-1) times a derivative of f), as IAS15 weighs its last coefficient.  0 when
-    gamma_0 vanishes."""
+    max |w gamma_{s-1}| / max |w gamma_0|, the weight of the highest Legendre coefficient of
+    sigma' (about h^(s-1) times a derivative of f), as IAS15 weighs its last coefficient.  For
+    the separable form w = 1/m turns the forces into accelerations, so that light bodies count
+    as much as heavy ones (a planetesimal's encounter is invisible in its tiny forces); with w
+    empty (the full form) the coefficients are taken as they are.  0 when gamma_0 vanishes."""
     s, u = gamma.shape
+    weighted = w.shape[0] == u
     top = 0.0
     low = 0.0
     for j in range(u):
-        if abs(gamma[s - 1, j]) > top:
-            top = abs(gamma[s - 1, j])
-        if abs(gamma[0, j]) > low:
-            low = abs(gamma[0, j])
+        c = w[j] if weighted else 1.0
+        if abs(c * gamma[s - 1, j]) > top:
+            top = abs(c * gamma[s - 1, j])
+        if abs(c * gamma[0, j]) > low:
+            low = abs(c * gamma[0, j])
     if low == 0.0:
         return 0.0
     return top / low

@@ -399,7 +399,7 @@ class Stepper:
                 cause = f"{type(err).__name__}: {err}"
                 h_new = 0.25 * h
             else:
-                err_est = error_estimate(self._gamma, self._y)
+                err_est = error_estimate(self._gamma, self.binding.minv)
                 if err_est <= epsilon:
                     return h, next_step(h, err_est, epsilon, s)
                 (self._y[:], self._cy[:], self._gamma[:], self._eref[:], self._clock[:],
