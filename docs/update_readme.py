@@ -35,6 +35,11 @@ def main() -> None:
     parts["rebound"] = "\n\n".join(
         f"**{title}**\n\n" + body.strip()
         for title, body in re.findall(r"^## (.*?)$\n(.*?)(?=^## |\Z)", reb, re.S | re.M))
+    ada = ROOT / "benchmarks/results/adaptive.md"
+    if ada.exists():
+        parts["adaptive"] = "\n\n".join(
+            f"**{title}**\n\n" + body.strip()
+            for title, body in re.findall(r"^## (.*?)$\n(.*?)(?=^## |\Z)", ada.read_text(), re.S | re.M))
     kep = (ROOT / "benchmarks/results/kepler.md").read_text()
     parts["kepler"] = tables(kep)[0]
     md = (ROOT / "benchmarks/results/md.md").read_text()

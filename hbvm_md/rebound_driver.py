@@ -69,7 +69,8 @@ import numpy as np
 from integrators import HBVM, StepError
 from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, next_step
 from integrators.core import step_error as error_estimate
-from integrators.engine import DEFAULT_EPSILON, Binding, check_adaptive
+from integrators.engine import (DEFAULT_EPSILON, TINY_RATIO, Binding, Extrapolation,
+                                check_adaptive)
 from integrators.errors import StepSizeError, step_error
 from integrators.jit import entry_point, jit
 from systems.nbody import NBody
@@ -80,13 +81,6 @@ _DOUBLES_PER_PARTICLE = 14       # sizeof(reb_particle) = 112 bytes in REBOUND 5
 
 
 RESYNC = -1               # _begin: the particles are not what the driver wrote last
-TINY_RATIO = 1e-3         # steps shorter than this times the previous one are 'slivers'
-MAX_EXTRAPOLATION = 4.0   # largest h_new / h_old the previous step's gamma is extrapolated over
-
-
-def _writable(a: np.ndarray) -> np.ndarray:
-    # the method's E is read-only, an extrapolation matrix is not: one type, one compiled step
-    return np.array(a, dtype=float, order="C")
 
 
 @jit
@@ -478,9 +472,7 @@ class HBVMIntegrator:
         self.energy_tol = energy_tol
         self._eref = np.full(1, np.nan)    # energy after the last committed step (nan: unknown)
         m = self.method
-        self._E = _writable(m.E)      # E is chosen per step; one array type for every E
-        self._E_cache = {}
-        self._E_zero = np.zeros_like(self._E)
+        self._extrapolation = Extrapolation(m)
         self._counters = np.zeros(N_COUNTERS)   # the core's counters, over the driver's life
         self._clock = np.zeros(2)               # the core ticks it; REBOUND keeps the time
         self._commit_count = np.zeros(1)        # counted by _commit, in the compiled call
@@ -820,7 +812,7 @@ class HBVMIntegrator:
                            self._gamma1, self._eref1)
         etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
         return _entry(b.step_code.advance)(
-            False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, self._extrapolation(h),
+            False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, self._extrapolation(h, self._h_prev),
             self._gamma1, b.c1, b.c2, *b.no_newton, self.max_iter, self.tol, etol,
             self._eref1, self._counters, b.work, b.cwork, self._clock)
 
@@ -854,25 +846,6 @@ class HBVMIntegrator:
             if abs(h_new) < self.min_dt or h_new == 0.0 or t_start + h_new == t_start:
                 raise StepSizeError(h, self.min_dt, t_start, cause)
             h = h_new
-
-    def _extrapolation(self, h: float) -> np.ndarray:
-        """E(h / h_prev): the initial guess's extrapolation matrix for this step."""
-        hp = self._h_prev
-        if hp is None or h == hp:
-            return self._E
-        r = h / hp
-        if abs(r) < TINY_RATIO:
-            r = 0.0       # a sliver of a step: the previous polynomial's end value will do
-        E = self._E_cache.get(r)
-        if E is None:
-            # extrapolating a short step far beyond itself gives a useless guess: start from
-            # zero instead
-            E = (_writable(self.method.extrapolation_matrix(r)) if abs(r) <= MAX_EXTRAPOLATION
-                 else self._E_zero)
-            if len(self._E_cache) >= 32:
-                self._E_cache.clear()
-            self._E_cache[r] = E
-        return E
 
     def _step_start(self, h: float) -> float:
         """sim.t before REBOUND's "none" integrator did t += h (exact when we wrote it)."""

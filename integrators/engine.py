@@ -14,7 +14,8 @@ import numpy as np
 
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, work_sizes)
-from .core import next_step, step_error as error_estimate
+from .core import extrapolation_matrix, next_step, step_error as error_estimate
+from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
 from .protocol import adapt_system
 from .specialise import specialise
@@ -95,6 +96,36 @@ def method_arrays(method) -> tuple:
                (c([m.W, m.W_lo]), c([m.C2, m.C2_lo, m.I, m.I_lo])))
         _COEF_CACHE[method] = hit
     return hit
+
+
+TINY_RATIO = 1e-3         # a step this much shorter than the previous one is a sliver
+MAX_EXTRAPOLATION = 4.0   # the longest h_new / h_old the previous polynomial is extrapolated over
+
+
+class Extrapolation:
+    """The initial guess's matrix E(h_new / h_old) (:meth:`HBVM.extrapolation_matrix`) for
+    every caller of the step: E(1) kept, any other ratio computed by the compiled
+    ``core.extrapolation_matrix`` into a reused buffer (an adaptive run needs a new ratio at
+    every step).  A sliver of a step (exact finish times) takes the previous polynomial's end
+    value (r = 0); a step more than MAX_EXTRAPOLATION times longer starts from zero."""
+
+    def __init__(self, method):
+        self.E1 = np.array(method.E, dtype=float, order="C")   # writable: one array type
+        t, w = np.polynomial.legendre.leggauss(method.s)
+        self.t, self.w = (t + 1) / 2, w / 2
+        self.buf = np.empty_like(self.E1)
+        self.zero = np.zeros_like(self.E1)
+
+    def __call__(self, h: float, h_prev: float | None) -> np.ndarray:
+        if h_prev is None or h == h_prev:
+            return self.E1
+        r = h / h_prev
+        if abs(r) > MAX_EXTRAPOLATION:
+            return self.zero
+        if abs(r) < TINY_RATIO:
+            r = 0.0
+        entry_point(extrapolation_matrix)(r, self.t, self.w, self.buf)
+        return self.buf
 
 
 class Binding:
@@ -268,8 +299,7 @@ class Stepper:
         self._clock = np.array([t0, 0.0])
         self._gamma = np.zeros((method.s, self.binding.u))
         self._h_prev = None
-        self._E_cache: dict = {}
-        self._E1 = np.array(method.E, dtype=float, order="C")   # writable: one array type for E
+        self._extrapolation = Extrapolation(method)
         self._eref = np.full(1, np.nan)
         self.counters = np.zeros(N_COUNTERS)
         self.solver_option = solver
@@ -342,7 +372,7 @@ class Stepper:
         start = self.nsteps
         t_start = time.perf_counter()
         if self._solver == "fixed_point":
-            E = self._E(h)
+            E = self._extrapolation(h, self._h_prev)
             b.step_code.run(b.full, self._y, self._cy, b.minv, b.kin_w,
                             b.params, h, E, self._gamma, b.c1, b.c2, *b.no_newton,
                             self._max_iter("fixed_point"), float(self.tol or 0.0),
@@ -457,23 +487,12 @@ class Stepper:
     def _max_iter(self, solver: str) -> int:
         return int(self.max_iter or MAX_ITER[solver])
 
-    def _E(self, h: float) -> np.ndarray:
-        if self._h_prev is None or h == self._h_prev:
-            return self._E1
-        r = h / self._h_prev
-        E = self._E_cache.get(r)
-        if E is None:
-            if len(self._E_cache) > 32:
-                self._E_cache.clear()
-            E = self._E_cache[r] = np.ascontiguousarray(self.method.extrapolation_matrix(r))
-        return E
-
     def _advance(self, h: float, solver: str) -> int:
         b = self.binding
         newton = (b.newton_matrices(self._y, h, self.counters) if solver == "newton"
                   else b.no_newton)
         return b.step_code.advance(b.full, self._y, self._cy, b.minv,
-                                   b.kin_w, b.params, h, self._E(h), self._gamma, b.c1, b.c2,
+                                   b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
                                    *newton, self._max_iter(solver), float(self.tol or 0.0),
                                    float(self.energy_tol or 0.0), self._eref,
                                    self.counters, b.work, b.cwork, self._clock)
