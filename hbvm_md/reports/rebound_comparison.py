@@ -12,10 +12,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-#: Default step of each fixed-step method as a fraction of the scene's shortest two-body period
-#: (for the outer solar system, Jupiter's: P_J / 20 is 217 days; HBVM at round-off k keeps the energy
-#: error at IAS15's level there, see benchmarks/results/rebound.md).
-DT_FRACTION = {"hbvm": 1 / 20, "whfast": 1 / 100, "saba(10,6,4)": 1 / 20, "leapfrog": 1 / 1000}
+#: Default step of each fixed-step peer as a fraction of the scene's shortest two-body period
+#: (for the outer solar system, Jupiter's: P_J / 20 is 217 days).
+DT_FRACTION = {"whfast": 1 / 100, "saba(10,6,4)": 1 / 20, "leapfrog": 1 / 1000}
 DEFAULT_PEERS = ("whfast", "saba(10,6,4)", "leapfrog", "ias15")
 ADAPTIVE = ("ias15", "bs")
 HEYOKA_PEERS = ("heyoka", "heyoka(compact)")
@@ -186,8 +185,8 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         Length of each run, in the scene's time unit.
     hbvm : sequence of (s, k) or (s, k, dt)
         HBVM variants; k None chooses k on the scene when HBVM attaches
-        (:func:`hbvm_md.rebound_driver.choose_k`, timed as part of the run); dt defaults to
-        :data:`DT_FRACTION` ["hbvm"] times P, P the shortest two-body period of the scene.
+        (:func:`hbvm_md.rebound_driver.choose_k`, timed as part of the run); dt None (the
+        default) uses HBVMIntegrator's adaptive steps, as a user who gives no step gets.
     peers : sequence of str or (str, dt)
         REBOUND integrators ("whfast", "saba(10,6,4)", "leapfrog", "ias15", ...); a fixed step
         defaults to :data:`DT_FRACTION` times P; IAS15 and BS are adaptive.  "heyoka" and
@@ -230,7 +229,8 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         if len(v) not in (2, 3):
             raise ValueError(f"`hbvm` entries must be (s, k) or (s, k, dt) (got {v!r})")
         s, k = int(v[0]), v[1]
-        dt = float(v[2]) if len(v) == 3 and v[2] is not None else DT_FRACTION["hbvm"] * period
+        # no dt: HBVMIntegrator's own default, adaptive steps (what a user gets)
+        dt = float(v[2]) if len(v) == 3 and v[2] is not None else None
 
         def setup(sim, s=s, k=k, dt=dt):
             return HBVMIntegrator(sim, s=s, k=k, dt=dt)
