@@ -69,7 +69,7 @@ import numpy as np
 from integrators import HBVM, StepError
 from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, next_step
 from integrators.core import step_error as error_estimate
-from integrators.engine import (DEFAULT_EPSILON, TINY_RATIO, Binding, Extrapolation,
+from integrators.engine import (DEFAULT_EPSILON, TINY_RATIO, Binding, Counted, Extrapolation,
                                 check_adaptive)
 from integrators.errors import StepSizeError, step_error
 from integrators.jit import entry_point, jit
@@ -351,7 +351,7 @@ def shortest_period(sim) -> float:
     return best
 
 
-class HBVMIntegrator:
+class HBVMIntegrator(Counted):
     """Attach HBVM(k, s) to a ``rebound.Simulation`` so that REBOUND drives it.
 
     Parameters
@@ -473,7 +473,7 @@ class HBVMIntegrator:
         self._eref = np.full(1, np.nan)    # energy after the last committed step (nan: unknown)
         m = self.method
         self._extrapolation = Extrapolation(m)
-        self._counters = np.zeros(N_COUNTERS)   # the core's counters, over the driver's life
+        self.counters = np.zeros(N_COUNTERS)   # the core's counters, over the driver's life
         self._clock = np.zeros(2)               # the core ticks it; REBOUND keeps the time
         self._commit_count = np.zeros(1)        # counted by _commit, in the compiled call
         self._commits = 0.0         # _commit_count once the Python bookkeeping of a commit is done
@@ -612,7 +612,7 @@ class HBVMIntegrator:
         drv.min_dt, drv.rejected = float(d["min_dt"]), int(d["rejected"])
         drv._prev_integrator = str(d["prev_integrator"])
         drv.nsteps, nfev, niter, drv.resyncs = (int(c) for c in d["counts"])
-        drv._counters[C_NFEV], drv._counters[C_ITER] = nfev, niter
+        drv.counters[C_NFEV], drv.counters[C_ITER] = nfev, niter
         if bool(d["stepped"]):
             drv._set_state(d)
         return drv
@@ -709,16 +709,6 @@ class HBVMIntegrator:
         _, self._h_prev, self._t_written, self.nsteps = self._pending
         self._commits = self._commit_count[0]        # last: the commit is booked
 
-    @property
-    def niter(self) -> int:
-        """Iterations done by this driver (failed attempts included)."""
-        return int(self._counters[C_ITER])
-
-    @property
-    def nfev(self) -> int:
-        """Stage evaluations (N-body force calls at one configuration) done by this driver."""
-        return int(self._counters[C_NFEV])
-
     def _particle_view(self) -> np.ndarray:
         key = (self._ptr_c.value, self._N_c.value)
         if key != self._view_key:
@@ -794,7 +784,7 @@ class HBVMIntegrator:
         else:
             status = self._trial(view, h, copy=False)
             if status != OK:
-                raise step_error(status, h, self._step_start(h), self._counters, "fixed_point",
+                raise step_error(status, h, self._step_start(h), self.counters, "fixed_point",
                                  energy_tol=self.energy_tol, hints=_HINTS)
         self._pend(h)
         _entry(_commit)(view, self._written, self._S1, self._gamma1, self._eref1, self._S,
@@ -814,7 +804,7 @@ class HBVMIntegrator:
         return _entry(b.step_code.advance)(
             False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, self._extrapolation(h, self._h_prev),
             self._gamma1, b.c1, b.c2, *b.no_newton, self.max_iter, self.tol, etol,
-            self._eref1, self._counters, b.work, b.cwork, self._clock)
+            self._eref1, self.counters, b.work, b.cwork, self._clock)
 
     def _adaptive_trial(self, view, h: float) -> tuple[float, float]:
         """Trial steps from REBOUND's dt_last_done down until one is accepted (its error
@@ -824,7 +814,7 @@ class HBVMIntegrator:
         s = self.method.s
         first = True
         while True:
-            work = self._counters.copy()
+            work = self.counters.copy()
             status = self._trial(view, h, copy=not first)
             first = False
             if status == OK:
@@ -835,11 +825,11 @@ class HBVMIntegrator:
                         self._h_c.value = h                # what REBOUND records as done
                         self._t_c.value = t_start + h
                     return h, h_next
-                self._counters[:] = work                   # a rejected step leaves no trace
+                self.counters[:] = work                   # a rejected step leaves no trace
                 cause = f"error estimate {err:.3e} > epsilon={self.epsilon:.3e}"
                 h_new = next_step(h, err, self.epsilon, s)
             else:
-                cause = str(step_error(status, h, t_start, self._counters, "fixed_point",
+                cause = str(step_error(status, h, t_start, self.counters, "fixed_point",
                                        energy_tol=self.energy_tol, hints=_HINTS))
                 h_new = 0.25 * h
             self.rejected += 1

@@ -370,43 +370,40 @@ def work_sizes(n: int, s: int, u: int, m: int, d: int) -> tuple:
 
 
 @jit
+def _take(buf, o, n):
+    """buf[o:o + n] and the next offset."""
+    return buf[o:o + n], o + n
+
+
+@jit
+def _take2(buf, o, rows, cols):
+    """buf[o:o + rows cols] as a (rows, cols) array and the next offset."""
+    return buf[o:o + rows * cols].reshape((rows, cols)), o + rows * cols
+
+
+@jit
 def carve(work, cwork, n, s, u, m, d):
     """The step's work arrays as views of two buffers (one array argument each instead of
     seventeen, which a host calling one step at a time pays for: about 0.1 microsecond each to
     unbox, or to allocate): ht, ht_lo (n), hist (2), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
     Xp, Fp (n, u), yt, cyt (d), Rt, Z (s, u) complex."""
-    o = 0
-    ht = work[o:o + n]
-    o += n
-    ht_lo = work[o:o + n]
-    o += n
-    hist = work[o:o + 2]
-    o += 2
-    dq = work[o:o + m]
-    o += m
-    dq_lo = work[o:o + m]
-    o += m
-    a = work[o:o + s * u].reshape((s, u))
-    o += s * u
-    pg = work[o:o + s * u].reshape((s, u))
-    o += s * u
-    g = work[o:o + s * u].reshape((s, u))
-    o += s * u
-    X = work[o:o + n * u].reshape((n, u))
-    o += n * u
-    F = work[o:o + n * u].reshape((n, u))
-    o += n * u
-    G = work[o:o + n * u].reshape((n, u))
-    o += n * u
-    Xp = work[o:o + n * u].reshape((n, u))
-    o += n * u
-    Fp = work[o:o + n * u].reshape((n, u))
-    o += n * u
-    yt = work[o:o + d]
-    o += d
-    cyt = work[o:o + d]
-    Rt = cwork[:s * u].reshape((s, u))
-    Z = cwork[s * u:2 * s * u].reshape((s, u))
+    ht, o = _take(work, 0, n)
+    ht_lo, o = _take(work, o, n)
+    hist, o = _take(work, o, 2)
+    dq, o = _take(work, o, m)
+    dq_lo, o = _take(work, o, m)
+    yt, o = _take(work, o, d)
+    cyt, o = _take(work, o, d)
+    a, o = _take2(work, o, s, u)
+    pg, o = _take2(work, o, s, u)
+    g, o = _take2(work, o, s, u)
+    X, o = _take2(work, o, n, u)
+    F, o = _take2(work, o, n, u)
+    G, o = _take2(work, o, n, u)
+    Xp, o = _take2(work, o, n, u)
+    Fp, o = _take2(work, o, n, u)
+    Rt, o = _take2(cwork, 0, s, u)
+    Z, o = _take2(cwork, o, s, u)
     return ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, Rt, Z
 
 

@@ -98,6 +98,27 @@ def method_arrays(method) -> tuple:
     return hit
 
 
+class Counted:
+    """Read-only views of a caller's step counters (``self.counters``, the layout of
+    :mod:`integrators.core`): they count the work of committed steps."""
+
+    counters: np.ndarray
+
+    @property
+    def niter(self) -> int:
+        """Iterations of the committed steps."""
+        return int(self.counters[C_ITER])
+
+    @property
+    def nfev(self) -> int:
+        """Right-hand-side evaluations (one stage configuration each) of the committed steps."""
+        return int(self.counters[C_NFEV])
+
+    @property
+    def newton_steps(self) -> int:
+        return int(self.counters[C_NEWTON])
+
+
 TINY_RATIO = 1e-3         # a step this much shorter than the previous one is a sliver
 MAX_EXTRAPOLATION = 4.0   # the longest h_new / h_old the previous polynomial is extrapolated over
 
@@ -250,7 +271,7 @@ class Binding:
         return V, Vinv, NM
 
 
-class Stepper:
+class Stepper(Counted):
     """Integrates a Hamiltonian system with HBVM(k, s), one step at a time.
 
     Parameters
@@ -321,18 +342,6 @@ class Stepper:
     @property
     def nsteps(self) -> int:
         return int(self.counters[C_STEPS])
-
-    @property
-    def niter(self) -> int:
-        return int(self.counters[C_ITER])
-
-    @property
-    def nfev(self) -> int:
-        return int(self.counters[C_NFEV])
-
-    @property
-    def newton_steps(self) -> int:
-        return int(self.counters[C_NEWTON])
 
     @property
     def solver(self) -> str:
