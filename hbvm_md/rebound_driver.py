@@ -7,18 +7,26 @@ a post-timestep callback then advances the particles by ``sim.dt_last_done`` wit
 the project's single step core (:mod:`integrators.loop`, compiled with the N-body kernel called
 statically, see :mod:`integrators.specialise`).  Everything REBOUND
 does around a step (``exact_finish_time``'s shrunken last step, heartbeats, ``steps_done``,
-simulation archives, ``sim.energy()``) is REBOUND's own.  Measured here (outer solar system,
-6 bodies): a REBOUND step with "none" and an empty Python callback costs about 1 microsecond,
-a full HBVM(7, 6) step about 20-27 (4 fixed-point iterations of 7 stages).  Registering a C-level
-integrator (``reb_integrator_register``, no Python wrapper in REBOUND 5.2) was not measured: it
-would still have to call into Python (or into the numba step through a C pointer), saving at
-most that microsecond.
+simulation archives, ``sim.energy()``) is REBOUND's own.
 
-Per step, Python does little: it reads dt_last_done, checks the particle array's address and
-N, and makes three compiled calls through their entry points (no argument typing): the glue
-:func:`_begin` (have the particles changed? copy the state into the trial arrays), the core's
-``advance`` on the trial arrays, and the glue :func:`_commit` (trial arrays into the state, the
-particles written, the commit counted).  This module holds host glue only; no numerics.
+One step is one compiled call, :func:`hbvm_md.rebound_step.host_step`, compiled in the same
+module as the core's step: have the particles changed? the core's step on trial arrays
+(retried smaller when adaptive), then the commit of state, particles, time and bookkeeping.
+It is called in one of two ways:
+
+* **natively** (the default): for the time of one ``sim.integrate`` / ``sim.steps``, the
+  post-timestep slot holds the C callback :func:`hbvm_md.rebound_step.host_cstep` and
+  ``sim.extras`` the address of the driver's ``ctx`` (the arrays' addresses and sizes): no
+  Python runs between steps.  A failed step puts ``sim.t`` back and stops REBOUND; the driver
+  then raises, or, when the particles changed (a REBOUND-side change), re-reads them and goes
+  on.  Measured on one planet at e = 0.9: 7.7 us a step against 16.8 with three compiled calls
+  from a Python callback;
+* **through the Python callback** when Python must run between steps: a heartbeat, a chained
+  post-timestep callback, a pre-timestep callback, or ``sim.extras`` in use by someone else.
+  The callback makes the same compiled call with one argument (``ctx``), the same numbers bit
+  for bit.
+
+This module holds host glue only; no numerics.
 
 State between steps
 -------------------
@@ -40,12 +48,13 @@ and ``steps`` re-raise the stored exception after REBOUND returns.  (``sim.steps
 already counted the failed step: REBOUND increments it after the callback.)
 
 An exception raised by a Python signal handler (SIGALRM, SIGTERM turned into SystemExit) lands
-between any two bytecodes.  :func:`_commit` writes the state and the particles and counts the
-commit in one compiled call, so the callback tells a committed step (kept, its Python bookkeeping finished from a
-record made before the call) from one not taken (REBOUND's t += h undone).  One raised on
+between any two bytecodes of the Python callback; in a native run, only after REBOUND returns.
+The compiled step commits the state, the particles, sim.t and the bookkeeping in one call, so
+the callback tells a committed step (sim.t is the time the step wrote) from one not taken
+(REBOUND's t += h undone).  One raised on
 entering the callback, before its ``try``, is handed by ctypes to ``sys.unraisablehook``; the
-driver installs its own for the time of a run.  Measured over 400 random SIGALRMs on the outer
-solar system: 350 after a commit, 42 before, 7 on entry; all left whole steps.
+driver installs its own for the time of a run.  The tests fire random SIGALRMs at both ways
+of running a step (tests/test_rebound_workflows.py): all leave whole steps.
 
 Copies and restarts
 -------------------
@@ -66,68 +75,31 @@ import weakref
 
 import numpy as np
 
+from hbvm_md import rebound_step as glue
+from hbvm_md.rebound_step import RESYNC
 from integrators import HBVM, StepError
-from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, next_step
-from integrators.core import step_error as error_estimate
-from integrators.engine import (DEFAULT_EPSILON, TINY_RATIO, Binding, Counted, Extrapolation,
-                                check_adaptive)
+from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, TOO_SMALL
+from integrators.engine import DEFAULT_EPSILON, Binding, Counted, Extrapolation, check_adaptive
 from integrators.errors import StepSizeError, step_error
-from integrators.jit import entry_point, jit
+from integrators.jit import entry_point
 from systems.nbody import NBody
 
 _LOG = logging.getLogger(__name__)
 _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValueDictionary()
-_DOUBLES_PER_PARTICLE = 14       # sizeof(reb_particle) = 112 bytes in REBOUND 5.2
+_DOUBLES_PER_PARTICLE = glue.PARTICLE_DOUBLES       # sizeof(reb_particle) = 112 bytes
 
 
-RESYNC = -1               # _begin: the particles are not what the driver wrote last
-
-
-@jit
-def _begin(view, written, S, gamma, eref, S1, gamma1, eref1):
-    """RESYNC when REBOUND's particles (view, (N, 14) over reb_particle) differ from ``written``
-    (x, y, z, vx, vy, vz, m as the last commit wrote them); else OK, with the state (S: q, p and
-    their compensations; gamma; eref) copied into the trial arrays S1, gamma1, eref1."""
-    N = view.shape[0]
-    if written.shape[0] != N:
-        return RESYNC
-    for i in range(N):
-        for c in range(6):
-            if view[i, c] != written[i, c]:
-                return RESYNC
-        if view[i, 9] != written[i, 6]:
-            return RESYNC
-    for r in range(S.shape[0]):
-        for j in range(S.shape[1]):
-            S1[r, j] = S[r, j]
-    for r in range(gamma.shape[0]):
-        for j in range(gamma.shape[1]):
-            gamma1[r, j] = gamma[r, j]
-    eref1[0] = eref[0]
-    return OK
-
-
-@jit
-def _commit(view, written, S1, gamma1, eref1, S, gamma, eref, minv, keep_gamma, commits):
-    """The trial step into the state and the particles, and the commit counted, in one compiled
-    call (a Python exception, a signal handler's, cannot land inside it: the host tells a
-    committed step from an interrupted one by ``commits``).  ``keep_gamma``: the step was a
-    sliver (exact_finish_time's last one), whose coefficients are not extrapolated from."""
-    for r in range(S.shape[0]):
-        for j in range(S.shape[1]):
-            S[r, j] = S1[r, j]
-    if not keep_gamma:
-        for r in range(gamma.shape[0]):
-            for j in range(gamma.shape[1]):
-                gamma[r, j] = gamma1[r, j]
-    eref[0] = eref1[0]
-    for i in range(view.shape[0]):
-        for c in range(3):
-            view[i, c] = S[0, 3 * i + c]
-            view[i, 3 + c] = S[1, 3 * i + c] * minv[3 * i + c]
-            written[i, c] = view[i, c]
-            written[i, 3 + c] = view[i, 3 + c]
-    commits[0] += 1.0
+def _layout_is_known(rebound) -> bool:
+    """Are the struct offsets :mod:`hbvm_md.rebound_step` was written for those of this
+    REBOUND?"""
+    S, P = rebound.Simulation, rebound.Particle
+    at = {"t": glue.T_AT, "G": glue.G_AT, "dt": glue.DT_AT, "dt_last_done": glue.DTL_AT,
+          "steps_done": glue.STEPS_AT,
+          "N": glue.N_AT, "_particles": glue.PTR_AT, "N_active": glue.NA_AT}
+    return (all(getattr(S, f).offset == 8 * i for f, i in at.items())
+            and S._status.offset == glue.STATUS_BYTES and S.extras.offset == glue.EXTRAS_BYTES
+            and ctypes.sizeof(P) == 8 * glue.PARTICLE_DOUBLES and P.m.offset == 72
+            and P.x.offset == 0 and P.vx.offset == 24)
 
 
 def _rebound():
@@ -149,23 +121,15 @@ def _make_class():
 
         def integrate(self, tmax, exact_finish_time=1):
             drv = _REGISTRY.get(ctypes.addressof(self))
-            if drv is not None:
-                drv._before_run()
-            try:
-                super().integrate(tmax, exact_finish_time)
-            finally:
-                if drv is not None:
-                    drv._after_run()
+            if drv is None:
+                return super().integrate(tmax, exact_finish_time)
+            drv._run(lambda done: super(HBVMSimulation, self).integrate(tmax, exact_finish_time))
 
         def steps(self, N_steps):
             drv = _REGISTRY.get(ctypes.addressof(self))
-            if drv is not None:
-                drv._before_run()
-            try:
-                super().steps(N_steps)
-            finally:
-                if drv is not None:
-                    drv._after_run()
+            if drv is None:
+                return super().steps(N_steps)
+            drv._run(lambda done: super(HBVMSimulation, self).steps(N_steps - done))
 
         def copy(self):
             """A deep copy driven by its own :class:`HBVMIntegrator` with the same settings and
@@ -402,6 +366,11 @@ class HBVMIntegrator(Counted):
         Steps, force evaluations (stages) and fixed-point iterations done by this driver.
     resyncs : int
         How often the state was re-read from REBOUND (1 at the first step).
+    last_run_native : bool
+        Whether the last ``sim.integrate`` / ``sim.steps`` ran the step as a C callback (no
+        Python between steps): the default; a heartbeat, a chained post-timestep callback, a
+        pre-timestep callback or ``sim.extras`` in use make the run go through the Python
+        callback instead (about 5 us more a step; the same numbers bit for bit).
 
     Notes
     -----
@@ -424,7 +393,7 @@ class HBVMIntegrator(Counted):
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
             raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
-        if not rebound.__version__.startswith("5.") or ctypes.sizeof(rebound.Particle) != 8 * _DOUBLES_PER_PARTICLE or rebound.Particle.m.offset != 72:
+        if not rebound.__version__.startswith("5.") or not _layout_is_known(rebound):
             raise RuntimeError(f"HBVMIntegrator supports REBOUND 5.x (its particle layout) only; got rebound {rebound.__version__}: pip install 'rebound>=5.0,<6'")
         if ctypes.addressof(sim) in _REGISTRY:
             raise ValueError("an HBVMIntegrator is already attached to this simulation; call "
@@ -463,39 +432,38 @@ class HBVMIntegrator(Counted):
             method = HBVM(choose_k(nb, nb.initial_state(), method.s, h, shortest_period(sim)),
                           method.s, nodes=nodes)
         self._attach(sim, method, h, int(max_iter), tol, energy_tol)
-        self.adaptive, self.epsilon, self.min_dt = bool(adaptive), float(epsilon), float(min_dt)
+        self._set_control(bool(adaptive), epsilon, min_dt)
 
     def _attach(self, sim, method: HBVM, h: float, max_iter: int, tol, energy_tol) -> None:
         self.method = method
         self.sim = sim
-        self.max_iter, self.tol = max_iter, float(tol or 0.0)
+        # the scalars the compiled step reads and writes (layout: rebound_step.S_*)
+        self._scal = np.zeros(glue.N_SCAL)
+        self._scal[[glue.S_H_PREV, glue.S_T_WRITTEN]] = np.nan
+        self._energy_check = True
+        self.max_iter, self.tol = max_iter, tol
         self.energy_tol = energy_tol
         self._eref = np.full(1, np.nan)    # energy after the last committed step (nan: unknown)
         m = self.method
         self._extrapolation = Extrapolation(m)
         self.counters = np.zeros(N_COUNTERS)   # the core's counters, over the driver's life
         self._clock = np.zeros(2)               # the core ticks it; REBOUND keeps the time
-        self._commit_count = np.zeros(1)        # counted by _commit, in the compiled call
-        self._commits = 0.0         # _commit_count once the Python bookkeeping of a commit is done
-        self._pending = None
-        self.nsteps = self.resyncs = self.rejected = 0
-        self._energy_check = True
+        self.resyncs = 0
+        self.last_run_native = False
+        self._allow_native = True       # False: always the Python callback (tests, debugging)
         self._error = None
         self._hook_prev = None
         self._addr = ctypes.addressof(sim)
-        self._h_c = ctypes.c_double.from_address(self._addr + type(sim).dt_last_done.offset)
-        self._dt_c = ctypes.c_double.from_address(self._addr + type(sim).dt.offset)
-        self._t_c = ctypes.c_double.from_address(self._addr + type(sim).t.offset)
-        self._G_c = ctypes.c_double.from_address(self._addr + type(sim).G.offset)
-        self._na_c = ctypes.c_size_t.from_address(self._addr + type(sim).N_active.offset)
-        self._N_c = ctypes.c_size_t.from_address(self._addr + type(sim).N.offset)
-        self._ptr_c = ctypes.c_void_p.from_address(self._addr + type(sim)._particles.offset)
+        # the head of struct reb_simulation (t .. N_active) as doubles and as int64
+        head = (ctypes.c_double * glue.SIM_HEAD).from_address(self._addr)
+        self._simd = np.frombuffer(head, dtype=np.float64)
+        self._simi = np.frombuffer(head, dtype=np.int64)
+        self._extras_c = ctypes.c_void_p.from_address(self._addr + type(sim).extras.offset)
         self._view_key = None
         self._view = None
         self._gamma = None
-        self._h_prev = None
+        self._ctx = None            # addresses and sizes for the compiled step (rebound_step)
         self._written = None        # (N, 7): x, y, z, vx, vy, vz, m as written last step
-        self._t_written = None
         # remember what to restore on detach
         self._prev_integrator = str(sim.integrator)
         # A ctypes function-pointer field read from the struct shares the struct's memory, so
@@ -507,6 +475,13 @@ class HBVMIntegrator(Counted):
         self._prev_class = type(sim)
         self._chain = (type(sim._post_timestep_modifications)(self._prev_ptm)
                        if self._prev_ptm else None)
+        # the post-timestep callback slot and the extras pointer, set together by one numpy
+        # assignment (no Python bytecode between them) around a native run (see _run)
+        first = type(sim)._post_timestep_modifications.offset
+        n = (type(sim).extras.offset - first) // 8 + 1
+        self._slots = np.frombuffer((ctypes.c_int64 * n).from_address(self._addr + first),
+                                    dtype=np.int64)
+        self._slot_idx = [0, n - 1]
         sim.dt = h
         sim.integrator = "none"
         sim.post_timestep_modifications = self._callback
@@ -514,6 +489,68 @@ class HBVMIntegrator(Counted):
         sim.__class__ = _sim_class()
         _REGISTRY[self._addr] = self
         self.attached = True
+
+    # the bookkeeping lives in the scalars the compiled step updates
+    @property
+    def nsteps(self) -> int:
+        """Steps committed by this driver."""
+        return int(self._scal[glue.S_NSTEPS])
+
+    @property
+    def rejected(self) -> int:
+        """Adaptive trial steps rejected (and retried smaller)."""
+        return int(self._scal[glue.S_REJECTED])
+
+    @property
+    def _h_prev(self) -> float | None:
+        h = float(self._scal[glue.S_H_PREV])
+        return None if math.isnan(h) else h
+
+    @property
+    def _t_written(self) -> float | None:
+        t = float(self._scal[glue.S_T_WRITTEN])
+        return None if math.isnan(t) else t
+
+    @property
+    def adaptive(self) -> bool:
+        return bool(self._scal[glue.S_EPSILON] > 0.0)
+
+    @property
+    def epsilon(self) -> float:
+        return self._epsilon
+
+    @property
+    def max_iter(self) -> int:
+        """Fixed-point iterations allowed per step (settable between runs)."""
+        return int(self._scal[glue.S_MAX_ITER])
+
+    @max_iter.setter
+    def max_iter(self, value: int) -> None:
+        self._scal[glue.S_MAX_ITER] = int(value)
+
+    @property
+    def tol(self) -> float:
+        """Relative tolerance of the iteration (0: round-off)."""
+        return float(self._scal[glue.S_TOL])
+
+    @tol.setter
+    def tol(self, value: float) -> None:
+        self._scal[glue.S_TOL] = float(value or 0.0)
+
+    @property
+    def energy_tol(self) -> float | None:
+        """The energy check's tolerance (None: off); settable between runs."""
+        return self._energy_tol
+
+    @energy_tol.setter
+    def energy_tol(self, value: float | None) -> None:
+        self._energy_tol = value
+        self._scal[glue.S_ETOL] = (value or 0.0) if self._energy_check else 0.0
+
+    def _set_control(self, adaptive: bool, epsilon: float, min_dt: float) -> None:
+        self._epsilon, self.min_dt = float(epsilon), float(min_dt)
+        self._scal[glue.S_EPSILON] = self._epsilon if adaptive else 0.0
+        self._scal[glue.S_MIN_DT] = self.min_dt
 
     def __repr__(self) -> str:
         return f"HBVMIntegrator({self.method!r}, attached={self.attached}, nsteps={self.nsteps})"
@@ -608,10 +645,11 @@ class HBVMIntegrator(Counted):
         drv._attach(sim, HBVM(int(d["k"]), int(d["s"]), nodes=str(d["nodes"])), sim.dt,
                     int(d["max_iter"]), float(d["tol"]) or None,
                     None if math.isnan(energy_tol) else energy_tol)
-        drv.adaptive, drv.epsilon = bool(d["adaptive"]), float(d["epsilon"])
-        drv.min_dt, drv.rejected = float(d["min_dt"]), int(d["rejected"])
+        drv._set_control(bool(d["adaptive"]), float(d["epsilon"]), float(d["min_dt"]))
+        drv._scal[glue.S_REJECTED] = int(d["rejected"])
         drv._prev_integrator = str(d["prev_integrator"])
-        drv.nsteps, nfev, niter, drv.resyncs = (int(c) for c in d["counts"])
+        nsteps, nfev, niter, drv.resyncs = (int(c) for c in d["counts"])
+        drv._scal[glue.S_NSTEPS] = nsteps
         drv.counters[C_NFEV], drv.counters[C_ITER] = nfev, niter
         if bool(d["stepped"]):
             drv._set_state(d)
@@ -628,14 +666,57 @@ class HBVMIntegrator(Counted):
             raise ValueError("the saved HBVM state does not belong to these particles; load "
                              "the simulation and the state that HBVMIntegrator.save wrote together")
         self._model(view)
-        self._arrays(np.array(d["S"], dtype=float), np.array(d["gamma"], dtype=float))
-        self._written = w.copy()
+        self._arrays(np.array(d["S"], dtype=float), np.array(d["gamma"], dtype=float), view, w)
         self._eref[0] = float(d["eref"])
-        h_prev, t_written = float(d["h_prev"]), float(d["t_written"])
-        self._h_prev = None if math.isnan(h_prev) else h_prev
-        self._t_written = None if math.isnan(t_written) else t_written
+        self._scal[glue.S_H_PREV] = float(d["h_prev"])
+        self._scal[glue.S_T_WRITTEN] = float(d["t_written"])
 
     # -- called by the wrapped Simulation ----------------------------------------------
+    def _run(self, go) -> None:
+        """Run REBOUND (``go(done)``: its integrate, or its steps minus the ``done`` ones) with
+        the step in C when nothing in Python has to run between steps (:meth:`_native`), else
+        through the Python callback; re-raise an exception of a step afterwards."""
+        self._before_run()
+        try:
+            done = 0
+            while True:
+                self.last_run_native = self._native()
+                if not self.last_run_native:
+                    go(done)
+                    break
+                before = self.sim.steps_done
+                self._scal[glue.S_STATUS] = OK
+                try:
+                    self._slots[self._slot_idx] = (self._cstep, self._ctx.ctypes.data)
+                    go(done)
+                finally:
+                    self._slots[self._slot_idx] = (self._cb_ptr, 0)
+                done += self.sim.steps_done - before
+                status = int(self._scal[glue.S_STATUS])
+                if status == RESYNC:      # the C step stopped the run: re-read, go on
+                    self._resync(self._particle_view())
+                    continue
+                if status != OK:
+                    self._error = self._step_failure(status)
+                break
+        finally:
+            self._after_run()
+
+    def _native(self) -> bool:
+        """Can REBOUND call the compiled step directly (no Python between steps)?  Yes when
+        the step is compiled, its state is current, and the simulation has no heartbeat, no
+        other callback and no ``extras`` of its own."""
+        if (self._cstep is None or self._chain is not None or self._ctx is None
+                or not self._allow_native):
+            return False
+        sim = self.sim
+        if sim._heartbeat or sim._pre_timestep_modifications or self._extras_c.value:
+            return False
+        key = (self._simi[glue.PTR_AT], self._simi[glue.N_AT])
+        if key != (self._ctx[glue.D_PTR], self._ctx[glue.D_NPART]):
+            self._resync(self._particle_view())
+        return True
+
     def _before_run(self) -> None:
         self._error = None
         sim = self.sim
@@ -648,6 +729,8 @@ class HBVMIntegrator(Counted):
                              "is attached; set your callback before attaching (it is chained)")
         _step_size("sim.dt", sim.dt)
         check_simulation(sim)
+        if self._ctx is None and sim.N > 0:
+            self._resync(self._particle_view())
         # ctypes hands an exception raised on entering the callback (before its try: a signal
         # handler's) to sys.unraisablehook and goes on: catch it there for the time of the run
         self._hook_prev = sys.unraisablehook
@@ -685,37 +768,35 @@ class HBVMIntegrator(Counted):
         a whole number of committed steps.
 
         An exception can land between any two bytecodes (a signal handler's), also after the
-        compiled step wrote the particles: that step is then kept and its bookkeeping finished
-        (the commit count tells, see :func:`_commit`); otherwise REBOUND's t += h is undone.
-        """
-        if self._commit_count[0] != self._commits:
-            self._finish_commit()
-        elif self._t_written != self._t_c.value:
-            self._restore_time(self._h_c.value)
+        compiled step committed (it then wrote sim.t as the state's time: nothing to undo);
+        otherwise REBOUND's t += h is undone."""
+        if self._scal[glue.S_T_WRITTEN] != self._simd[glue.T_AT]:
+            glue.undo_time(self._simd, self._scal)
         if self._error is None:
             self._error = exc
         self.sim.stop()
 
-    def _pend(self, h: float) -> None:
-        """What a commit of the step about to be tried changes on the Python side, decided
-        before the compiled calls so that :meth:`_finish_commit` can be repeated harmlessly."""
-        hp = self._h_prev
-        # exact_finish_time's sliver of a step (1e-16): the next step extrapolates from the
-        # last regular one, whose gamma is kept
-        sliver = hp is not None and abs(h) < TINY_RATIO * abs(hp)
-        self._pending = (sliver, hp if sliver else h, self._t_c.value, self.nsteps + 1)
-
-    def _finish_commit(self) -> None:
-        _, self._h_prev, self._t_written, self.nsteps = self._pending
-        self._commits = self._commit_count[0]        # last: the commit is booked
+    def _step_failure(self, status: int) -> StepError:
+        """The exception of a failed step, from what the compiled step recorded."""
+        sc = self._scal
+        h, t = float(sc[glue.S_H_FAIL]), float(sc[glue.S_T_FAIL])
+        if status == TOO_SMALL:
+            cause_status = int(sc[glue.S_CAUSE_STATUS])
+            cause = (f"error estimate {sc[glue.S_CAUSE_ERR]:.3e} > epsilon={self.epsilon:.3e}"
+                     if cause_status == OK else
+                     str(step_error(cause_status, h, t, self.counters, "fixed_point",
+                                    energy_tol=self.energy_tol, hints=_HINTS)))
+            return StepSizeError(h, self.min_dt, t, cause)
+        return step_error(status, h, t, self.counters, "fixed_point", energy_tol=self.energy_tol,
+                          hints=_HINTS)
 
     def _particle_view(self) -> np.ndarray:
-        key = (self._ptr_c.value, self._N_c.value)
+        key = (self._simi[glue.PTR_AT], self._simi[glue.N_AT])
         if key != self._view_key:
-            N = key[1]
-            if N == 0 or key[0] is None:
+            N = int(key[1])
+            if N == 0 or key[0] == 0:
                 raise ValueError("the simulation has no particles")
-            buf = (ctypes.c_double * (_DOUBLES_PER_PARTICLE * N)).from_address(key[0])
+            buf = (ctypes.c_double * (_DOUBLES_PER_PARTICLE * N)).from_address(int(key[0]))
             self._view = np.frombuffer(buf, dtype=np.float64).reshape(N, _DOUBLES_PER_PARTICLE)
             self._view_key = key
             self._written = None
@@ -732,8 +813,13 @@ class HBVMIntegrator(Counted):
         y = np.concatenate([view[:, :3].reshape(-1), nb.momenta_from_velocities(view[:, 3:6])])
         check_particles(y, nb)
         self._system = nb
-        self._binding = Binding(self.method, nb, form="separable", fast=True)
+        self._binding = Binding(self.method, nb, form="separable", fast=True,
+                                glue="hbvm_md.rebound_step")
+        code = self._binding.step_code
         self._minv = self._binding.minv
+        compiled = code.kind == "compiled"
+        self._host = _entry(code.host_step) if compiled else code.host_step_arrays
+        self._cstep = code.host_cstep.address if compiled else None
         # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for
         # at most one gravitating body, at rest (the restricted problem with a star at rest):
         # then it stays zero, there is nothing to check, and test particles are not checked.
@@ -742,106 +828,72 @@ class HBVMIntegrator(Counted):
             warnings.warn("HBVMIntegrator: the gravitating bodies have no energy (a single body "
                           "at rest), so energy_tol checks nothing here; test particles' steps "
                           "are not checked", RuntimeWarning, stacklevel=2)
-        self._G = self._G_c.value
-        self._na = self._na_c.value
+        self.energy_tol = self.energy_tol          # the check's tolerance into the scalars
+        sc = self._scal
+        sc[glue.S_G] = self._simd[glue.G_AT]
+        sc[glue.S_NA] = float(self._simi[glue.NA_AT])
         return y
 
     def _resync(self, view: np.ndarray) -> None:
         y = self._model(view)
         dim = self._system.dim
-        N = view.shape[0]
         # S rows: q, p, and their compensations (minus the low parts of the double-double state)
         S = np.zeros((4, dim))
         S[0] = y[:dim]
         S[1] = y[dim:]
-        self._arrays(S, np.zeros((self.method.s, dim)))
-        self._written = np.empty((N, 7))
-        self._written[:, :6] = view[:, :6]
-        self._written[:, 6] = view[:, 9]
-        self._h_prev = None
+        w = np.empty((view.shape[0], 7))
+        w[:, :6] = view[:, :6]
+        w[:, 6] = view[:, 9]
+        self._arrays(S, np.zeros((self.method.s, dim)), view, w)
+        self._scal[glue.S_H_PREV] = np.nan
         self._eref[0] = np.nan
         self.resyncs += 1
 
-    def _arrays(self, S: np.ndarray, gamma: np.ndarray) -> None:
-        """The state (S, gamma) and the trial arrays the core's step works on: y = (q, p) and
-        cy are views of the trial S1's rows."""
+    def _arrays(self, S: np.ndarray, gamma: np.ndarray, view: np.ndarray,
+                written: np.ndarray) -> None:
+        """The state (S, gamma), the trial arrays the core's step works on, and ``ctx``, their
+        addresses and sizes for the compiled step (:mod:`hbvm_md.rebound_step`)."""
         self._S, self._gamma = S, gamma
         self._S1, self._gamma1 = np.empty_like(S), np.empty_like(gamma)
         self._eref1 = np.empty(1)
-        self._y1, self._cy1 = self._S1[:2].reshape(-1), self._S1[2:].reshape(-1)
+        self._written = np.array(written, dtype=float)
+        b, ex = self._binding, self._extrapolation
+        (tn, ts), (Wp, Cp) = b.c1, b.c2
+        NV, NVinv, NM = b.no_newton
+        self._args = (S[:2].reshape(-1), S[2:].reshape(-1), self._S1[:2].reshape(-1),
+                      self._S1[2:].reshape(-1), gamma, self._gamma1, self._eref, self._eref1,
+                      self._written, b.minv, b.kin_w, b.params, tn, ts, Wp, Cp, NV, NVinv, NM,
+                      self.counters, b.work, b.cwork, self._clock, ex.E1, ex.t, ex.w, ex.buf,
+                      ex.zero, self._scal)
+        ctx = np.zeros(glue.N_CTX, dtype=np.int64)
+        for i, a in enumerate(self._args):
+            if not (a.flags.c_contiguous and a.dtype in (np.float64, np.complex128)):
+                raise AssertionError(f"rebound_step argument {i} is not a contiguous array")
+            ctx[i] = a.ctypes.data
+        ctx[[glue.D_S, glue.D_K, glue.D_M, glue.D_N, glue.D_P, glue.D_NF, glue.D_NC]] = (
+            self.method.s, self.method.n_stages, b.minv.shape[0], view.shape[0],
+            b.params.shape[0], b.work.shape[0], b.cwork.shape[0])
+        ctx[[glue.D_SIM, glue.D_PTR, glue.D_NPART]] = (self._addr, self._simi[glue.PTR_AT],
+                                                      self._simi[glue.N_AT])
+        self._ctx = ctx
 
     def _step(self) -> None:
-        h = self._h_c.value
-        view = self._particle_view()
-        if self._written is None or self._G_c.value != self._G or self._na_c.value != self._na:
-            self._resync(view)
-        if _entry(_begin)(view, self._written, self._S, self._gamma, self._eref, self._S1,
-                          self._gamma1, self._eref1) == RESYNC:
+        """One REBOUND step through the Python callback: one compiled call (the step and its
+        commit), or two when the particles changed since the last one."""
+        if self._ctx is None:
+            self._resync(self._particle_view())
+        status = self._call_host()
+        if status == RESYNC:
             # the user changed the particles: rebuild the model (masses, params, arrays)
-            self._resync(view)
-        if self.adaptive:
-            h, h_next = self._adaptive_trial(view, h)
-        else:
-            status = self._trial(view, h, copy=False)
-            if status != OK:
-                raise step_error(status, h, self._step_start(h), self.counters, "fixed_point",
-                                 energy_tol=self.energy_tol, hints=_HINTS)
-        self._pend(h)
-        _entry(_commit)(view, self._written, self._S1, self._gamma1, self._eref1, self._S,
-                        self._gamma, self._eref, self._minv, self._pending[0], self._commit_count)
-        self._finish_commit()
-        if self.adaptive:
-            self._dt_c.value = h_next
+            self._resync(self._particle_view())
+            status = self._call_host()
+        if status != OK:
+            raise self._step_failure(status)
 
-    def _trial(self, view, h: float, copy: bool = True) -> int:
-        """One core step of size h from the state into the trial arrays (nothing committed);
-        ``copy=False`` when :func:`_begin` has just copied the state there."""
-        b = self._binding
-        if copy:
-            _entry(_begin)(view, self._written, self._S, self._gamma, self._eref, self._S1,
-                           self._gamma1, self._eref1)
-        etol = (self.energy_tol or 0.0) if self._energy_check else 0.0
-        return _entry(b.step_code.advance)(
-            False, self._y1, self._cy1, b.minv, b.kin_w, b.params, h, self._extrapolation(h, self._h_prev),
-            self._gamma1, b.c1, b.c2, *b.no_newton, self.max_iter, self.tol, etol,
-            self._eref1, self.counters, b.work, b.cwork, self._clock)
-
-    def _adaptive_trial(self, view, h: float) -> tuple[float, float]:
-        """Trial steps from REBOUND's dt_last_done down until one is accepted (its error
-        estimate <= epsilon, its iteration and energy check passed); sim.t and dt_last_done
-        then record the step taken.  Returns (h taken, h proposed next)."""
-        t_start = self._step_start(h)
-        s = self.method.s
-        first = True
-        while True:
-            work = self.counters.copy()
-            status = self._trial(view, h, copy=not first)
-            first = False
-            if status == OK:
-                err = _entry(error_estimate)(self._gamma1, self._minv)
-                if err <= self.epsilon:
-                    h_next = next_step(h, err, self.epsilon, s)
-                    if h != self._h_c.value:
-                        self._h_c.value = h                # what REBOUND records as done
-                        self._t_c.value = t_start + h
-                    return h, h_next
-                self.counters[:] = work                   # a rejected step leaves no trace
-                cause = f"error estimate {err:.3e} > epsilon={self.epsilon:.3e}"
-                h_new = next_step(h, err, self.epsilon, s)
-            else:
-                cause = str(step_error(status, h, t_start, self.counters, "fixed_point",
-                                       energy_tol=self.energy_tol, hints=_HINTS))
-                h_new = 0.25 * h
-            self.rejected += 1
-            if abs(h_new) < self.min_dt or h_new == 0.0 or t_start + h_new == t_start:
-                raise StepSizeError(h, self.min_dt, t_start, cause)
-            h = h_new
-
-    def _step_start(self, h: float) -> float:
-        """sim.t before REBOUND's "none" integrator did t += h (exact when we wrote it)."""
-        t = self._t_c.value
-        tw = self._t_written
-        return tw if (tw is not None and tw + h == t) else t - h
-
-    def _restore_time(self, h: float) -> None:
-        self._t_c.value = self._step_start(h)
+    def _call_host(self) -> int:
+        if self._cstep is not None:
+            return self._host(self._ctx)
+        view = self._particle_view()      # a Python step: views made here, RESYNC if moved
+        if self._written is None:
+            return RESYNC
+        return self._host(self._simd, self._simi, view, *self._args)

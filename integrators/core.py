@@ -36,8 +36,11 @@ ROUNDOFF_ULPS = 64.0     # a stalled increment within this many ulps of its roun
 LIPSCHITZ_ULPS = 4.0     # ... within this many ulps of the stage values' rounding times L
 STATE_ULPS = 16.0        # ... and so is one that moves the new state by at most this many ulps
 
-# status codes of a step (one table maps them to exceptions: integrators.errors.raise_for_status)
-OK, DIVERGED, NOT_FINITE, UNRESOLVED = 0, 1, 2, 3
+# status codes of a step (one table maps them to exceptions: integrators.errors.step_error);
+# TOO_SMALL: an adaptive step was not accepted down to min_dt (loop.attempt)
+OK, DIVERGED, NOT_FINITE, UNRESOLVED, TOO_SMALL = 0, 1, 2, 3, 4
+TINY_RATIO = 1e-3         # a step this much shorter than the previous one is a sliver
+MAX_EXTRAPOLATION = 4.0   # the longest h_new / h_old the previous polynomial is extrapolated over
 # what the iteration does next (stop_action)
 ITERATE, POLISH = 0, 1
 # counters: one float64 array, the same layout on every path
@@ -470,8 +473,8 @@ def extrapolation_matrix(r, t, w, E):
                 E[i, j] += w[q] * a[i] * b[j]
 
 
-def next_step(h: float, err: float, epsilon: float, s: int, safety: float = 0.7,
-              shrink: float = 0.2, grow: float = 2.0) -> float:
+@jit
+def next_step(h, err, epsilon, s, safety=0.7, shrink=0.2, grow=2.0):
     """The step size a controller proposes after a step of size h with error estimate err:
     h (epsilon / err)^(1 / (s - 1)) times ``safety``, limited to [shrink h, grow h]
     (err ~ h^(s-1), see :func:`step_error`)."""
@@ -479,6 +482,24 @@ def next_step(h: float, err: float, epsilon: float, s: int, safety: float = 0.7,
         return h * grow
     f = safety * (epsilon / err) ** (1.0 / (s - 1))
     return h * min(grow, max(shrink, f))
+
+
+@jit
+def select_extrapolation(h, h_prev, E1, t, w, buf, zero):
+    """The initial guess's matrix E(h / h_prev) for every caller of the step (h_prev nan: no
+    previous step): E1 = E(1) when the step is unchanged; a sliver of a step (exact finish
+    times, |r| < TINY_RATIO) takes the previous polynomial's end value (r = 0); a step more than
+    MAX_EXTRAPOLATION times longer starts from zero (``zero``); any other ratio is computed into
+    ``buf``.  (t, w): the s-point Gauss rule on [0, 1]."""
+    if np.isnan(h_prev) or h == h_prev:
+        return E1
+    r = h / h_prev
+    if abs(r) > MAX_EXTRAPOLATION:
+        return zero
+    if abs(r) < TINY_RATIO:
+        r = 0.0
+    extrapolation_matrix(r, t, w, buf)
+    return buf
 
 
 @jit

@@ -14,7 +14,8 @@ import numpy as np
 
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, work_sizes)
-from .core import extrapolation_matrix, next_step, step_error as error_estimate
+from .core import MAX_EXTRAPOLATION, TINY_RATIO, next_step, select_extrapolation  # noqa: F401
+from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
 from .protocol import adapt_system
@@ -119,8 +120,6 @@ class Counted:
         return int(self.counters[C_NEWTON])
 
 
-TINY_RATIO = 1e-3         # a step this much shorter than the previous one is a sliver
-MAX_EXTRAPOLATION = 4.0   # the longest h_new / h_old the previous polynomial is extrapolated over
 
 
 class Extrapolation:
@@ -139,14 +138,9 @@ class Extrapolation:
 
     def __call__(self, h: float, h_prev: float | None) -> np.ndarray:
         if h_prev is None or h == h_prev:
-            return self.E1
-        r = h / h_prev
-        if abs(r) > MAX_EXTRAPOLATION:
-            return self.zero
-        if abs(r) < TINY_RATIO:
-            r = 0.0
-        entry_point(extrapolation_matrix)(r, self.t, self.w, self.buf)
-        return self.buf
+            return self.E1            # the common case, without a compiled call
+        return entry_point(select_extrapolation)(h, h_prev, self.E1, self.t, self.w, self.buf,
+                                                 self.zero)
 
 
 class Binding:
@@ -163,9 +157,12 @@ class Binding:
         required and the step is compiled; False: the step runs as Python code (calling the
         compiled kernels when the system has them, else its numpy methods); None: compiled when
         the system has kernels.
+    glue : str, optional
+        A host's glue module compiled with the step (:func:`integrators.specialise.specialise`).
     """
 
-    def __init__(self, method, system, form: str = "auto", fast: bool | None = None):
+    def __init__(self, method, system, form: str = "auto", fast: bool | None = None,
+                 glue: str | None = None):
         if form == "separable" and not _is_separable(system):
             raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
                              "`potential`; use form='full'")
@@ -186,7 +183,7 @@ class Binding:
         self.params = np.ascontiguousarray(params, dtype=float)
         # fast=False runs the step as Python code: with the system's compiled kernels when it
         # has them (then the numbers and counters equal the compiled run's bit for bit)
-        self.step_code = specialise(force, potential, python=fast is False)
+        self.step_code = specialise(force, potential, python=fast is False, glue=glue)
         self.force = force
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"

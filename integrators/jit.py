@@ -32,6 +32,22 @@ def jit(fn):
         return njit(error_model="numpy")(fn)
 
 
+def cjit(signature):
+    """``numba.cfunc(signature, cache=True, error_model="numpy")``: a C callback (its
+    ``.address`` goes where a C library expects a function pointer), compiled like :func:`jit`
+    (in memory when no cache can be written)."""
+    from numba import cfunc
+
+    def deco(fn):
+        try:
+            return cfunc(signature, cache=True, error_model="numpy")(fn)
+        except RuntimeError as exc:
+            if "cache" not in str(exc):
+                raise
+            return cfunc(signature, error_model="numpy")(fn)
+    return deco
+
+
 def entry_point(dispatcher):
     """The compiled entry point of a dispatcher's only signature (skips numba's argument
     typing, several microseconds a call with many arguments), or the dispatcher itself when it

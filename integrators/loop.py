@@ -1,4 +1,5 @@
-"""One HBVM(k, s) step, written once: :func:`advance` (and :func:`run`, many steps of it).
+"""One HBVM(k, s) step, written once: :func:`advance` (and :func:`run`, many steps of it; and
+:func:`attempt`, a step tried again smaller until the adaptive control accepts it).
 
 Every path of the project runs this code: the compiled engine, the REBOUND and ASE adapters and
 the Python path for user systems.  The force kernel is not an argument: the two module globals
@@ -32,12 +33,14 @@ code; it changes y, cy, gamma and eref only when the step succeeded.
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
-                              C_STEPS, DIVERGED, EPS, ITERATE, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH, UNRESOLVED,
+                              C_STEPS, DIVERGED, EPS, ITERATE, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
                               all_finite, all_zero, carve, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages,
                               guess, max_abs, newton_update, project, project_compensated,
                               stage_positions, step_constants, stop_action, symplectic, tick,
                               weighted_kinetic)
+from integrators.core import step_error as error_estimate
 
 _force = None        # bound by integrators.specialise
 _potential = None
@@ -212,3 +215,56 @@ def advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM
     return run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter,
                tol, etol, eref, counters, work, cwork, 1, 0, clock, no_samples, np.empty((0, 0)),
                no_samples)
+
+
+def attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w, params, h, h_prev,
+            E1, Et, Ew, Ebuf, Ezero, c1, c2, NV, NVinv, NM, max_iter, tol, etol, counters, work,
+            cwork, clock, epsilon, min_dt, t_start, res):
+    """One step from the state (y, cy, gamma, eref) into the trial arrays (yt, cyt, gammat,
+    ereft); nothing of the state is changed.  h_prev: the previous step (nan: none), for the
+    initial guess's extrapolation E (``core.select_extrapolation`` with E1, the Gauss rule
+    (Et, Ew), the buffers Ebuf and Ezero).
+
+    epsilon = 0: a fixed step; returns its status.  epsilon > 0: adaptive; a step whose error
+    estimate (``core.step_error`` with weights minv) exceeds epsilon, or whose iteration or
+    energy check fails, is tried again smaller (the controller ``core.next_step``, a quarter
+    after a failure), leaving no trace in the counters; TOO_SMALL when the step would fall
+    below min_dt (or vanish at t_start).  res: [h taken (or last tried), next h proposed,
+    rejections (added), last rejection's error estimate (nan after a failed iteration), last
+    failure's status]."""
+    s = gamma.shape[0]
+    snap = np.empty(counters.shape[0])
+    clock0, clock1 = clock[0], clock[1]
+    while True:
+        copy1(yt, y)
+        copy1(cyt, cy)
+        copy2(gammat, gamma)
+        ereft[0] = eref[0]
+        clock[0] = clock0
+        clock[1] = clock1
+        for i in range(counters.shape[0]):
+            snap[i] = counters[i]
+        E = select_extrapolation(h, h_prev, E1, Et, Ew, Ebuf, Ezero)
+        status = advance(full, yt, cyt, minv, kin_w, params, h, E, gammat, c1, c2, NV, NVinv, NM,
+                         max_iter, tol, etol, ereft, counters, work, cwork, clock)
+        res[0] = h
+        res[1] = h
+        if epsilon <= 0.0:
+            return status
+        if status == OK:
+            err = error_estimate(gammat, minv)
+            if err <= epsilon:
+                res[1] = next_step(h, err, epsilon, s)
+                return OK
+            for i in range(counters.shape[0]):      # a rejected step leaves no trace
+                counters[i] = snap[i]
+            res[3] = err
+            h_new = next_step(h, err, epsilon, s)
+        else:
+            res[3] = np.nan
+            h_new = 0.25 * h
+        res[4] = status
+        res[2] += 1.0
+        if abs(h_new) < min_dt or h_new == 0.0 or t_start + h_new == t_start:
+            return TOO_SMALL
+        h = h_new

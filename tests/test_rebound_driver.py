@@ -261,8 +261,8 @@ def test_energy_tol_is_checked(bad):
 
 
 def test_driver_step_matches_the_compiled_engine():
-    """rebound_driver._solve_nbody mirrors integrators.fast.solve_step with a static kernel call:
-    the two must give the same trajectory (the same arithmetic, so to the last bits)."""
+    """The REBOUND step (hbvm_md.rebound_step, compiled with the core's step) and the engine's
+    compiled step run the same code: the same trajectory and counters to the last bit."""
     from integrators import HBVM, integrate
     nb = outer_solar_system()
     sim = nb.to_rebound()

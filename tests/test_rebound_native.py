@@ -1,0 +1,96 @@
+"""The REBOUND step as one compiled call: the C callback (no Python between steps) and the
+Python callback run the same compiled step and must agree bit for bit, also when the user
+changes the particles between runs and when a step fails."""
+import numpy as np
+import pytest
+import rebound
+
+from hbvm_md import HBVMIntegrator
+from hbvm_md import rebound_step as glue
+from integrators import ConvergenceError, StepSizeError
+from systems import outer_solar_system
+
+
+def _xv(sim):
+    return np.array([[p.x, p.y, p.z, p.vx, p.vy, p.vz, p.m] for p in sim.particles])
+
+
+def _pair(**kw):
+    """Two identical driven simulations: the first runs natively, the second through the
+    Python callback (a heartbeat that does nothing forces it)."""
+    out = []
+    for python in (False, True):
+        sim = outer_solar_system().to_rebound()
+        drv = HBVMIntegrator(sim, **kw)
+        if python:
+            sim.heartbeat = lambda simp: None
+        out.append((sim, drv))
+    return out
+
+
+def _same(a, b):
+    (sa, da), (sb, db) = a, b
+    assert sa.t == sb.t and sa.dt == sb.dt and sa.dt_last_done == sb.dt_last_done
+    assert sa.steps_done == sb.steps_done
+    assert np.array_equal(_xv(sa), _xv(sb))
+    assert (da.nsteps, da.rejected, da.niter, da.nfev, da.resyncs) == \
+        (db.nsteps, db.rejected, db.niter, db.nfev, db.resyncs)
+
+
+@pytest.mark.parametrize("kw", [{}, {"s": 6, "k": 8, "dt": 100.0}])
+def test_native_and_python_callback_agree_bit_for_bit(kw):
+    a, b = _pair(**kw)
+    for t in np.linspace(0, 3e4, 31)[1:]:
+        a[0].integrate(t)
+        b[0].integrate(t)
+    assert a[1].last_run_native and not b[1].last_run_native
+    _same(a, b)
+    a[0].steps(7)
+    b[0].steps(7)
+    _same(a, b)
+
+
+def test_native_run_resyncs_after_the_user_changes_particles():
+    a, b = _pair()
+    for sim, _ in (a, b):
+        sim.integrate(5000.0)
+        sim.particles[3].vx *= 1.0 + 1e-9           # a kick
+        sim.integrate(9000.0)
+        sim.add(m=0.0, a=40.0, e=0.1, primary=sim.particles[0])   # a new test particle
+        sim.integrate(14000.0)
+        sim.remove(6)
+        sim.steps(5)
+    assert a[1].last_run_native
+    assert a[1].resyncs == 4
+    _same(a, b)
+
+
+def test_native_failure_leaves_the_state_and_raises():
+    a, b = _pair(s=6, k=8, dt=100.0)
+    for sim, drv in (a, b):
+        sim.integrate(300.0)
+        before, t0 = _xv(sim), sim.t
+        drv.max_iter = 1                             # cannot converge in one iteration
+        with pytest.raises(ConvergenceError, match="did not converge"):
+            sim.integrate(1000.0)
+        assert sim.t == t0 and np.array_equal(_xv(sim), before)
+        drv.max_iter = 60
+        sim.integrate(1000.0)
+    _same(a, b)
+
+
+def test_native_adaptive_step_size_error():
+    for sim, drv in _pair(epsilon=1e-15, min_dt=80.0):   # the first step (87 d) is refused
+        t0 = sim.t
+        before = _xv(sim)
+        with pytest.raises(StepSizeError, match="min_dt"):
+            sim.integrate(1e4)
+        assert sim.t == t0 and np.array_equal(_xv(sim), before)
+
+
+def test_stop_status_is_rebounds():
+    """host_cstep stops REBOUND by writing the status that reb_simulation_stop writes."""
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.stop()
+    assert sim._status == glue.REB_STATUS_USER
