@@ -24,7 +24,7 @@ is not installed: then the position errors are only differences from a double-pr
 Each configuration runs from ``--repeat`` starts (planet positions scaled by 1 + r 1e-13,
 r = 0, 1, ...), all methods once per start in turn (interleaved); the table gives medians.  The
 "best" HBVM is the fastest whose median energy error is at most IAS15's; "defaults" is
-HBVMIntegrator(sim) as a user writes it: adaptive steps, s = 6, k = s + 4, epsilon = 1e-5.
+HBVMIntegrator(sim) as a user writes it: adaptive steps, s = 6, k = 9 (adaptive_k), epsilon = 1e-5.
 Writes benchmarks/results/rebound.md.
 
     python benchmarks/bench_rebound.py [--repeat 5] [--quick]
@@ -144,7 +144,7 @@ def run_scene(title, scene, t_end, variants, peers, repeat, heyoka) -> list[str]
                  f"error {verdict}: {best['err']:.2e} vs IAS15 {ias['err']:.2e}): **{best['wall'] / ias['wall']:.2f}x "
                  f"IAS15's time**" + (f", **{best['wall'] / hy['wall']:.2f}x heyoka's** ({hy['method']}, "
                                       f"energy error {hy['err']:.2e})" if hy else "")
-                 + f". HBVM defaults (s = 6, adaptive, k = s + 4): "
+                 + f". HBVM defaults (s = 6, adaptive, k = 9): "
                  f"{default['wall'] / ias['wall']:.2f}x IAS15's time"
                  + (f", {default['wall'] / hy['wall']:.2f}x heyoka's" if hy else "")
                  + f", energy error {default['err']:.2e}.")

@@ -93,7 +93,7 @@ def test_rebound_adaptive_is_the_default_without_dt():
     from systems import outer_solar_system
     sim = outer_solar_system().to_rebound()
     drv = HBVMIntegrator(sim)
-    assert drv.adaptive and drv.method.k == 10
+    assert drv.adaptive and drv.method.k == 9
     e0 = sim.energy()
     sim.integrate(12345.6)
     assert sim.t == 12345.6 and drv.nsteps > 10
