@@ -515,16 +515,6 @@ class HBVMIntegrator(Counted):
         return int(self._scal[glue.S_REJECTED])
 
     @property
-    def _h_prev(self) -> float | None:
-        h = float(self._scal[glue.S_H_PREV])
-        return None if math.isnan(h) else h
-
-    @property
-    def _t_written(self) -> float | None:
-        t = float(self._scal[glue.S_T_WRITTEN])
-        return None if math.isnan(t) else t
-
-    @property
     def adaptive(self) -> bool:
         return bool(self._scal[glue.S_EPSILON] > 0.0)
 
@@ -646,8 +636,8 @@ class HBVMIntegrator(Counted):
                  counts=np.array([self.nsteps, self.nfev, self.niter, self.resyncs]))
         if self._written is not None:
             d.update(S=self._S, gamma=self._gamma, written=self._written, eref=self._eref[0],
-                     h_prev=nan if self._h_prev is None else self._h_prev,
-                     t_written=nan if self._t_written is None else self._t_written)
+                     h_prev=float(self._scal[glue.S_H_PREV]),          # nan: none
+                     t_written=float(self._scal[glue.S_T_WRITTEN]))
         return d
 
     @classmethod
@@ -829,7 +819,6 @@ class HBVMIntegrator(Counted):
         self._binding = Binding(self.method, nb, form="separable", fast=True,
                                 glue="hbvm_md.rebound_step")
         code = self._binding.step_code
-        self._minv = self._binding.minv
         compiled = code.kind == "compiled"
         self._host = _entry(code.host_step) if compiled else code.host_step_arrays
         self._cstep = code.host_cstep.address if compiled else None

@@ -14,7 +14,7 @@ import numpy as np
 
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, work_sizes)
-from .core import MAX_EXTRAPOLATION, TINY_RATIO, next_step, select_extrapolation  # noqa: F401
+from .core import next_step, select_extrapolation
 from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
@@ -124,10 +124,9 @@ class Counted:
 
 class Extrapolation:
     """The initial guess's matrix E(h_new / h_old) (:meth:`HBVM.extrapolation_matrix`) for
-    every caller of the step: E(1) kept, any other ratio computed by the compiled
-    ``core.extrapolation_matrix`` into a reused buffer (an adaptive run needs a new ratio at
-    every step).  A sliver of a step (exact finish times) takes the previous polynomial's end
-    value (r = 0); a step more than MAX_EXTRAPOLATION times longer starts from zero."""
+    every caller of the step: the arrays the compiled ``core.select_extrapolation`` chooses
+    from or fills (E(1) kept, any other ratio computed into a reused buffer, zero for a step
+    far longer than the last; the rule is written there once, also for the REBOUND step)."""
 
     def __init__(self, method):
         self.E1 = np.array(method.E, dtype=float, order="C")   # writable: one array type
@@ -137,10 +136,8 @@ class Extrapolation:
         self.zero = np.zeros_like(self.E1)
 
     def __call__(self, h: float, h_prev: float | None) -> np.ndarray:
-        if h_prev is None or h == h_prev:
-            return self.E1            # the common case, without a compiled call
-        return entry_point(select_extrapolation)(h, h_prev, self.E1, self.t, self.w, self.buf,
-                                                 self.zero)
+        return entry_point(select_extrapolation)(h, np.nan if h_prev is None else h_prev,
+                                                 self.E1, self.t, self.w, self.buf, self.zero)
 
 
 class Binding:
