@@ -33,12 +33,12 @@ code; it changes y, cy, gamma and eref only when the step succeeded.
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
-                              C_STEPS, DIVERGED, EPS, ITERATE, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              C_STEPS, DIVERGED, EPS, ITERATE, NARROW, WIDE, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
                               all_finite, all_zero, carve, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
-                              full_stages,
-                              guess, max_abs, newton_update, project, project_compensated,
-                              stage_positions, step_constants, stop_action, symplectic, tick,
+                              full_stages, full_stages_narrow,
+                              guess, max_abs, newton_update, project, project_compensated, project_narrow,
+                              stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
                               weighted_kinetic)
 from integrators.core import step_error as error_estimate
 
@@ -85,7 +85,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     n = tau.shape[0]
     s, u = gamma.shape
     m = minv.shape[0]
-    ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, Rt, Z = carve(
+    narrow = u < NARROW or u > WIDE    # the sums entry by entry (see core.NARROW)
+    ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, R, Rt, Z = carve(
         work, cwork, n, s, u, m, y.shape[0])
     isample = 0
     if sample_every > 0:
@@ -128,11 +129,17 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         while polish or it < max_iter:
             it += 1
             if full:
-                full_stages(y, cy, g, I, I_lo, h, X)
+                if narrow:
+                    full_stages_narrow(y, cy, g, I, I_lo, h, X)
+                else:
+                    full_stages(y, cy, g, I, I_lo, h, X, R)
                 _force(X, params, G)
                 symplectic(G, F)
             else:
-                stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X)
+                if narrow:
+                    stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X)
+                else:
+                    stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R)
                 _force(X, params, F)
             counters[C_NFEV] += n
             if it <= 3:          # the force's Lipschitz constant, for the round-off floor
@@ -144,17 +151,23 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             if polish:
                 if newton:      # a last Newton update from the compensated residual: a plain
                     # fixed-point polish would amplify the error by h L |X_s| (stiff problems)
-                    project_compensated(W, W_lo, F, pg)
+                    project_compensated(W, W_lo, F, pg, R)
                     newton_update(g, pg, NV, NVinv, NM, Rt, Z)
                 else:
-                    project_compensated(W, W_lo, F, g)
+                    project_compensated(W, W_lo, F, g, R)
                 status = OK
                 break
             if newton:
-                unused, fscale, fmax = project(W, W_lo, F, pg)
+                if narrow:
+                    unused, fscale, fmax = project_narrow(W, W_lo, F, pg)
+                else:
+                    unused, fscale, fmax = project(W, W_lo, F, pg, R)
                 delta, scale = newton_update(g, pg, NV, NVinv, NM, Rt, Z)
             else:
-                delta, scale, fmax = project(W, W_lo, F, g)
+                if narrow:
+                    delta, scale, fmax = project_narrow(W, W_lo, F, g)
+                else:
+                    delta, scale, fmax = project(W, W_lo, F, g, R)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
             action = stop_action(delta, scale, fmax, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
