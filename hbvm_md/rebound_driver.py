@@ -86,6 +86,11 @@ from systems.nbody import NBody
 
 _LOG = logging.getLogger(__name__)
 _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValueDictionary()
+# struct reb_simulation fields whose values _before_run checks (settings HBVM cannot honour,
+# the integrator and callback it owns while attached)
+_CONFIG_FIELDS = ("integrator", "_post_timestep_modifications", "softening", "_additional_forces",
+                  "_collision", "N_var", "_gravity", "_boundary", "_N_odes", "testparticle_type",
+                  "N_active", "N")
 _DOUBLES_PER_PARTICLE = glue.PARTICLE_DOUBLES       # sizeof(reb_particle) = 112 bytes
 
 
@@ -472,6 +477,16 @@ class HBVMIntegrator(Counted):
         self._simd = np.frombuffer(head, dtype=np.float64)
         self._simi = np.frombuffer(head, dtype=np.int64)
         self._extras_c = ctypes.c_void_p.from_address(self._addr + type(sim).extras.offset)
+        # the bytes of the settings _before_run checks (integrator, callbacks, gravity, ...):
+        # while they are those of the last run that passed, the checks are not read again
+        # field by field (about 8 us a sim.integrate call, which 200 outputs pay 200 times)
+        S = type(sim)
+        self._cfg_idx = np.concatenate([np.arange(getattr(S, f).offset,
+                                                  getattr(S, f).offset + getattr(S, f).size)
+                                        for f in _CONFIG_FIELDS])
+        self._cfg_bytes = np.frombuffer((ctypes.c_uint8 * ctypes.sizeof(S)).from_address(self._addr),
+                                        dtype=np.uint8)
+        self._cfg_ok = None
         self._view_key = None
         self._view = None
         self._gamma = None
@@ -494,11 +509,12 @@ class HBVMIntegrator(Counted):
         n = (type(sim).extras.offset - first) // 8 + 1
         self._slots = np.frombuffer((ctypes.c_int64 * n).from_address(self._addr + first),
                                     dtype=np.int64)
-        self._slot_idx = [0, n - 1]
+        self._slot_idx = np.array([0, n - 1])
         sim.dt = h
         sim.integrator = "none"
         sim.post_timestep_modifications = self._callback
         self._cb_ptr = ctypes.cast(sim._post_timestep_modifications, ctypes.c_void_p).value
+        self._python_slots = np.array([self._cb_ptr, 0], dtype=np.int64)
         sim.__class__ = _sim_class()
         _REGISTRY[self._addr] = self
         self.attached = True
@@ -687,14 +703,14 @@ class HBVMIntegrator(Counted):
                 if not self.last_run_native:
                     go(done)
                     break
-                before = self.sim.steps_done
+                before = int(self._simi[glue.STEPS_AT])
                 self._scal[glue.S_STATUS] = OK
                 try:
-                    self._slots[self._slot_idx] = (self._cstep, self._ctx.ctypes.data)
+                    self._slots[self._slot_idx] = self._native_slots
                     go(done)
                 finally:
-                    self._slots[self._slot_idx] = (self._cb_ptr, 0)
-                done += self.sim.steps_done - before
+                    self._slots[self._slot_idx] = self._python_slots
+                done += int(self._simi[glue.STEPS_AT]) - before
                 status = int(self._scal[glue.S_STATUS])
                 if status == RESYNC:      # the C step stopped the run: re-read, go on
                     self._resync(self._particle_view())
@@ -723,16 +739,21 @@ class HBVMIntegrator(Counted):
     def _before_run(self) -> None:
         self._error = None
         sim = self.sim
-        name = str(sim.integrator)
-        if name != "none":
-            raise ValueError(f"sim.integrator was changed to '{name}' while HBVMIntegrator is "
-                             "attached; call detach() first (it restores the integrator you had)")
-        if ctypes.cast(sim._post_timestep_modifications, ctypes.c_void_p).value != self._cb_ptr:
-            raise ValueError("sim.post_timestep_modifications was replaced while HBVMIntegrator "
-                             "is attached; set your callback before attaching (it is chained)")
-        _step_size("sim.dt", sim.dt)
-        check_simulation(sim)
-        if self._ctx is None and sim.N > 0:
+        config = self._cfg_bytes[self._cfg_idx].tobytes()
+        if config != self._cfg_ok:
+            name = str(sim.integrator)
+            if name != "none":
+                raise ValueError(f"sim.integrator was changed to '{name}' while HBVMIntegrator is "
+                                 "attached; call detach() first (it restores the integrator you had)")
+            if ctypes.cast(sim._post_timestep_modifications, ctypes.c_void_p).value != self._cb_ptr:
+                raise ValueError("sim.post_timestep_modifications was replaced while HBVMIntegrator "
+                                 "is attached; set your callback before attaching (it is chained)")
+            check_simulation(sim)
+            self._cfg_ok = config
+        h = self._simd[glue.DT_AT]
+        if not (math.isfinite(h) and h != 0.0):
+            _step_size("sim.dt", sim.dt)
+        if self._ctx is None and self._simi[glue.N_AT] > 0:
             self._resync(self._particle_view())
         # ctypes hands an exception raised on entering the callback (before its try: a signal
         # handler's) to sys.unraisablehook and goes on: catch it there for the time of the run
@@ -878,6 +899,8 @@ class HBVMIntegrator(Counted):
         ctx[[glue.D_SIM, glue.D_PTR, glue.D_NPART]] = (self._addr, self._simi[glue.PTR_AT],
                                                       self._simi[glue.N_AT])
         self._ctx = ctx
+        if self._cstep is not None:   # the two slots' values during a native run (see _run)
+            self._native_slots = np.array([self._cstep, ctx.ctypes.data], dtype=np.int64)
 
     def _step(self) -> None:
         """One REBOUND step through the Python callback: one compiled call (the step and its

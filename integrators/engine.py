@@ -19,6 +19,7 @@ from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
 from .protocol import adapt_system
+from .tableau import gauss_rule01
 from .specialise import specialise
 
 SOLVERS = ("auto", "fixed_point", "newton")
@@ -130,8 +131,8 @@ class Extrapolation:
 
     def __init__(self, method):
         self.E1 = np.array(method.E, dtype=float, order="C")   # writable: one array type
-        t, w = np.polynomial.legendre.leggauss(method.s)
-        self.t, self.w = (t + 1) / 2, w / 2
+        t, w = gauss_rule01(method.s)
+        self.t, self.w = t.copy(), w.copy()                      # writable, like E1
         self.buf = np.empty_like(self.E1)
         self.zero = np.zeros_like(self.E1)
 

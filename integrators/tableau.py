@@ -51,14 +51,17 @@ def gauss_matrix(s: int) -> np.ndarray:
     return X
 
 
+@lru_cache(maxsize=None)
 def _gauss_matrix_remainder(s: int) -> np.ndarray:
-    """The rounding remainder of X_s (xi_j is irrational): X_s = gauss_matrix(s) + this."""
+    """The rounding remainder of X_s (xi_j is irrational): X_s = gauss_matrix(s) + this
+    (read-only, computed once per s: choosing k builds several methods of one s)."""
     R = np.zeros((s, s))
     with mpmath.workdps(_q._DPS):
         for j in range(1, s):
             x = 1 / (2 * mpmath.sqrt((2 * j + 1) * (2 * j - 1)))
             R[j, j - 1] = float(x - mpmath.mpf(xi(j)))
             R[j - 1, j] = -R[j, j - 1]
+    R.flags.writeable = False
     return R
 
 
@@ -70,6 +73,9 @@ def gauss_spectrum(s: int) -> np.ndarray:
 def _sort(z: np.ndarray) -> np.ndarray:
     z = np.asarray(z, dtype=complex)
     return z[np.lexsort((np.round(z.imag, 12), np.round(z.real, 12)))]
+
+
+_CHECKED: set = set()      # (k, s, nodes) of the methods whose tableau passed HBVM._check
 
 
 @lru_cache(maxsize=None)
@@ -191,7 +197,9 @@ class HBVM:
         set_(self, "X", _readonly(gauss_matrix(s)))
         set_(self, "X_lo", _readonly(_gauss_matrix_remainder(s)))
         set_(self, "_mp", d["mp"])
-        self._check()
+        if (k, s, nodes) not in _CHECKED:        # once per method and process
+            self._check()
+            _CHECKED.add((k, s, nodes))
 
     def __setattr__(self, name, value):
         raise AttributeError(f"HBVM is immutable; build a new one instead of setting {name!r}")
@@ -301,10 +309,9 @@ class HBVM:
             return self.E
         # compiled: an adaptive run needs it at every step (a new ratio each time)
         from .core import extrapolation_matrix
-        t, w = np.polynomial.legendre.leggauss(self.s) if self.s not in _GAUSS else _GAUSS[self.s]
-        _GAUSS[self.s] = (t, w)
+        t, w = gauss_rule01(self.s)
         E = np.empty((self.s, self.s))
-        extrapolation_matrix(float(ratio), (t + 1) / 2, w / 2, E)
+        extrapolation_matrix(float(ratio), t.copy(), w.copy(), E)    # writable: one signature
         return E
 
     # -- stepping (delegated to the engine) ---------------------------------------------
@@ -321,7 +328,15 @@ class HBVM:
         return integrate(self, system, y0, h, steps, **options)
 
 
-_GAUSS: dict = {}
+@lru_cache(maxsize=None)
+def gauss_rule01(s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The s-point Gauss-Legendre rule on [0, 1] (nodes, weights; read-only, once per s), which
+    integrates the extrapolation matrices' products of degree 2s - 2 exactly."""
+    t, w = np.polynomial.legendre.leggauss(s)
+    t, w = (t + 1) / 2, w / 2
+    t.flags.writeable = False
+    w.flags.writeable = False
+    return t, w
 
 
 def _legendre_basis(t: np.ndarray, s: int) -> np.ndarray:

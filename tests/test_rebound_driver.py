@@ -145,13 +145,39 @@ def test_refusals_at_attach_and_first_step(setting, match):
     setting(sim)
     with pytest.raises(ValueError, match=match):
         HBVMIntegrator(sim, s=6, k=8, dt=100.0)
-    ok = outer_solar_system().to_rebound()
-    HBVMIntegrator(ok, s=6, k=8, dt=100.0)
-    setting(ok)
-    before = _xv(ok)
-    with pytest.raises(ValueError, match=match):
-        ok.integrate(500.0)
-    assert np.array_equal(_xv(ok), before) and ok.t == 0.0
+    for t_ran in (0.0, 200.0):   # before any run, and after runs that passed the checks
+        ok = outer_solar_system().to_rebound()
+        HBVMIntegrator(ok, s=6, k=8, dt=100.0)
+        if t_ran:
+            ok.integrate(100.0)
+            ok.integrate(t_ran)
+        setting(ok)
+        before = _xv(ok)
+        with pytest.raises(ValueError, match=match):
+            ok.integrate(500.0)
+        assert np.array_equal(_xv(ok), before) and ok.t == t_ran
+
+
+def test_settings_changed_between_runs_are_checked_again():
+    """The checks of a run are skipped while the settings' bytes are those of the last run that
+    passed them: any change (the integrator, the step, N_active) is caught again."""
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    sim.integrate(200.0)
+    sim.integrator = "whfast"
+    with pytest.raises(ValueError, match="integrator was changed"):
+        sim.integrate(300.0)
+    sim.integrator = "none"
+    sim.integrate(300.0)
+    sim.dt = float("nan")
+    with pytest.raises(ValueError, match="sim.dt"):
+        sim.integrate(400.0)
+    sim.dt = 100.0
+    sim.testparticle_type = 1
+    sim.N_active = 3
+    with pytest.raises(ValueError, match="testparticle_type=1"):
+        sim.integrate(400.0)
+    assert sim.t == 300.0
 
 
 def test_exception_in_step_reaches_caller_and_leaves_state():
