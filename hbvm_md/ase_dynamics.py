@@ -8,6 +8,7 @@ units, p in amu A / time unit, F in eV / A, so dq/dt = p / m and dp/dt = F.
 from __future__ import annotations
 
 import copy
+import inspect
 import logging
 import re
 
@@ -58,6 +59,21 @@ class _AtomsSystem(SeparableSystem):
         self.fixed = np.asarray(fixed, dtype=int)
         self.batched = batched
         self.stage_evaluations = 0
+        # the engine writes the stage forces straight into its array when the calculator's
+        # forces_batch takes out= (PolynomialPairPotential's does) and no atom is fixed
+        try:
+            takes_out = batched and "out" in inspect.signature(self.calc.forces_batch).parameters
+        except (TypeError, ValueError):
+            takes_out = False
+        if takes_out and not self.fixed.size:
+            self.forces_into = self._forces_into
+
+    def _forces_into(self, Q: np.ndarray, out: np.ndarray) -> None:
+        """``out[...] = forces(Q)`` for stage rows Q (n, 3N), without the copy."""
+        n = Q.shape[0]
+        self.calc.forces_batch(Q.reshape(n, self.n_atoms, 3), self.atoms,
+                               out=out.reshape(n, self.n_atoms, 3))
+        self.stage_evaluations += n
 
     def forces(self, Q: np.ndarray) -> np.ndarray:
         Q = np.asarray(Q, dtype=float)

@@ -39,9 +39,9 @@ STATE_ULPS = 16.0        # ... and so is one that moves the new state by at most
 # status codes of a step (one table maps them to exceptions: integrators.errors.step_error);
 # TOO_SMALL: an adaptive step was not accepted down to min_dt (loop.attempt)
 OK, DIVERGED, NOT_FINITE, UNRESOLVED, TOO_SMALL = 0, 1, 2, 3, 4
-NARROW, WIDE = 8, 2 ** 16  # the sums column-innermost (vectorised) from NARROW to WIDE columns,
-                          # entry by entry outside (fewer than 3 bodies; from about 2e4 atoms
-                          # the column-innermost partial sums no longer stay in cache), measured
+NARROW = 8                # from this many columns the sums run column-innermost (vectorised),
+                          # below it entry by entry (fewer than 3 bodies), measured
+BLOCK = 512               # ... in blocks of this many columns (their partial sums stay in cache)
 TINY_RATIO = 1e-3         # a step this much shorter than the previous one is a sliver
 MAX_EXTRAPOLATION = 4.0   # the longest h_new / h_old the previous polynomial is extrapolated over
 # what the iteration does next (stop_action)
@@ -183,35 +183,42 @@ def guess(E, gamma, g):
 def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R):
     """Separable form: Q = q0 + h tau v0 + h^2 (I_s X_s) M^{-1} gamma_p, y = (q, p).
 
-    R (2, >= m) is scratch: the sums over l run with the column j innermost, so that the
-    columns' sums are independent (vectorised) rather than one chain of dependent additions
-    each.  :func:`stage_positions_narrow` gives the same numbers (every Q[i, j] is the same sum
-    in the same order) and is faster below NARROW and above WIDE columns; the step picks one of
-    the two where it calls them, which keeps each small enough to be inlined there (one
-    function holding both loops is not inlined: measured 1.3 us more a step of the outer solar
-    system)."""
+    R (2, >= min(m, BLOCK)) is scratch: the sums over l run with the column j innermost, in
+    blocks of BLOCK columns, so that the columns' sums are independent (vectorised) rather than
+    one chain of dependent additions each, and their partial sums stay in cache however many
+    columns there are.  Column indices are unsigned: numba then drops its negative-index
+    wraparound, which otherwise keeps these loops from vectorising (measured 2x).
+    :func:`stage_positions_narrow` gives the same numbers (every Q[i, j] is the same sum in the
+    same order) and is faster below NARROW columns; the step picks one of the two where it
+    calls them, which keeps each small enough to be inlined there (one function holding both
+    loops is not inlined: measured 1.3 us more a step of the outer solar system)."""
     s, m = g.shape
     acc = R[0]
     acc_lo = R[1]
+    mu = np.uint64(m)
     for i in range(s):
         for j in range(m):
             a[i, j] = g[i, j] * minv[j]
-    for i in range(Q.shape[0]):
-        for j in range(m):
-            acc[j] = 0.0
-            acc_lo[j] = 0.0
-        for l in range(s):
-            c = C2[i, l]
-            c_lo = C2_lo[i, l]
-            for j in range(m):
-                acc[j] += c * a[l, j]
-                acc_lo[j] += c_lo * a[l, j]
-        hti = ht[i]
-        hti_lo = ht_lo[i]
-        for j in range(m):
-            vj = y[m + j] * minv[j]
-            Q[i, j] = y[j] + hti * vj + ((hti_lo * vj - cy[j]) - hti * cy[m + j] * minv[j]
-                                         + h2 * (acc[j] + acc_lo[j]) + h2_lo * acc[j])
+    for j0 in range(0, m, BLOCK):
+        nb = np.uint64(min(BLOCK, m - j0))
+        ju = np.uint64(j0)
+        for i in range(Q.shape[0]):
+            for jj in range(nb):
+                acc[jj] = 0.0
+                acc_lo[jj] = 0.0
+            for l in range(s):
+                c = C2[i, l]
+                c_lo = C2_lo[i, l]
+                for jj in range(nb):
+                    acc[jj] += c * a[l, ju + jj]
+                    acc_lo[jj] += c_lo * a[l, ju + jj]
+            hti = ht[i]
+            hti_lo = ht_lo[i]
+            for jj in range(nb):
+                j = ju + jj
+                vj = y[mu + j] * minv[j]
+                Q[i, j] = y[j] + hti * vj + ((hti_lo * vj - cy[j]) - hti * cy[mu + j] * minv[j]
+                                             + h2 * (acc[jj] + acc_lo[jj]) + h2_lo * acc[jj])
 
 @jit
 def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q):
@@ -235,24 +242,28 @@ def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q
 @jit
 def full_stages(y, cy, g, I, I_lo, h, Y, R):
     """Full form: Y = y0 + h I_s gamma at the stages, y0 the double-double y - cy (R: scratch
-    (2, >= d), the sums column-innermost as in :func:`stage_positions`; below NARROW or above
-    WIDE columns :func:`full_stages_narrow`)."""
+    (2, >= min(d, BLOCK)), the sums column-innermost in blocks as in :func:`stage_positions`;
+    below NARROW columns :func:`full_stages_narrow`)."""
     n = Y.shape[0]
     s, d = g.shape
     acc = R[0]
     acc_lo = R[1]
-    for i in range(n):
-        for j in range(d):
-            acc[j] = 0.0
-            acc_lo[j] = 0.0
-        for l in range(s):
-            c = I[i, l]
-            c_lo = I_lo[i, l]
-            for j in range(d):
-                acc[j] += c * g[l, j]
-                acc_lo[j] += c_lo * g[l, j]
-        for j in range(d):
-            Y[i, j] = y[j] + (h * (acc[j] + acc_lo[j]) - cy[j])
+    for j0 in range(0, d, BLOCK):
+        nb = np.uint64(min(BLOCK, d - j0))
+        ju = np.uint64(j0)
+        for i in range(n):
+            for jj in range(nb):
+                acc[jj] = 0.0
+                acc_lo[jj] = 0.0
+            for l in range(s):
+                c = I[i, l]
+                c_lo = I_lo[i, l]
+                for jj in range(nb):
+                    acc[jj] += c * g[l, ju + jj]
+                    acc_lo[jj] += c_lo * g[l, ju + jj]
+            for jj in range(nb):
+                j = ju + jj
+                Y[i, j] = y[j] + (h * (acc[jj] + acc_lo[jj]) - cy[j])
 
 @jit
 def full_stages_narrow(y, cy, g, I, I_lo, h, Y):
@@ -311,9 +322,9 @@ def project_narrow(W, W_lo, F, g):
 @jit
 def project(W, W_lo, F, g, R):
     """g <- W F (plain sums); returns (max |increment|, max |g|, max |F|), each nan when a
-    value it covers is nan (max |g| skips nan).  R (5, >= u) is scratch: the sums and maxima
-    run column-innermost (see :func:`stage_positions`), then across the columns;
-    :func:`project_narrow` gives the same numbers, faster below NARROW or above WIDE columns."""
+    value it covers is nan (max |g| skips nan).  R (5, >= min(m, BLOCK)) is scratch: the sums
+    and maxima run column-innermost in blocks (see :func:`stage_positions`), then across the
+    columns; :func:`project_narrow` gives the same numbers, faster below NARROW columns."""
     s, m = g.shape
     n = F.shape[0]
     acc = R[0]
@@ -321,69 +332,76 @@ def project(W, W_lo, F, g, R):
     fcol = R[2]
     dcol = R[3]
     scol = R[4]
-    for j in range(m):
-        fcol[j] = 0.0
-        dcol[j] = 0.0
-        scol[j] = 0.0
-    for i in range(n):
-        for j in range(m):
-            x = abs(F[i, j])
-            c = fcol[j]
-            fcol[j] = x if (x > c or x != x) else c
-    for i in range(s):
-        for j in range(m):
-            acc[j] = 0.0
-            acc_lo[j] = 0.0
-        for l in range(n):
-            w = W[i, l]
-            w_lo = W_lo[i, l]
-            for j in range(m):
-                acc[j] += w * F[l, j]
-                acc_lo[j] += w_lo * F[l, j]
-        for j in range(m):
-            v = acc[j] + acc_lo[j]
-            d = abs(v - g[i, j])
-            c = dcol[j]
-            dcol[j] = d if (d > c or d != d) else c
-            x = abs(v)
-            c = scol[j]
-            scol[j] = x if x > c else c
-            g[i, j] = v
     fmax = 0.0
     delta = 0.0
     scale = 0.0
-    for j in range(m):
-        if fcol[j] > fmax or fcol[j] != fcol[j]:
-            fmax = fcol[j]
-        if dcol[j] > delta or dcol[j] != dcol[j]:
-            delta = dcol[j]
-        if scol[j] > scale:
-            scale = scol[j]
+    for j0 in range(0, m, BLOCK):
+        nb = np.uint64(min(BLOCK, m - j0))
+        ju = np.uint64(j0)
+        for jj in range(nb):
+            fcol[jj] = 0.0
+            dcol[jj] = 0.0
+            scol[jj] = 0.0
+        for i in range(n):
+            for jj in range(nb):
+                x = abs(F[i, ju + jj])
+                c = fcol[jj]
+                fcol[jj] = x if (x > c or x != x) else c
+        for i in range(s):
+            for jj in range(nb):
+                acc[jj] = 0.0
+                acc_lo[jj] = 0.0
+            for l in range(n):
+                w = W[i, l]
+                w_lo = W_lo[i, l]
+                for jj in range(nb):
+                    acc[jj] += w * F[l, ju + jj]
+                    acc_lo[jj] += w_lo * F[l, ju + jj]
+            for jj in range(nb):
+                j = ju + jj
+                v = acc[jj] + acc_lo[jj]
+                d = abs(v - g[i, j])
+                c = dcol[jj]
+                dcol[jj] = d if (d > c or d != d) else c
+                x = abs(v)
+                c = scol[jj]
+                scol[jj] = x if x > c else c
+                g[i, j] = v
+        for jj in range(nb):
+            if fcol[jj] > fmax or fcol[jj] != fcol[jj]:
+                fmax = fcol[jj]
+            if dcol[jj] > delta or dcol[jj] != dcol[jj]:
+                delta = dcol[jj]
+            if scol[jj] > scale:
+                scale = scol[jj]
     return delta, scale, fmax
 
 @jit
 def project_compensated(W, W_lo, F, g, R):
     """g <- W F as if in twice the working precision (Dot2), rounded once (R: scratch, the
-    sums column-innermost)."""
+    sums column-innermost in blocks)."""
     s, m = g.shape
     n = F.shape[0]
     acc = R[0]
     acc_lo = R[1]
-    for i in range(s):
-        for j in range(m):
-            acc[j] = 0.0
-            acc_lo[j] = 0.0
-        for l in range(n):
-            w = W[i, l]
-            w_lo = W_lo[i, l]
-            for j in range(m):
-                f = F[l, j]
-                ph, pl = two_product(w, f)
-                hi, e = two_sum(acc[j], ph)
-                acc[j] = hi
-                acc_lo[j] += (e + pl) + w_lo * f
-        for j in range(m):
-            g[i, j] = acc[j] + acc_lo[j]
+    for j0 in range(0, m, BLOCK):
+        nb = np.uint64(min(BLOCK, m - j0))
+        ju = np.uint64(j0)
+        for i in range(s):
+            for jj in range(nb):
+                acc[jj] = 0.0
+                acc_lo[jj] = 0.0
+            for l in range(n):
+                w = W[i, l]
+                w_lo = W_lo[i, l]
+                for jj in range(nb):
+                    f = F[l, ju + jj]
+                    ph, pl = two_product(w, f)
+                    hi, e = two_sum(acc[jj], ph)
+                    acc[jj] = hi
+                    acc_lo[jj] += (e + pl) + w_lo * f
+            for jj in range(nb):
+                g[i, ju + jj] = acc[jj] + acc_lo[jj]
 
 @jit
 def newton_update(g, pg, NV, NVinv, NM, Rt, Z):
@@ -488,7 +506,7 @@ def commit_full(y, cy, h, g):
 def work_sizes(n: int, s: int, u: int, m: int, d: int) -> tuple:
     """(float, complex) lengths of the work buffers :func:`carve` cuts for k = n stages, s
     coefficient blocks of width u, m masses and a state of length d."""
-    return 4 * n + 2 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * u, 2 * s * u
+    return 4 * n + 2 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * min(u, BLOCK), 2 * s * u
 
 
 @jit
@@ -508,7 +526,7 @@ def carve(work, cwork, n, s, u, m, d):
     """The step's work arrays as views of two buffers (one array argument each instead of
     eighteen, which a host calling one step at a time pays for: about 0.1 microsecond each to
     unbox, or to allocate): ht, ht_lo (n), hist (2), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
-    Xp, Fp (n, u), yt, cyt (d), R (5, u) (scratch of the column sums), Rt, Z (s, u) complex."""
+    Xp, Fp (n, u), yt, cyt (d), R (5, min(u, BLOCK)) (scratch of the column sums), Rt, Z (s, u) complex."""
     ht, o = _take(work, 0, n)
     ht_lo, o = _take(work, o, n)
     hist, o = _take(work, o, 2)
@@ -524,7 +542,7 @@ def carve(work, cwork, n, s, u, m, d):
     G, o = _take2(work, o, n, u)
     Xp, o = _take2(work, o, n, u)
     Fp, o = _take2(work, o, n, u)
-    R, o = _take2(work, o, 5, u)
+    R, o = _take2(work, o, 5, min(u, BLOCK))
     Rt, o = _take2(cwork, 0, s, u)
     Z, o = _take2(cwork, o, s, u)
     return ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, R, Rt, Z

@@ -215,8 +215,12 @@ class Binding:
             def potential(y, params):
                 return float(system.energy(y))
         else:
-            def force(Q, params, out):
-                out[...] = system.forces(Q)
+            if callable(getattr(system, "forces_into", None)):
+                def force(Q, params, out):        # writes out itself (no copy of the result)
+                    system.forces_into(Q, out)
+            else:
+                def force(Q, params, out):
+                    out[...] = system.forces(Q)
 
             def potential(q, params):
                 return float(system.potential(q))

@@ -33,7 +33,7 @@ code; it changes y, cy, gamma and eref only when the step succeeded.
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
-                              C_STEPS, DIVERGED, EPS, ITERATE, NARROW, WIDE, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              C_STEPS, DIVERGED, EPS, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
                               all_finite, all_zero, carve, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
@@ -85,7 +85,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     n = tau.shape[0]
     s, u = gamma.shape
     m = minv.shape[0]
-    narrow = u < NARROW or u > WIDE    # the sums entry by entry (see core.NARROW)
+    narrow = u < NARROW     # the sums entry by entry (see core.NARROW)
     ht, ht_lo, hist, dq, dq_lo, a, pg, g, X, F, G, Xp, Fp, yt, cyt, R, Rt, Z = carve(
         work, cwork, n, s, u, m, y.shape[0])
     isample = 0

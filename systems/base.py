@@ -32,6 +32,10 @@ and optionally
 Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of
 freedom), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
 engine then iterates on the momentum coefficients only.
+``forces_into(Q, out)``
+    Optional, separable form: writes ``forces(Q)`` for a stack Q (n, m) into the C-contiguous
+    float64 array ``out`` (n, m) and returns nothing; the Python path then skips copying the
+    result (the ASE adapter provides it for calculators whose ``forces_batch`` takes ``out=``).
 ``separable_kernels()``
     Returns ``(force, potential, params)`` for the compiled step: ``force(Q, params, out)`` a
     numba ``njit`` function writing -grad V at each row of Q (n, m) into ``out`` (n, m);

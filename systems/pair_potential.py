@@ -43,8 +43,8 @@ def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
     n, N = X.shape[0], X.shape[1]
     Xt = np.empty((N, n, 3))
     Ft = np.zeros((N, n, 3))
-    for a in range(n):
-        for k in range(N):
+    for k in range(N):          # atom-outer: Xt is written (and F below read) in order
+        for a in range(n):
             for c in range(3):
                 Xt[k, a, c] = X[a, k, c]
     for p in range(ii.shape[0]):
@@ -67,8 +67,8 @@ def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
             Ft[j, a, 0] -= f * dx
             Ft[j, a, 1] -= f * dy
             Ft[j, a, 2] -= f * dz
-    for a in range(n):
-        for k in range(N):
+    for k in range(N):
+        for a in range(n):
             for c in range(3):
                 F[a, k, c] = Ft[k, a, c]
 
@@ -413,7 +413,7 @@ class PolynomialPairPotential(Calculator):
         return nl[0], nl[1], nl[2], nl[3], self.cutoff ** 2
 
     # -- evaluation --------------------------------------------------------------------------
-    def forces_batch(self, Q, atoms=None) -> np.ndarray:
+    def forces_batch(self, Q, atoms=None, out=None) -> np.ndarray:
         """Forces at many configurations at once (compiled), e.g. the k stages of a step.
 
         Parameters
@@ -423,6 +423,9 @@ class PolynomialPairPotential(Calculator):
         atoms : ase.Atoms, optional
             Supplies cell, pbc and the number of atoms; default the atoms of the last
             calculation.
+        out : ndarray of float64, shape (n, N, 3), C-contiguous, optional
+            Written with the forces and returned (no new array: at 1e5 atoms a copy of the
+            result costs about 4 % of an HBVM step).
 
         Returns
         -------
@@ -438,7 +441,15 @@ class PolynomialPairPotential(Calculator):
         X = np.ascontiguousarray(Q, dtype=float)
         if X.ndim != 3 or X.shape[1:] != (len(atoms), 3):
             raise ValueError(f"`Q` must have shape (n, {len(atoms)}, 3) (got shape {X.shape})")
-        F = np.empty_like(X)
+        if out is None:
+            F = np.empty_like(X)
+        else:
+            F = out
+            if not (isinstance(F, np.ndarray) and F.dtype == np.float64 and F.shape == X.shape
+                    and F.flags.c_contiguous and F.flags.writeable):
+                raise ValueError(f"`out` must be a writable C-contiguous float64 array of shape "
+                                 f"{X.shape} (got {type(F).__name__} "
+                                 f"{getattr(F, 'shape', None)}, {getattr(F, 'dtype', None)})")
         lst = self._pair_list(atoms, X)
         if lst is None:    # the configurations are far apart: one neighbour list each
             for a in range(X.shape[0]):

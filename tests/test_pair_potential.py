@@ -78,6 +78,19 @@ def test_batched_path_matches_one_configuration_path(name):
         np.testing.assert_allclose(Fb[a], atoms.get_forces(), rtol=1e-12, atol=1e-14)
 
 
+def test_forces_batch_writes_into_out_and_refuses_a_wrong_one():
+    atoms = _all_setups()["cutoff_periodic"]
+    calc = atoms.calc
+    Q = atoms.positions[None] + np.random.default_rng(4).normal(scale=0.05, size=(3, len(atoms), 3))
+    out = np.full(Q.shape, np.nan)
+    assert calc.forces_batch(Q, atoms, out=out) is out
+    np.testing.assert_array_equal(out, calc.forces_batch(Q, atoms))
+    for bad in (np.empty(Q.shape, dtype=np.float32), np.empty(Q.shape[:-1]),
+                np.empty(Q.shape[::-1]).T):
+        with pytest.raises(ValueError, match="`out` must be"):
+            calc.forces_batch(Q, atoms, out=bad)
+
+
 def test_neighbour_list_is_rebuilt_when_atoms_move_beyond_the_skin():
     atoms = _periodic()
     atoms.calc = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.2)
