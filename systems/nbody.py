@@ -36,33 +36,69 @@ from .base import SeparableSystem
 
 @jit
 def nbody_forces(Q, params, out):
-    """dp/dt at each row of Q (n, 3N) into out; params as in the module docstring."""
+    """dp/dt at each row of Q (n, 3N) into out; params as in the module docstring.
+
+    The rows (the stages of a step) go four at a time through the pair loop: four independent
+    square roots and divisions per pair keep the floating-point units busy where one row at a
+    time waits on each (measured 19 % faster on the outer solar system, 7 % a step).  A group
+    short of four repeats its last row and stores it once.  Each row receives the same
+    operations in the same order as alone: the same numbers, bit for bit."""
     G = params[0]
     N = int(params[1])
-    for r in range(Q.shape[0]):
+    n = Q.shape[0]
+    for r in range(n):
         for a in range(3 * N):
             out[r, a] = 0.0
+    for ra in range(0, n, 4):
+        rb = min(ra + 1, n - 1)
+        rc = min(ra + 2, n - 1)
+        rd = min(ra + 3, n - 1)
         for i in range(N):
             wi = params[2 + i]
             gi = params[2 + N + i]
-            xi, yi, zi = Q[r, 3 * i], Q[r, 3 * i + 1], Q[r, 3 * i + 2]
             for j in range(i + 1, N):
                 gj = params[2 + N + j]
                 if gi == 0.0 and gj == 0.0:
                     continue
-                dx = Q[r, 3 * j] - xi
-                dy = Q[r, 3 * j + 1] - yi
-                dz = Q[r, 3 * j + 2] - zi
-                r2 = dx * dx + dy * dy + dz * dz
-                inv3 = G / (r2 * np.sqrt(r2))
-                ci = wi * gj * inv3
-                cj = params[2 + j] * gi * inv3
-                out[r, 3 * i] += ci * dx
-                out[r, 3 * i + 1] += ci * dy
-                out[r, 3 * i + 2] += ci * dz
-                out[r, 3 * j] -= cj * dx
-                out[r, 3 * j + 1] -= cj * dy
-                out[r, 3 * j + 2] -= cj * dz
+                xa = Q[ra, 3 * j] - Q[ra, 3 * i]
+                ya = Q[ra, 3 * j + 1] - Q[ra, 3 * i + 1]
+                za = Q[ra, 3 * j + 2] - Q[ra, 3 * i + 2]
+                xb = Q[rb, 3 * j] - Q[rb, 3 * i]
+                yb = Q[rb, 3 * j + 1] - Q[rb, 3 * i + 1]
+                zb = Q[rb, 3 * j + 2] - Q[rb, 3 * i + 2]
+                xc = Q[rc, 3 * j] - Q[rc, 3 * i]
+                yc = Q[rc, 3 * j + 1] - Q[rc, 3 * i + 1]
+                zc = Q[rc, 3 * j + 2] - Q[rc, 3 * i + 2]
+                xd = Q[rd, 3 * j] - Q[rd, 3 * i]
+                yd = Q[rd, 3 * j + 1] - Q[rd, 3 * i + 1]
+                zd = Q[rd, 3 * j + 2] - Q[rd, 3 * i + 2]
+                sa = xa * xa + ya * ya + za * za
+                sb = xb * xb + yb * yb + zb * zb
+                sc = xc * xc + yc * yc + zc * zc
+                sd = xd * xd + yd * yd + zd * zd
+                ia = G / (sa * np.sqrt(sa))
+                ib = G / (sb * np.sqrt(sb))
+                ic = G / (sc * np.sqrt(sc))
+                id_ = G / (sd * np.sqrt(sd))
+                wg = wi * gj                  # the force on i from j: G w_i g_j d / r^3
+                gw = params[2 + j] * gi       # and on j from i
+                _add_pair(out, ra, i, j, wg * ia, gw * ia, xa, ya, za)
+                if rb > ra:
+                    _add_pair(out, rb, i, j, wg * ib, gw * ib, xb, yb, zb)
+                if rc > rb:
+                    _add_pair(out, rc, i, j, wg * ic, gw * ic, xc, yc, zc)
+                if rd > rc:
+                    _add_pair(out, rd, i, j, wg * id_, gw * id_, xd, yd, zd)
+
+
+@jit
+def _add_pair(out, r, i, j, ci, cj, dx, dy, dz):
+    out[r, 3 * i] += ci * dx
+    out[r, 3 * i + 1] += ci * dy
+    out[r, 3 * i + 2] += ci * dz
+    out[r, 3 * j] -= cj * dx
+    out[r, 3 * j + 1] -= cj * dy
+    out[r, 3 * j + 2] -= cj * dz
 
 
 @jit

@@ -39,6 +39,27 @@ def test_compiled_kernels_match_numpy():
     assert v == pytest.approx(nb.potential(Q[0]), rel=1e-14)
 
 
+def test_compiled_kernel_gives_each_row_the_numbers_it_gives_alone():
+    """The kernel takes the rows (stages) four at a time, repeating the last row of a short
+    group: every row of a stack must come out bit for bit as when evaluated alone."""
+    from systems.nbody import nbody_forces
+    rng = np.random.default_rng(11)
+    for n in range(1, 12):
+        N = int(rng.integers(2, 9))
+        m = rng.uniform(1e-6, 1.0, N)
+        m[-1] = 0.0                                     # a test particle too
+        nb = NBody(m, G=1.7)
+        params = nb.separable_kernels()[2]
+        Q = rng.normal(size=(n, 3 * N))
+        out = np.full_like(Q, np.nan)
+        nbody_forces(Q, params, out)
+        np.testing.assert_allclose(out, nb.forces(Q), rtol=1e-12, atol=0)     # numpy's
+        for r in range(n):
+            alone = np.full((1, 3 * N), np.nan)
+            nbody_forces(Q[r:r + 1].copy(), params, alone)
+            assert np.array_equal(out[r], alone[0]), (n, r)
+
+
 def test_test_particles_feel_sources_and_exert_nothing():
     rng = np.random.default_rng(3)
     m = [1.0, 1e-3, 0.0, 2e-3]                          # particle 2 has zero mass; 3 is inactive
