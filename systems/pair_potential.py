@@ -29,8 +29,10 @@ from integrators.jit import jit
 
 
 @jit
-def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
-    """F[a] = -grad E at each configuration X[a] (shapes (n, N, 3)).
+def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F, ref):
+    """F[a] = -grad E at each configuration X[a] (shapes (n, N, 3)); returns the largest
+    |X[a, k] - ref[k]|^2 (the neighbour list's check, taken in the same pass over X), or 0 when
+    ref is empty.
 
     E = sum_p G_t(u_p), u_p = |X_j - X_i + shift_p|^2, G_t(u) = sum_q C[t, q] u^q; pairs with
     u >= rc2 contribute nothing.  F_i = 2 G'(u) D, F_j = -2 G'(u) D with D = X_j - X_i + shift.
@@ -43,10 +45,19 @@ def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
     n, N = X.shape[0], X.shape[1]
     Xt = np.empty((N, n, 3))
     Ft = np.zeros((N, n, 3))
+    worst = 0.0
+    check = ref.shape[0] == N
     for k in range(N):          # atom-outer: Xt is written (and F below read) in order
         for a in range(n):
             for c in range(3):
                 Xt[k, a, c] = X[a, k, c]
+            if check:
+                dx = X[a, k, 0] - ref[k, 0]
+                dy = X[a, k, 1] - ref[k, 1]
+                dz = X[a, k, 2] - ref[k, 2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 > worst:
+                    worst = d2
     for p in range(ii.shape[0]):
         i, j, t = ii[p], jj[p], ctype[p]
         s0, s1, s2 = shift[p, 0], shift[p, 1], shift[p, 2]
@@ -71,6 +82,7 @@ def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F):
         for a in range(n):
             for c in range(3):
                 F[a, k, c] = Ft[k, a, c]
+    return worst
 
 
 @jit
@@ -161,6 +173,9 @@ def _max_displacement2(X, ref):
             if r2 > worst:
                 worst = r2
     return worst
+
+
+_NO_REFERENCE = np.zeros((0, 3))    # _pair_forces without the neighbour-list check
 
 
 def _check_coefficients(c, name: str) -> np.ndarray:
@@ -390,27 +405,38 @@ class PolynomialPairPotential(Calculator):
         in any configuration was closer than cutoff + skin at the reference, so one list serves
         all the stage configurations of an HBVM step and the steps that follow.
         """
-        cell = np.array(atoms.cell)
-        pbc = np.array(atoms.pbc)
-        nl = self._nl
-        ok = (nl is not None and nl[7] == len(atoms) and np.array_equal(nl[5], cell)
-              and np.array_equal(nl[6], pbc))
-        if ok:
-            ok = _max_displacement2(X, nl[4]) < (0.5 * self.skin) ** 2
-        if not ok:
-            # vesin accepts unwrapped positions: the shifts S it returns make
-            # X_j - X_i + S @ cell the separation of the positions given
-            search = vesin.NeighborList(cutoff=self.cutoff + self.skin, full_list=False,
-                                         sorted=True)   # by i: better cache use in the kernels
-            i, j, S = search.compute(X[0], cell, pbc, "ijS")
-            shift = np.ascontiguousarray(np.asarray(S, dtype=float) @ cell)
-            nl = (np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64),
-                  shift, np.zeros(len(i), dtype=np.int64), X[0].copy(), cell, pbc, len(atoms))
-            self._nl = nl
-            self.neighbour_list_builds += 1
+        nl = self._current_list(atoms)
+        if nl is None or _max_displacement2(X, nl[4]) >= (0.5 * self.skin) ** 2:
+            nl = self._build_list(atoms, X[0])
             if _max_displacement2(X, nl[4]) >= (0.5 * self.skin) ** 2:
                 return None    # configurations too far apart for one list
         return nl[0], nl[1], nl[2], nl[3], self.cutoff ** 2
+
+    def _current_list(self, atoms):
+        """The kept list when it was built for these atoms' number, cell and pbc, else None
+        (whether the atoms stayed within skin / 2 of its reference is checked by the caller)."""
+        nl = self._nl
+        if (nl is not None and nl[7] == len(atoms) and np.array_equal(nl[5], atoms.cell.array)
+                and np.array_equal(nl[6], atoms.pbc)):
+            return nl
+        return None
+
+    def _build_list(self, atoms, x0):
+        """Build, keep and return the Verlet list at positions x0 (N, 3)."""
+        cell = np.array(atoms.cell)
+        pbc = np.array(atoms.pbc)
+        # vesin accepts unwrapped positions: the shifts S it returns make
+        # X_j - X_i + S @ cell the separation of the positions given
+        search = vesin.NeighborList(cutoff=self.cutoff + self.skin, full_list=False,
+                                    sorted=True)   # by i: better cache use in the kernels
+        i, j, S = search.compute(x0, cell, pbc, "ijS")
+        shift = np.ascontiguousarray(np.asarray(S, dtype=float) @ cell)
+        nl = (np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64),
+              shift, np.zeros(len(i), dtype=np.int64), np.array(x0, dtype=float), cell, pbc,
+              len(atoms))
+        self._nl = nl
+        self.neighbour_list_builds += 1
+        return nl
 
     # -- evaluation --------------------------------------------------------------------------
     def forces_batch(self, Q, atoms=None, out=None) -> np.ndarray:
@@ -450,16 +476,29 @@ class PolynomialPairPotential(Calculator):
                 raise ValueError(f"`out` must be a writable C-contiguous float64 array of shape "
                                  f"{X.shape} (got {type(F).__name__} "
                                  f"{getattr(F, 'shape', None)}, {getattr(F, 'dtype', None)})")
-        lst = self._pair_list(atoms, X)
-        if lst is None:    # the configurations are far apart: one neighbour list each
-            for a in range(X.shape[0]):
-                F[a] = self.forces_batch(X[a:a + 1], atoms)[0]
-                self.batch_evaluations -= 1
+        if self.pairs is None and self.cutoff is not None:
+            # cutoff mode: the kernel checks, in its pass over X, that every atom stayed within
+            # skin / 2 of the list's reference; when one did not, the forces are computed again
+            # with a list built at X[0] (a few steps in a hundred)
+            bound = (0.5 * self.skin) ** 2
+            rc2 = self.cutoff ** 2
+            nl = self._current_list(atoms)
+            if nl is None or _pair_forces(X, nl[0], nl[1], nl[2], nl[3], self._table, rc2, F,
+                                          nl[4]) >= bound:
+                nl = self._build_list(atoms, X[0])
+                if _pair_forces(X, nl[0], nl[1], nl[2], nl[3], self._table, rc2, F,
+                                nl[4]) >= bound:
+                    self._one_list_each(X, atoms, F)   # configurations far apart
         else:
-            ii, jj, shift, ctype, rc2 = lst
-            _pair_forces(X, ii, jj, shift, ctype, self._table, rc2, F)
+            ii, jj, shift, ctype, rc2 = self._pair_list(atoms, X)
+            _pair_forces(X, ii, jj, shift, ctype, self._table, rc2, F, _NO_REFERENCE)
         self.batch_evaluations += X.shape[0]
         return F
+
+    def _one_list_each(self, X, atoms, F):
+        for a in range(X.shape[0]):
+            F[a] = self.forces_batch(X[a:a + 1], atoms)[0]
+            self.batch_evaluations -= 1
 
     def hessian(self, Q=None, atoms=None) -> np.ndarray:
         """The exact Hessian d^2 E / dx dx of the potential energy (compiled, dense).

@@ -91,6 +91,30 @@ def test_forces_batch_writes_into_out_and_refuses_a_wrong_one():
             calc.forces_batch(Q, atoms, out=bad)
 
 
+def test_forces_batch_checks_its_list_in_the_kernel_pass():
+    """forces_batch checks in the kernel's own pass that every atom of every configuration
+    stayed within skin / 2 of the list's reference: a batch that moved further is computed
+    again with a new list, and configurations far apart from each other one list each."""
+    atoms = _periodic()
+    calc = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.2)
+    atoms.calc = calc
+
+    def fresh(Q):
+        other = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.2)
+        return np.stack([other.forces_batch(Q[a:a + 1], atoms)[0] for a in range(len(Q))])
+
+    x = atoms.positions
+    Q = x[None] + np.random.default_rng(5).normal(scale=0.01, size=(3, len(atoms), 3))
+    np.testing.assert_allclose(calc.forces_batch(Q, atoms), fresh(Q), rtol=1e-13, atol=1e-15)
+    assert calc.neighbour_list_builds == 1
+    Q[:, 0] += [0.7, -0.4, 0.5]              # one atom beyond the skin in every stage
+    np.testing.assert_allclose(calc.forces_batch(Q, atoms), fresh(Q), rtol=1e-13, atol=1e-15)
+    assert calc.neighbour_list_builds == 2     # one new list, at Q[0], serves them all
+    Q[2, 5] -= [0.4, 0.4, 0.0]                 # stages far apart: a list for the far one
+    np.testing.assert_allclose(calc.forces_batch(Q, atoms), fresh(Q), rtol=1e-13, atol=1e-15)
+    assert calc.neighbour_list_builds == 4
+
+
 def test_neighbour_list_is_rebuilt_when_atoms_move_beyond_the_skin():
     atoms = _periodic()
     atoms.calc = PolynomialPairPotential.soft_sphere(0.1, 4.5, skin=0.2)
