@@ -52,10 +52,7 @@ def _pair_forces(X, ii, jj, shift, ctype, C, rc2, F, ref):
             for c in range(3):
                 Xt[k, a, c] = X[a, k, c]
             if check:
-                dx = X[a, k, 0] - ref[k, 0]
-                dy = X[a, k, 1] - ref[k, 1]
-                dz = X[a, k, 2] - ref[k, 2]
-                d2 = dx * dx + dy * dy + dz * dz
+                d2 = _displacement2(X, a, k, ref)
                 if d2 > worst:
                     worst = d2
     for p in range(ii.shape[0]):
@@ -161,15 +158,21 @@ def _pair_hessian(X, ii, jj, shift, ctype, C, rc2, H):
 
 
 @jit
+def _displacement2(X, a, k, ref):
+    """|X[a, k] - ref[k]|^2."""
+    dx = X[a, k, 0] - ref[k, 0]
+    dy = X[a, k, 1] - ref[k, 1]
+    dz = X[a, k, 2] - ref[k, 2]
+    return dx * dx + dy * dy + dz * dz
+
+
+@jit
 def _max_displacement2(X, ref):
     """max over configurations a and atoms i of |X[a, i] - ref[i]|^2 (X (n, N, 3), ref (N, 3))."""
     worst = 0.0
     for a in range(X.shape[0]):
         for i in range(X.shape[1]):
-            dx = X[a, i, 0] - ref[i, 0]
-            dy = X[a, i, 1] - ref[i, 1]
-            dz = X[a, i, 2] - ref[i, 2]
-            r2 = dx * dx + dy * dy + dz * dz
+            r2 = _displacement2(X, a, i, ref)
             if r2 > worst:
                 worst = r2
     return worst
