@@ -7,11 +7,35 @@ runs as plain Python.
 """
 from __future__ import annotations
 
+import itertools
+import secrets
 import warnings
 
 from numba import njit
 
 _warned = False
+
+
+def _distinct_symbol_ids() -> None:
+    """Start numba's function-id counter at a random offset in this process.
+
+    numba names every compilation of a function ``qualname$uid`` with uid from a counter that
+    starts at 1 in each process, and cached code keeps the names it was compiled with.  Code
+    cached by two processes can then carry one symbol for two compilations: ``core.carve``
+    cached alone, and inlined into the generated step module.  Loaded into one process, the
+    second binds to the first's environment, and boxing its result fails ("descr is NULL",
+    "returned a result with an exception set"; measured in a dask worker that ran the REBOUND
+    step and then the ASE step; numba issue #10486).  With a random 40-bit start, processes
+    almost never share ids.  Ids already given in this process stay below the new start."""
+    try:
+        from numba.core.bytecode import FunctionIdentity
+    except ImportError:              # another numba layout: keep its counter
+        return
+    if isinstance(getattr(FunctionIdentity, "_unique_ids", None), itertools.count):
+        FunctionIdentity._unique_ids = itertools.count(2 ** 40 + secrets.randbits(40))
+
+
+_distinct_symbol_ids()
 
 
 def jit(fn):

@@ -365,3 +365,15 @@ def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():
         core.full_stages(y, cy, gg, C2, C2_lo, 0.7, Y1, R)
         core.full_stages_narrow(y, cy, gg, C2, C2_lo, 0.7, Y2)
         assert np.array_equal(Y1, Y2)
+
+
+def test_numba_function_ids_start_at_a_random_offset_in_every_process():
+    """Cached code from two processes must not share symbol names (see integrators.jit
+    ._distinct_symbol_ids): the id counter starts above 2^40, at a different place in each
+    process."""
+    code = ("import integrators.jit\n"
+            "from numba.core.bytecode import FunctionIdentity\n"
+            "print(next(FunctionIdentity._unique_ids))\n")
+    ids = [int(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                              text=True, check=True).stdout) for _ in range(2)]
+    assert min(ids) > 2 ** 40 and ids[0] != ids[1]
