@@ -71,8 +71,9 @@ class _AtomsSystem(SeparableSystem):
     def _forces_into(self, Q: np.ndarray, out: np.ndarray) -> None:
         """``out[...] = forces(Q)`` for stage rows Q (n, 3N), without the copy."""
         n = Q.shape[0]
-        self.calc.forces_batch(Q.reshape(n, self.n_atoms, 3), self.atoms,
-                               out=out.reshape(n, self.n_atoms, 3))
+        target = out.view()
+        target.shape = (n, self.n_atoms, 3)    # raises rather than reshape into a copy
+        self.calc.forces_batch(Q.reshape(n, self.n_atoms, 3), self.atoms, out=target)
         self.stage_evaluations += n
 
     def forces(self, Q: np.ndarray) -> np.ndarray:

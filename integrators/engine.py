@@ -121,8 +121,6 @@ class Counted:
         return int(self.counters[C_NEWTON])
 
 
-
-
 class Extrapolation:
     """The initial guess's matrix E(h_new / h_old) (:meth:`HBVM.extrapolation_matrix`) for
     every caller of the step: the arrays the compiled ``core.select_extrapolation`` chooses

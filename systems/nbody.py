@@ -93,6 +93,7 @@ def nbody_forces(Q, params, out):
 
 @jit
 def _add_pair(out, r, i, j, ci, cj, dx, dy, dz):
+    """Row r of out: body i gets ci d, body j gets -cj d (d = x_j - x_i)."""
     out[r, 3 * i] += ci * dx
     out[r, 3 * i + 1] += ci * dy
     out[r, 3 * i + 2] += ci * dz

@@ -408,12 +408,21 @@ class PolynomialPairPotential(Calculator):
         in any configuration was closer than cutoff + skin at the reference, so one list serves
         all the stage configurations of an HBVM step and the steps that follow.
         """
-        nl = self._current_list(atoms)
-        if nl is None or _max_displacement2(X, nl[4]) >= (0.5 * self.skin) ** 2:
-            nl = self._build_list(atoms, X[0])
-            if _max_displacement2(X, nl[4]) >= (0.5 * self.skin) ** 2:
-                return None    # configurations too far apart for one list
+        nl = self._verlet_list(atoms, X[0], lambda nl: _max_displacement2(X, nl[4]))
+        if nl is None:
+            return None    # configurations too far apart for one list
         return nl[0], nl[1], nl[2], nl[3], self.cutoff ** 2
+
+    def _verlet_list(self, atoms, x0, worst):
+        """The list for configurations whose largest squared displacement from a list's
+        reference is ``worst(list)``: the kept list while that stays below (skin / 2)^2, else
+        a new one built at x0; None when even the new one does not serve them all."""
+        bound = (0.5 * self.skin) ** 2
+        nl = self._current_list(atoms)
+        if nl is not None and worst(nl) < bound:
+            return nl
+        nl = self._build_list(atoms, x0)
+        return nl if worst(nl) < bound else None
 
     def _current_list(self, atoms):
         """The kept list when it was built for these atoms' number, cell and pbc, else None
@@ -479,19 +488,17 @@ class PolynomialPairPotential(Calculator):
                 raise ValueError(f"`out` must be a writable C-contiguous float64 array of shape "
                                  f"{X.shape} (got {type(F).__name__} "
                                  f"{getattr(F, 'shape', None)}, {getattr(F, 'dtype', None)})")
+            if np.may_share_memory(F, X):      # the forces would overwrite the positions
+                raise ValueError("`out` must not share memory with `Q`; pass a separate array")
         if self.pairs is None and self.cutoff is not None:
             # cutoff mode: the kernel checks, in its pass over X, that every atom stayed within
             # skin / 2 of the list's reference; when one did not, the forces are computed again
             # with a list built at X[0] (a few steps in a hundred)
-            bound = (0.5 * self.skin) ** 2
             rc2 = self.cutoff ** 2
-            nl = self._current_list(atoms)
-            if nl is None or _pair_forces(X, nl[0], nl[1], nl[2], nl[3], self._table, rc2, F,
-                                          nl[4]) >= bound:
-                nl = self._build_list(atoms, X[0])
-                if _pair_forces(X, nl[0], nl[1], nl[2], nl[3], self._table, rc2, F,
-                                nl[4]) >= bound:
-                    self._one_list_each(X, atoms, F)   # configurations far apart
+            nl = self._verlet_list(atoms, X[0], lambda nl: _pair_forces(
+                X, nl[0], nl[1], nl[2], nl[3], self._table, rc2, F, nl[4]))
+            if nl is None:
+                self._one_list_each(X, atoms, F)       # configurations far apart
         else:
             ii, jj, shift, ctype, rc2 = self._pair_list(atoms, X)
             _pair_forces(X, ii, jj, shift, ctype, self._table, rc2, F, _NO_REFERENCE)

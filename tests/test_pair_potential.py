@@ -89,6 +89,8 @@ def test_forces_batch_writes_into_out_and_refuses_a_wrong_one():
                 np.empty(Q.shape[::-1]).T):
         with pytest.raises(ValueError, match="`out` must be"):
             calc.forces_batch(Q, atoms, out=bad)
+    with pytest.raises(ValueError, match="`out` must not share memory with `Q`"):
+        calc.forces_batch(Q, atoms, out=Q)
 
 
 def test_forces_batch_checks_its_list_in_the_kernel_pass():
