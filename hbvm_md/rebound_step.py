@@ -26,7 +26,7 @@ Struct offsets are REBOUND 5.x's (checked against ``rebound.Simulation``'s field
 import numpy as np
 from numba import carray
 
-from hbvm_md.pointers import (address_of, complex128_pointer, float64_pointer, int32_pointer,
+from integrators.pointers import (address_of, complex128_pointer, float64_pointer, int32_pointer,
                               int64_pointer)
 from integrators.core import N_COUNTERS, OK, TINY_RATIO, copy1, copy2
 
@@ -56,7 +56,7 @@ N_SCAL = S_RES + 5           # res of loop.attempt: h taken, next h, rejections,
 
 GLUE_FUNCTIONS = ("particles_match", "step_start", "undo_time", "host_step_arrays", "host_step")
 GLUE_CFUNCS = {"host_cstep": "void(voidptr)"}
-GLUE_DEPENDS = ("hbvm_md.pointers",)        # in the generated module's hash
+GLUE_DEPENDS = ("integrators.pointers",)        # in the generated module's hash
 
 
 def particles_match(view, written):

@@ -41,6 +41,7 @@ from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NF
                               stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
                               weighted_kinetic)
 from integrators.core import step_error as error_estimate
+from integrators.pointers import view, view1
 
 _force = None        # bound by integrators.specialise
 _potential = None
@@ -159,18 +160,18 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 break
             if newton:
                 if narrow:
-                    unused, fscale, fmax = project_narrow(W, W_lo, F, pg)
+                    project_narrow(W, W_lo, F, pg)
                 else:
-                    unused, fscale, fmax = project(W, W_lo, F, pg, R)
+                    project(W, W_lo, F, pg, R)
                 delta, scale = newton_update(g, pg, NV, NVinv, NM, Rt, Z)
             else:
                 if narrow:
-                    delta, scale, fmax = project_narrow(W, W_lo, F, g)
+                    delta, scale = project_narrow(W, W_lo, F, g)
                 else:
-                    delta, scale, fmax = project(W, W_lo, F, g, R)
+                    delta, scale = project(W, W_lo, F, g, R)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
-            action = stop_action(delta, scale, fmax, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
+            action = stop_action(delta, scale, F, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
                                  it, hist, tol)
             if action == POLISH:
                 polish = True
@@ -224,10 +225,10 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
 def advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,
             etol, eref, counters, work, cwork, clock):
     """One step of :func:`run` (no samples); returns its status."""
-    no_samples = np.empty(0)
+    no_samples = view1(work, 0, 0)          # (no allocation: see integrators.pointers)
     return run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter,
-               tol, etol, eref, counters, work, cwork, 1, 0, clock, no_samples, np.empty((0, 0)),
-               no_samples)
+               tol, etol, eref, counters, work, cwork, 1, 0, clock, no_samples,
+               view(work, 0, 0, 0), no_samples)
 
 
 def attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w, params, h, h_prev,

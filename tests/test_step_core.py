@@ -377,3 +377,57 @@ def test_numba_function_ids_start_at_a_random_offset_in_every_process():
     ids = [int(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                               text=True, check=True).stdout) for _ in range(2)]
     assert min(ids) > 2 ** 40 and ids[0] != ids[1]
+
+
+def test_fused_two_product_gives_dekkers_numbers():
+    """Compiled, two_product takes its error term from one fused multiply-add; as Python it is
+    Dekker's product: both exact, so the same numbers over the normal range (and a product
+    rounded differently, or an error term off by an ulp, would fail here)."""
+    import numba
+
+    from integrators import core
+
+    @numba.njit
+    def fused(a, b, hi, lo):
+        for i in range(a.shape[0]):
+            hi[i], lo[i] = core.two_product(a[i], b[i])
+
+    rng = np.random.default_rng(7)
+    n = 20000
+    a = rng.standard_normal(n) * 10.0 ** rng.integers(-100, 100, n)
+    b = rng.standard_normal(n) * 10.0 ** rng.integers(-100, 100, n)
+    a[:4] = [0.0, -0.0, 1.0, 3.0]
+    hi, lo = np.empty(n), np.empty(n)
+    fused(a, b, hi, lo)
+    ref = np.array([core.two_product(float(x), float(y)) for x, y in zip(a, b)])
+    assert np.array_equal(hi, ref[:, 0]) and np.array_equal(lo, ref[:, 1])
+    assert np.count_nonzero(lo) > n // 2       # the error terms are there to compare
+
+
+def test_carved_work_arrays_tile_their_buffers_and_a_short_buffer_is_refused():
+    """core.carve views the work buffers without slices (integrators.pointers.view): every view
+    lies inside its buffer, no two overlap, each has its shape, and a buffer shorter than
+    core.work_sizes is an error rather than views past its end."""
+    from integrators import core
+
+    n, s, u, m, d = 7, 6, 18, 18, 36
+    nf, nc = core.work_sizes(n, s, u, m, d)
+    work, cwork = np.zeros(nf), np.zeros(nc, dtype=complex)
+    views = core.carve(work, cwork, n, s, u, m, d)
+    shapes = [(n,), (n,), (2,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
+              (n, u), (n, u), (d,), (d,), (5, min(u, core.BLOCK)), (s, u), (s, u)]
+    assert [v.shape for v in views] == shapes
+    spans = {0: [], 1: []}
+    for v in views:
+        buf = cwork if v.dtype == complex else work
+        start = v.ctypes.data - buf.ctypes.data
+        assert v.flags.c_contiguous and 0 <= start and start + v.nbytes <= buf.nbytes
+        spans[v.dtype == complex].append((start, start + v.nbytes))
+    for group in spans.values():
+        group.sort()
+        assert all(e0 <= s1 for (s0, e0), (s1, e1) in zip(group, group[1:]))
+    for v in views:                      # writes land in the buffers
+        v[...] = 1.0
+    assert work.sum() == sum(v.size for v in views if v.dtype != complex)
+    with pytest.raises(ValueError, match="work_sizes"):
+        core.carve(work[:-1], cwork, n, s, u, m, d)
