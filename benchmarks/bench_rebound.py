@@ -54,7 +54,7 @@ SCENES = (
      (("saba(10,6,4)", 4332.6 / 20), ("whfast", 4332.6 / 100))),
     ("outer solar system (HLW), t_end = 1e6 days", outer_solar_system, 1e6,
      ((6, None, 200.0), (6, None, 250.0), (6, None, 300.0), (8, None, 300.0), (8, None, 400.0),
-      (8, None, 500.0)),
+      (8, None, 450.0), (8, None, 500.0)),
      (("saba(10,6,4)", 4332.6 / 20), ("whfast", 4332.6 / 100))),
     ("Sun and 8 planets (J2000), t_end = 1e5 days", lambda: solar_system(bodies=PLANETS), 1e5,
      ((6, None, 2.0), (6, None, 3.0), (6, None, 4.0), (6, None, 5.0), (8, None, 5.0), (8, None, 6.0),

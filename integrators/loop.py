@@ -37,7 +37,7 @@ from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NF
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
                               all_finite, all_zero, carve, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
-                              guess, max_abs, newton_update, project, project_compensated, project_narrow,
+                              guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
                               stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
                               weighted_kinetic)
 from integrators.core import step_error as error_estimate
@@ -110,6 +110,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             for i in range(g.shape[0]):
                 for j in range(u):
                     g[i, j] = F[0, j] if i == 0 else 0.0
+        elif narrow:
+            guess_narrow(E, gamma, g)
         else:
             guess(E, gamma, g)
         # the iteration: fixed point g <- P_s^T Omega f(stages(g)) (eq. (hbvm_sys)), or simplified

@@ -327,7 +327,7 @@ def test_everything_runs_with_numba_disabled():
 
 
 def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():
-    """The stage values and projections are summed column-innermost (vectorised) from NARROW
+    """The stage values, projections and initial guesses are summed column-innermost (vectorised) from NARROW
     columns on and entry by entry below; both orders must give the same numbers, nan and inf
     included, or a scene would change its answer with its number of bodies."""
     from integrators import core
@@ -360,6 +360,11 @@ def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():
         r2 = core.project_narrow(W, W * 1e-17, F, g2)
         assert np.array_equal(g1, g2, equal_nan=True)
         assert np.array_equal(np.array(r1), np.array(r2), equal_nan=True), (r1, r2)
+        E = rng.normal(size=(s, s))
+        G1, G2 = np.empty((s, m)), np.empty((s, m))
+        core.guess(E, F[:s] if n >= s else g, G1)
+        core.guess_narrow(E, F[:s] if n >= s else g, G2)
+        assert np.array_equal(G1, G2, equal_nan=True)
         gg = rng.normal(size=(s, 2 * m))
         Y1, Y2 = np.empty((n, 2 * m)), np.empty((n, 2 * m))
         core.full_stages(y, cy, gg, C2, C2_lo, 0.7, Y1, R)
