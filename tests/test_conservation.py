@@ -89,18 +89,32 @@ def test_kepler_energy_bounded_without_drift(k, s, bound):
 
 @pytest.mark.slow
 def test_kepler_million_steps_no_drift():
-    """10^6 steps (5000 periods) of Kepler e = 0.6, HBVM(6, 3) at h = 2 pi / 200, compiled path.
+    """10^6 steps (5000 periods) of Kepler e = 0.6, HBVM(6, 3) at h = 2 pi / 200, compiled path,
+    from 8 starts (y0 scaled by 1 + r 1e-14).
 
-    Measured here: max relative energy error 1.1e-14, scatter (std about the fitted line)
-    4.9e-15, drift implied by the fitted slope 1.2e-14 over the whole run."""
+    At round-off the energy error of one run is a random walk, and the line fitted through one
+    walk has a slope of either sign, often several times the scatter about it: one run cannot
+    tell a drift from a walk.  A bias has the same sign from every start: the mean of the
+    signed drifts over the run is held to three standard errors (plus 5e-15).  Measured: max
+    relative energy error median 1.0e-14, drift 1.6e-15 +- 2.3e-15 (mean +- standard error, 16
+    starts); a stopping rule whose polish was off by up to 1/16 ulp (integrators.core.
+    stop_action) gave 5e-14 to 7e-14 from every start, which this rejects."""
     kep = Kepler(0.6)
-    res = integrate(HBVM(6, 3), kep, kep.initial_state(), 2 * np.pi / 200, 1_000_000,
-                    sample_every=100, fast=True)
-    assert res.path == "compiled-separable" and res.steps == 1_000_000 and res.y.shape == (10_001, 4)
-    assert res.max_energy_error <= 5e-14
-    scatter = _scatter(res)
-    assert scatter <= 2e-14
-    assert _drift_over_run(res) <= 5 * scatter, (_drift_over_run(res), scatter)
+    drifts = []
+    for r in range(8):
+        res = integrate(HBVM(6, 3), kep, kep.initial_state() * (1 + r * 1e-14), 2 * np.pi / 200,
+                        1_000_000, sample_every=100, fast=True)
+        assert res.path == "compiled-separable" and res.steps == 1_000_000
+        assert res.y.shape == (10_001, 4)
+        assert res.max_energy_error <= 5e-14
+        assert _scatter(res) <= 2e-14
+        tt = res.t - res.t[0]
+        drifts.append(float(np.polyfit(tt, _signed_error(res), 1)[0]) * tt[-1])
+        if r == 0:
+            first = res
+    mean, sem = np.mean(drifts), np.std(drifts, ddof=1) / np.sqrt(len(drifts))
+    assert abs(mean) <= 3 * sem + 5e-15, drifts
+    res = first
     # HBVM(6, 3) does not conserve angular momentum exactly, but its error stays bounded
     # (measured 8.1e-11, the same at the end of the run as after one period)
     L = np.abs(kep.angular_momentum(res.y) - kep.angular_momentum(res.y[0])) / abs(kep.angular_momentum(res.y[0]))
