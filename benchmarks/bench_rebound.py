@@ -22,12 +22,14 @@ over the bodies, x_ref from heyoka in 80-bit extended precision at tol 1e-18 (IA
 is not installed: then the position errors are only differences from a double-precision peer).
 
 Each configuration runs from ``--repeat`` starts (planet positions scaled by 1 + r 1e-13,
-r = 0, 1, ...), all methods once per start in turn (interleaved); the table gives medians.  The
-"best" HBVM is the fastest whose median energy error is at most IAS15's; "defaults" is
-HBVMIntegrator(sim) as a user writes it: adaptive steps, s = 6, k = 9 (adaptive_k), epsilon = 1e-5.
+r = 0, 1, ...), all methods once per start in turn (interleaved); the table gives medians (of 9
+by default: over 5, the median energy error of HBVM(9, 8) at 450 days over 1e6 days was
+2.5e-15; the same steps run by the engine alone from 31 starts give 3.3e-15).  The "best"
+HBVM is the fastest whose median energy error is at most IAS15's (to half an ulp); "defaults"
+is HBVMIntegrator(sim) as a user writes it: adaptive steps, s = 6, k = 9 (adaptive_k), epsilon = 1e-5.
 Writes benchmarks/results/rebound.md.
 
-    python benchmarks/bench_rebound.py [--repeat 5] [--quick]
+    python benchmarks/bench_rebound.py [--repeat 9] [--quick]
 """
 from __future__ import annotations
 
@@ -116,7 +118,10 @@ def run_scene(title, scene, t_end, variants, peers, repeat, heyoka) -> list[str]
     hys = [r for r in rows if r["method"].startswith("heyoka")]
     hy = min(hys, key=lambda r: r["wall"]) if hys else None
     hb = [r for r in rows if r["method"].startswith("HBVM")]
-    ok = [r for r in hb if r["err"] <= ias["err"]]
+    # Relative energy errors are whole numbers of ulps of E over |E0|, and E0 differs from start
+    # to start: two medians closer than half an ulp (eps / 2) are the same error (the table
+    # once showed 2.19e-15 vs IAS15 2.19e-15 as "NOT equal").
+    ok = [r for r in hb if r["err"] <= ias["err"] + 0.5 * np.finfo(float).eps]
     best = min(ok, key=lambda r: r["wall"]) if ok else min(hb, key=lambda r: r["err"])
     default = rows[0]
     ref = ("heyoka in 80-bit extended precision, tol 1e-18" if heyoka
@@ -159,7 +164,7 @@ def run_scene(title, scene, t_end, variants, peers, repeat, heyoka) -> list[str]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--repeat", type=int, default=5, help="perturbed starts per method")
+    ap.add_argument("--repeat", type=int, default=9, help="perturbed starts per method")
     ap.add_argument("--quick", action="store_true", help="the first scene only, 3 starts")
     args = ap.parse_args()
     try:

@@ -38,7 +38,6 @@ from .pointers import view, view1
 EPS = np.finfo(float).eps
 ROUNDOFF_ULPS = 64.0     # a stalled increment within this many ulps of its round-off is converged
 LIPSCHITZ_ULPS = 4.0     # ... within this many ulps of the stage values' rounding times L
-POLISH_ULPS = 1e-3       # ... or predicted to be within this many ulps once polished (stop_action)
 STATE_ULPS = 16.0        # ... and so is one that moves the new state by at most this many ulps
 
 # status codes of a step (one table maps them to exceptions: integrators.errors.step_error);
@@ -499,36 +498,17 @@ def stop_action(delta, scale, F, floor, hstate, it, hist, tol):
     Converged (POLISH) when the increment is within two ulps of the coefficients, below
     ``tol * scale`` (when a tolerance is given), or when it stopped decreasing at its round-off
     level: within ROUNDOFF_ULPS ulps of the larger of the coefficients and the stage forces F
-    (the rounding of W F; max |F| is taken only then), below ``floor`` (the stage values'
-    rounding propagated through the force, LIPSCHITZ_ULPS eps max|stage| L with L the force's
-    Lipschitz constant measured on the first iterations: eps |q| omega^2 for a stiff spring,
-    which no scale of gamma shows), or moving the new state by at most STATE_ULPS of its
-    largest component (``hstate`` = |h| delta / (eps max |y|)).  An increment that stops
-    decreasing above those levels is not round-off: the second such stall is a failure
-    (DIVERGED), never an accepted step.
-
-    Converged too when the polish is predicted to land within POLISH_ULPS ulps of the fixed
-    point (the estimate of Hairer and Wanner, Solving ODEs II, Sec. IV.8, for simplified
-    Newton): the increments of a contraction shrink by its rate theta, so the coefficients are
-    theta / (1 - theta) delta from the fixed point and the polish, one more contraction,
-    theta^2 / (1 - theta) delta.  theta is the larger of the last two ratios of increments (one
-    ratio alone may be a fluke) and at most 1/2.  The polish's error is not random: it has the
-    same sign step after step, so it must stay far below the rounding's random walk over a long
-    run.  With a bound of 1/16 ulp, Kepler e = 0.6 (HBVM(6, 3), 1e6 steps of T / 200) drifted
-    by 5e-14 to 7e-14 in energy from each of 4 perturbed starts; with 1e-3 ulp the drift over
-    16 starts is 1.6e-15 +- 2.3e-15 (mean and its standard error; the two-ulp rule alone:
-    0.6e-15 +- 3.1e-15) at 4.24
-    evaluations of the stages a step instead of 5.10.  On the outer solar system (HBVM(9, 8),
-    450 days, theta about 0.005) it saves 0.4 of 7.7 iterations a step.
-    hist = [previous increment, stalls, previous ratio]; returns ITERATE, POLISH or -status.
+    (the rounding of W F; max |F| is taken only then), below ``floor`` (the stage values' rounding propagated through the
+    force, LIPSCHITZ_ULPS eps max|stage| L with L the force's Lipschitz constant measured on the
+    first iterations: eps |q| omega^2 for a stiff spring, which no scale of gamma shows), or
+    moving the new state by at most STATE_ULPS of its largest component (``hstate`` =
+    |h| delta / (eps max |y|)).  An increment that stops decreasing above those levels is not
+    round-off: the second such stall is a failure (DIVERGED), never an accepted step.
+    hist = [previous increment, stalls]; returns ITERATE, POLISH or -status.
     """
     if not np.isfinite(delta):        # also when a force is not finite (see project)
         return -NOT_FINITE
     if delta <= 2.0 * EPS * scale or delta <= tol * scale:
-        return POLISH
-    rate = delta / hist[0]            # 0 on the first iteration (hist[0] = inf, hist[2] = 1)
-    theta = max(rate, hist[2])
-    if theta <= 0.5 and theta * theta * delta <= POLISH_ULPS * EPS * scale * (1.0 - theta):
         return POLISH
     if delta >= hist[0]:
         if (delta <= ROUNDOFF_ULPS * EPS * max(scale, max_abs2(F)) or delta <= floor
@@ -538,7 +518,6 @@ def stop_action(delta, scale, F, floor, hstate, it, hist, tol):
         if hist[1] >= 2.0:
             return -DIVERGED
     hist[0] = delta
-    hist[2] = rate if it > 1 else 1.0
     return ITERATE
 
 
@@ -578,14 +557,14 @@ def commit_full(y, cy, h, g):
 def work_sizes(n, s, u, m, d):
     """(float, complex) lengths of the work buffers :func:`carve` cuts for k = n stages, s
     coefficient blocks of width u, m masses and a state of length d."""
-    return 4 * n + 3 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * min(u, BLOCK), 2 * s * u
+    return 4 * n + 2 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * min(u, BLOCK), 2 * s * u
 
 
 @jit
 def carve(work, cwork, n, s, u, m, d):
     """The step's work arrays as views of two buffers (one array argument each instead of
     eighteen, which a host calling one step at a time pays for: about 0.1 microsecond each to
-    unbox, or to allocate): ht, ht_lo (n), hist (3), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
+    unbox, or to allocate): ht, ht_lo (n), hist (2), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
     Xp, Fp (n, u), yt, cyt (d), R (5, min(u, BLOCK)) (scratch of the column sums), Rt, Z (s, u)
     complex.  The views are :func:`integrators.pointers.view`'s (no reference counts, no call:
     about 1 ns for all, against 0.7 microsecond with slices and reshapes); a buffer shorter than
@@ -597,10 +576,10 @@ def carve(work, cwork, n, s, u, m, d):
     ht = view1(work, 0, n)
     ht_lo = view1(work, n, n)
     o = 2 * n
-    hist = view1(work, o, 3)
-    dq = view1(work, o + 3, m)
-    dq_lo = view1(work, o + 3 + m, m)
-    o += 3 + 2 * m
+    hist = view1(work, o, 2)
+    dq = view1(work, o + 2, m)
+    dq_lo = view1(work, o + 2 + m, m)
+    o += 2 + 2 * m
     yt = view1(work, o, d)
     cyt = view1(work, o + d, d)
     o += 2 * d

@@ -96,9 +96,9 @@ def test_kepler_million_steps_no_drift():
     walk has a slope of either sign, often several times the scatter about it: one run cannot
     tell a drift from a walk.  A bias has the same sign from every start: the mean of the
     signed drifts over the run is held to three standard errors (plus 5e-15).  Measured: max
-    relative energy error median 1.0e-14, drift 1.6e-15 +- 2.3e-15 (mean +- standard error, 16
-    starts); a stopping rule whose polish was off by up to 1/16 ulp (integrators.core.
-    stop_action) gave 5e-14 to 7e-14 from every start, which this rejects."""
+    relative energy error median 1.1e-14, drift 0.6e-15 +- 3.1e-15 (mean +- standard error, 16
+    starts); an experimental stop rule that accepted the polish up to 1/16 ulp from the fixed
+    point gave 5e-14 to 7e-14 from every start, which this rejects."""
     kep = Kepler(0.6)
     drifts = []
     for r in range(8):

@@ -419,7 +419,7 @@ def test_carved_work_arrays_tile_their_buffers_and_a_short_buffer_is_refused():
     nf, nc = core.work_sizes(n, s, u, m, d)
     work, cwork = np.zeros(nf), np.zeros(nc, dtype=complex)
     views = core.carve(work, cwork, n, s, u, m, d)
-    shapes = [(n,), (n,), (3,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
+    shapes = [(n,), (n,), (2,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
               (n, u), (n, u), (d,), (d,), (5, min(u, core.BLOCK)), (s, u), (s, u)]
     assert [v.shape for v in views] == shapes
     spans = {0: [], 1: []}
