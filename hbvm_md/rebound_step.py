@@ -26,8 +26,8 @@ Struct offsets are REBOUND 5.x's (checked against ``rebound.Simulation``'s field
 import numpy as np
 from numba import carray
 
-from integrators.pointers import (address_of, complex128_pointer, float64_pointer, int32_pointer,
-                              int64_pointer)
+from integrators.pointers import (address_of, complex128_pointer, float64_pointer,
+                                  int32_pointer, int64_pointer)
 from integrators.core import N_COUNTERS, OK, TINY_RATIO, copy1, copy2
 
 RESYNC = -1               # the particles are not what the driver wrote last: re-read them

@@ -498,12 +498,13 @@ def stop_action(delta, scale, F, floor, hstate, it, hist, tol):
     Converged (POLISH) when the increment is within two ulps of the coefficients, below
     ``tol * scale`` (when a tolerance is given), or when it stopped decreasing at its round-off
     level: within ROUNDOFF_ULPS ulps of the larger of the coefficients and the stage forces F
-    (the rounding of W F; max |F| is taken only then), below ``floor`` (the stage values' rounding propagated through the
-    force, LIPSCHITZ_ULPS eps max|stage| L with L the force's Lipschitz constant measured on the
-    first iterations: eps |q| omega^2 for a stiff spring, which no scale of gamma shows), or
-    moving the new state by at most STATE_ULPS of its largest component (``hstate`` =
-    |h| delta / (eps max |y|)).  An increment that stops decreasing above those levels is not
-    round-off: the second such stall is a failure (DIVERGED), never an accepted step.
+    (the rounding of W F; max |F| is taken only then), below ``floor`` (the stage values'
+    rounding propagated through the force, LIPSCHITZ_ULPS eps max|stage| L with L the force's
+    Lipschitz constant measured on the first iterations: eps |q| omega^2 for a stiff spring,
+    which no scale of gamma shows), or moving the new state by at most STATE_ULPS of its
+    largest component (``hstate`` = |h| delta / (eps max |y|)).  An increment that stops
+    decreasing above those levels is not round-off: the second such stall is a failure
+    (DIVERGED), never an accepted step.
     hist = [previous increment, stalls]; returns ITERATE, POLISH or -status.
     """
     if not np.isfinite(delta):        # also when a force is not finite (see project)

@@ -327,9 +327,10 @@ def test_everything_runs_with_numba_disabled():
 
 
 def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():
-    """The stage values, projections and initial guesses are summed column-innermost (vectorised) from NARROW
-    columns on and entry by entry below; both orders must give the same numbers, nan and inf
-    included, or a scene would change its answer with its number of bodies."""
+    """The stage values, projections and initial guesses are summed column-innermost
+    (vectorised) from NARROW columns on and entry by entry below; both orders must give the same
+    numbers, nan and inf included, or a scene would change its answer with its number of
+    bodies."""
     from integrators import core
     rng = np.random.default_rng(7)
     for trial in range(60):
