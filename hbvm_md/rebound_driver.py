@@ -91,6 +91,9 @@ _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValu
 _CONFIG_FIELDS = ("integrator", "_post_timestep_modifications", "softening", "_additional_forces",
                   "_collision", "N_var", "_gravity", "_boundary", "_N_odes", "testparticle_type",
                   "N_active", "N")
+# and the fields :meth:`HBVMIntegrator._native` reads (the callbacks that need Python between
+# steps, the particles' address): while all these bytes are unchanged its answer is too
+_NATIVE_FIELDS = ("_heartbeat", "_pre_timestep_modifications", "extras", "_particles")
 _DOUBLES_PER_PARTICLE = glue.PARTICLE_DOUBLES       # sizeof(reb_particle) = 112 bytes
 
 
@@ -128,13 +131,13 @@ def _make_class():
             drv = _REGISTRY.get(ctypes.addressof(self))
             if drv is None:
                 return super().integrate(tmax, exact_finish_time)
-            drv._run(lambda done: super(HBVMSimulation, self).integrate(tmax, exact_finish_time))
+            drv._run(_integrate, tmax, exact_finish_time)
 
         def steps(self, N_steps):
             drv = _REGISTRY.get(ctypes.addressof(self))
             if drv is None:
                 return super().steps(N_steps)
-            drv._run(lambda done: super(HBVMSimulation, self).steps(N_steps - done))
+            drv._run(_steps, N_steps)
 
         def copy(self):
             """A deep copy driven by its own :class:`HBVMIntegrator` with the same settings and
@@ -148,6 +151,16 @@ def _make_class():
             if drv is not None:
                 drv._clone_onto(new)
             return new
+
+    # what HBVMIntegrator._run calls: REBOUND's own methods, ``done`` steps taken already (a
+    # function made once and its arguments, not a lambda and super() at each call: 0.3 us)
+    base = rebound.Simulation
+
+    def _integrate(sim, done, tmax, exact_finish_time):
+        base.integrate(sim, tmax, exact_finish_time)
+
+    def _steps(sim, done, N_steps):
+        base.steps(sim, N_steps - done)
 
     return HBVMSimulation
 
@@ -319,18 +332,24 @@ def adaptive_k(s: int, epsilon: float) -> int:
 
 def shortest_period(sim) -> float:
     """The shortest two-body orbital period 2 pi sqrt(r^3 / (G M)) over pairs with a
-    gravitating member, from the current positions (a crude time scale of the scene)."""
-    nb = NBody.from_rebound(sim)
+    gravitating member, from the current positions (a crude time scale of the scene).
+    ``sim``: a ``rebound.Simulation`` or the :class:`systems.NBody` read from one."""
+    nb = sim if isinstance(sim, NBody) else NBody.from_rebound(sim)
     x = nb.positions
     g = np.where(nb.is_source, nb.body_masses, 0.0)
     best = math.inf
-    for i in range(nb.N):
-        for j in range(i + 1, nb.N):
-            M = g[i] + g[j]
-            if M <= 0:
-                continue
-            r = float(np.linalg.norm(x[i] - x[j]))
-            best = min(best, 2 * math.pi * math.sqrt(r ** 3 / (nb.G * M)))
+    N = nb.N
+    src = np.flatnonzero(g > 0)          # every pair with a gravitating member has one in src
+    rows = max(1, 2 ** 20 // max(N, 1))     # in blocks of rows: memory O(N), not O(N^2)
+    j = np.arange(N)
+    for b in range(0, src.size, rows):
+        i = src[b:b + rows]
+        d = x[None, :, :] - x[i, None, :]
+        r2 = np.einsum("ijk,ijk->ij", d, d)
+        M = g[i, None] + g[None, :]
+        ok = j[None, :] != i[:, None]
+        if np.any(ok):
+            best = min(best, float(np.min(2 * math.pi * np.sqrt(r2[ok] ** 1.5 / (nb.G * M[ok])))))
     return best
 
 
@@ -447,7 +466,7 @@ class HBVMIntegrator(Counted):
         elif k is None and sim.N > 1:
             nb = NBody.from_rebound(sim)
             check_particles(nb.initial_state(), nb)
-            method = HBVM(choose_k(nb, nb.initial_state(), method.s, h, shortest_period(sim)),
+            method = HBVM(choose_k(nb, nb.initial_state(), method.s, h, shortest_period(nb)),
                           method.s, nodes=nodes)
         self._attach(sim, method, h, int(max_iter), tol, energy_tol)
         self._set_control(bool(adaptive), epsilon, min_dt)
@@ -476,6 +495,7 @@ class HBVMIntegrator(Counted):
         head = (ctypes.c_double * glue.SIM_HEAD).from_address(self._addr)
         self._simd = np.frombuffer(head, dtype=np.float64)
         self._simi = np.frombuffer(head, dtype=np.int64)
+        self._steps_done = ctypes.c_int64.from_address(self._addr + 8 * glue.STEPS_AT)
         self._extras_c = ctypes.c_void_p.from_address(self._addr + type(sim).extras.offset)
         # the bytes of the settings _before_run checks (integrator, callbacks, gravity, ...):
         # while they are those of the last run that passed, the checks are not read again
@@ -483,10 +503,12 @@ class HBVMIntegrator(Counted):
         S = type(sim)
         self._cfg_idx = np.concatenate([np.arange(getattr(S, f).offset,
                                                   getattr(S, f).offset + getattr(S, f).size)
-                                        for f in _CONFIG_FIELDS])
+                                        for f in _CONFIG_FIELDS + _NATIVE_FIELDS])
         self._cfg_bytes = np.frombuffer((ctypes.c_uint8 * ctypes.sizeof(S)).from_address(self._addr),
                                         dtype=np.uint8)
         self._cfg_ok = None
+        self._native_key = None     # (config, ctx, allow_native) of the last _native() answer
+        self._native_last = False
         self._view_key = None
         self._view = None
         self._gamma = None
@@ -691,29 +713,33 @@ class HBVMIntegrator(Counted):
         self._scal[glue.S_T_WRITTEN] = float(d["t_written"])
 
     # -- called by the wrapped Simulation ----------------------------------------------
-    def _run(self, go) -> None:
-        """Run REBOUND (``go(done)``: its integrate, or its steps minus the ``done`` ones) with
-        the step in C when nothing in Python has to run between steps (:meth:`_native`), else
-        through the Python callback; re-raise an exception of a step afterwards."""
-        self._before_run()
+    def _run(self, go, *args) -> None:
+        """Run REBOUND (``go(sim, done, *args)``: its integrate, or its steps minus the ``done``
+        ones) with the step in C when nothing in Python has to run between steps
+        (:meth:`_native`), else through the Python callback; re-raise an exception of a step
+        afterwards."""
+        native = self._before_run()
         try:
+            sim = self.sim
+            steps_done = self._steps_done
             done = 0
             while True:
-                self.last_run_native = self._native()
-                if not self.last_run_native:
-                    go(done)
+                self.last_run_native = native
+                if not native:
+                    go(sim, done, *args)
                     break
-                before = int(self._simi[glue.STEPS_AT])
+                before = steps_done.value
                 self._scal[glue.S_STATUS] = OK
                 try:
                     self._slots[self._slot_idx] = self._native_slots
-                    go(done)
+                    go(sim, done, *args)
                 finally:
                     self._slots[self._slot_idx] = self._python_slots
-                done += int(self._simi[glue.STEPS_AT]) - before
+                done += steps_done.value - before
                 status = int(self._scal[glue.S_STATUS])
                 if status == RESYNC:      # the C step stopped the run: re-read, go on
                     self._resync(self._particle_view())
+                    native = self._native()
                     continue
                 if status != OK:
                     self._error = self._step_failure(status)
@@ -736,7 +762,10 @@ class HBVMIntegrator(Counted):
             self._resync(self._particle_view())
         return True
 
-    def _before_run(self) -> None:
+    def _before_run(self) -> bool:
+        """Check the simulation before a run; returns :meth:`_native`'s answer, asked again
+        only when the bytes it reads, the step's arrays or ``_allow_native`` changed (asking
+        costs about 1 us a ``sim.integrate`` call, which 200 output times pay 200 times)."""
         self._error = None
         sim = self.sim
         config = self._cfg_bytes[self._cfg_idx].tobytes()
@@ -755,10 +784,16 @@ class HBVMIntegrator(Counted):
             _step_size("sim.dt", sim.dt)
         if self._ctx is None and self._simi[glue.N_AT] > 0:
             self._resync(self._particle_view())
+        key = self._native_key
+        if (key is None or key[0] != config or key[1] is not self._ctx
+                or key[2] != self._allow_native):
+            self._native_last = self._native()
+            self._native_key = (config, self._ctx, self._allow_native)
         # ctypes hands an exception raised on entering the callback (before its try: a signal
         # handler's) to sys.unraisablehook and goes on: catch it there for the time of the run
         self._hook_prev = sys.unraisablehook
         sys.unraisablehook = self._unraisable
+        return self._native_last
 
     def _after_run(self) -> None:
         if sys.unraisablehook == self._unraisable:

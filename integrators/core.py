@@ -239,8 +239,12 @@ def guess_narrow(E, gamma, g):
 
 
 @jit
-def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R):
+def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R, exact):
     """Separable form: Q = q0 + h tau v0 + h^2 (I_s X_s) M^{-1} gamma_p, y = (q, p).
+
+    ``exact``: also the low parts C2_lo of the coefficients (the step's last evaluation, whose
+    rounding the step keeps); the iterations before it only have to reach the fixed point to
+    round-off, and C2_lo a is below the rounding of the sum itself (see :func:`project`).
 
     R (2, >= min(m, BLOCK)) is scratch: the sums over l run with the column j innermost, in
     blocks of BLOCK columns, so that the columns' sums are independent (vectorised) rather than
@@ -267,12 +271,18 @@ def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R):
             for jj in range(nb):
                 acc[jj] = 0.0
                 acc_lo[jj] = 0.0
-            for l in range(s):
-                c = C2[i, l]
-                c_lo = C2_lo[i, l]
-                for jj in range(nb):
-                    acc[jj] += c * a[l, ju + jj]
-                    acc_lo[jj] += c_lo * a[l, ju + jj]
+            if exact:
+                for l in range(s):
+                    c = C2[i, l]
+                    c_lo = C2_lo[i, l]
+                    for jj in range(nb):
+                        acc[jj] += c * a[l, ju + jj]
+                        acc_lo[jj] += c_lo * a[l, ju + jj]
+            else:
+                for l in range(s):
+                    c = C2[i, l]
+                    for jj in range(nb):
+                        acc[jj] += c * a[l, ju + jj]
             hti = ht[i]
             hti_lo = ht_lo[i]
             for jj in range(nb):
@@ -282,7 +292,7 @@ def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R):
                                              + h2 * (acc[jj] + acc_lo[jj]) + h2_lo * acc[jj])
 
 @jit
-def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q):
+def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, exact):
     """:func:`stage_positions` entry by entry (for few columns)."""
     s, m = g.shape
     for i in range(s):
@@ -294,17 +304,19 @@ def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q
             acc_lo = 0.0
             for l in range(s):
                 acc += C2[i, l] * a[l, j]
-                acc_lo += C2_lo[i, l] * a[l, j]
+            if exact:
+                for l in range(s):
+                    acc_lo += C2_lo[i, l] * a[l, j]
             vj = y[m + j] * minv[j]
             Q[i, j] = y[j] + ht[i] * vj + ((ht_lo[i] * vj - cy[j]) - ht[i] * cy[m + j] * minv[j]
                                            + h2 * (acc + acc_lo) + h2_lo * acc)
 
 
 @jit
-def full_stages(y, cy, g, I, I_lo, h, Y, R):
+def full_stages(y, cy, g, I, I_lo, h, Y, R, exact):
     """Full form: Y = y0 + h I_s gamma at the stages, y0 the double-double y - cy (R: scratch
     (2, >= min(d, BLOCK)), the sums column-innermost in blocks as in :func:`stage_positions`;
-    below NARROW columns :func:`full_stages_narrow`)."""
+    below NARROW columns :func:`full_stages_narrow`; I_lo only when ``exact``, as there)."""
     n = Y.shape[0]
     s, d = g.shape
     acc = R[0]
@@ -316,18 +328,24 @@ def full_stages(y, cy, g, I, I_lo, h, Y, R):
             for jj in range(nb):
                 acc[jj] = 0.0
                 acc_lo[jj] = 0.0
-            for l in range(s):
-                c = I[i, l]
-                c_lo = I_lo[i, l]
-                for jj in range(nb):
-                    acc[jj] += c * g[l, ju + jj]
-                    acc_lo[jj] += c_lo * g[l, ju + jj]
+            if exact:
+                for l in range(s):
+                    c = I[i, l]
+                    c_lo = I_lo[i, l]
+                    for jj in range(nb):
+                        acc[jj] += c * g[l, ju + jj]
+                        acc_lo[jj] += c_lo * g[l, ju + jj]
+            else:
+                for l in range(s):
+                    c = I[i, l]
+                    for jj in range(nb):
+                        acc[jj] += c * g[l, ju + jj]
             for jj in range(nb):
                 j = ju + jj
                 Y[i, j] = y[j] + (h * (acc[jj] + acc_lo[jj]) - cy[j])
 
 @jit
-def full_stages_narrow(y, cy, g, I, I_lo, h, Y):
+def full_stages_narrow(y, cy, g, I, I_lo, h, Y, exact):
     """:func:`full_stages` entry by entry (for few columns)."""
     n = Y.shape[0]
     s, d = g.shape
@@ -337,7 +355,9 @@ def full_stages_narrow(y, cy, g, I, I_lo, h, Y):
             acc_lo = 0.0
             for l in range(s):
                 acc += I[i, l] * g[l, j]
-                acc_lo += I_lo[i, l] * g[l, j]
+            if exact:
+                for l in range(s):
+                    acc_lo += I_lo[i, l] * g[l, j]
             Y[i, j] = y[j] + (h * (acc + acc_lo) - cy[j])
 
 
@@ -352,7 +372,7 @@ def symplectic(G, F):
 
 
 @jit
-def project_narrow(W, W_lo, F, g):
+def project_narrow(W, F, g):
     """:func:`project` for few columns (entry by entry: the same numbers)."""
     s, m = g.shape
     n = F.shape[0]
@@ -360,12 +380,9 @@ def project_narrow(W, W_lo, F, g):
     scale = 0.0
     for i in range(s):
         for j in range(m):
-            sh = 0.0
-            sl = 0.0
+            v = 0.0
             for l in range(n):
-                sh += W[i, l] * F[l, j]
-                sl += W_lo[i, l] * F[l, j]
-            v = sh + sl
+                v += W[i, l] * F[l, j]
             d = abs(v - g[i, j])
             if d > delta or d != d:
                 delta = d
@@ -376,10 +393,13 @@ def project_narrow(W, W_lo, F, g):
 
 
 @jit
-def project(W, W_lo, F, g, R):
+def project(W, F, g, R):
     """g <- W F (plain sums); returns (max |increment|, max |g|), the first nan when an
     increment is nan (max |g| skips nan).  A non-finite force makes an increment non-finite:
-    row 0 of W holds the quadrature weights, all positive.  R (5, >= min(m, BLOCK)) is
+    row 0 of W holds the quadrature weights, all positive.  For the iterations before the
+    step's last evaluation: they only have to reach the fixed point to round-off, and the low
+    parts W_lo of the weights (below half an ulp of W) move the sum by less than its own
+    rounding, so they are left to :func:`project_compensated`.  R (5, >= min(m, BLOCK)) is
     scratch: the sums and maxima run column-innermost in blocks (see :func:`stage_positions`),
     then across the columns; :func:`project_narrow` gives the same numbers, faster below
     NARROW columns.  max |F| is not taken here: the stop rule needs it only when the increment
@@ -388,7 +408,6 @@ def project(W, W_lo, F, g, R):
     s, m = g.shape
     n = F.shape[0]
     acc = R[0]
-    acc_lo = R[1]
     dcol = R[3]
     scol = R[4]
     delta = 0.0
@@ -402,16 +421,13 @@ def project(W, W_lo, F, g, R):
         for i in range(s):
             for jj in range(nb):
                 acc[jj] = 0.0
-                acc_lo[jj] = 0.0
             for l in range(n):
                 w = W[i, l]
-                w_lo = W_lo[i, l]
                 for jj in range(nb):
                     acc[jj] += w * F[l, ju + jj]
-                    acc_lo[jj] += w_lo * F[l, ju + jj]
             for jj in range(nb):
                 j = ju + jj
-                v = acc[jj] + acc_lo[jj]
+                v = acc[jj]
                 d = abs(v - g[i, j])
                 c = dcol[jj]
                 dcol[jj] = d if (d > c or d != d) else c

@@ -83,3 +83,42 @@ class Kepler(SeparableSystem):
 
     def separable_kernels(self):
         return _kepler_force, _kepler_potential, np.array([self.mu])
+
+    def exact_solution(self, y0, t) -> np.ndarray:
+        """The exact flow: the state at time t from the state y0 at time 0 (any bound orbit,
+        not only the default one), in extended precision (``np.longdouble``; y0 and t are
+        taken as exact, so pass t as ``np.longdouble(n) * h`` for n steps of size h).
+
+        Lagrange's f and g with the change of eccentric anomaly dE solved by Newton's method
+        from n t = dE + sigma0 / sqrt(mu a) (1 - cos dE) - (1 - r0 / a) sin dE (sigma0 = q0 . p0),
+        whose derivative r / a is positive: the iteration converges from dE = n t for every
+        e < 1.  Raises ValueError for an unbound state (energy >= 0)."""
+        L = np.longdouble
+        y0 = np.asarray(y0)
+        if y0.shape != (4,):
+            raise ValueError(f"`y0` must be a state (q, p) of shape (4,) (got shape {y0.shape})")
+        q, v = y0[:2].astype(L), y0[2:].astype(L)
+        t, mu = L(t), L(self.mu)
+        r0 = np.sqrt(q @ q)
+        inv_a = 2 / r0 - (v @ v) / mu
+        if not inv_a > 0:
+            raise ValueError("exact_solution needs a bound orbit (energy < 0); this state escapes")
+        a = 1 / inv_a
+        n = np.sqrt(mu * inv_a ** 3)
+        c1 = (q @ v) / np.sqrt(mu * a)
+        c2 = 1 - r0 / a
+        M = n * t
+        dE = M
+        for _ in range(100):
+            step = (dE + c1 * (1 - np.cos(dE)) - c2 * np.sin(dE) - M) / (
+                1 + c1 * np.sin(dE) - c2 * np.cos(dE))
+            dE -= step
+            if abs(step) <= 4 * np.finfo(L).eps * max(1, abs(dE)):
+                break
+        cos_d, sin_d = np.cos(dE), np.sin(dE)
+        r = a * (1 + c1 * sin_d - c2 * cos_d)
+        f = 1 - a / r0 * (1 - cos_d)
+        g = t - (dE - sin_d) / n
+        fd = -np.sqrt(mu * a) / (r * r0) * sin_d
+        gd = 1 - a / r * (1 - cos_d)
+        return np.concatenate([f * q + g * v, fd * q + gd * v])

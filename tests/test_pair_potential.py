@@ -274,3 +274,42 @@ def test_hessian_rejects_wrong_shapes_and_missing_atoms():
     atoms = Atoms("Ar2", positions=[[0, 0, 0], [1, 0, 0]])
     with pytest.raises(ValueError, match=r"`Q` must have shape \(2, 3\)"):
         calc.hessian(np.zeros((3, 3)), atoms)
+
+
+def test_check_state_answers_as_ase_does_and_skips_recomputing_unchanged_atoms():
+    """The calculator's fast answer for atoms that did not change must be ASE's answer
+    (compare_atoms) for every kind of change, tiny ones within ASE's tolerance included, and a
+    cached property read must not recompute."""
+    from ase.calculators.calculator import compare_atoms
+    atoms = bulk("Ar", "sc", a=3.5) * (3, 3, 3)
+    atoms.rattle(0.05, seed=1)
+    calc = PolynomialPairPotential.soft_sphere(0.1, 4.0)
+    atoms.calc = calc
+    atoms.get_forces()
+    calls = []
+    original = calc.calculate
+    calc.calculate = lambda *a, **k: (calls.append(1), original(*a, **k))
+    atoms.get_potential_energy()
+    atoms.get_forces()
+    assert calls == []
+
+    def mutations():
+        yield "nothing", lambda a: None
+        yield "momenta only", lambda a: a.set_momenta(np.ones((len(a), 3)))
+        yield "one-ulp move (within ASE's tolerance)", lambda a: a.positions.__setitem__(
+            (0, 0), np.nextafter(a.positions[0, 0], np.inf))
+        yield "move", lambda a: a.positions.__setitem__((1, 2), a.positions[1, 2] + 1e-3)
+        yield "numbers", lambda a: a.numbers.__setitem__(0, 10)
+        yield "cell", lambda a: a.set_cell(a.cell * 1.01)
+        yield "pbc", lambda a: a.set_pbc([True, False, True])
+        yield "charges", lambda a: a.set_initial_charges(np.full(len(a), 0.1))
+        yield "magmoms", lambda a: a.set_initial_magnetic_moments(np.zeros(len(a)))
+
+    for label, change in mutations():
+        other = atoms.copy()
+        change(other)
+        assert sorted(calc.check_state(other)) == sorted(compare_atoms(calc.atoms, other)), label
+    calc.ignored_changes = {"initial_charges"}
+    other = atoms.copy()
+    other.set_initial_charges(np.full(len(other), 0.1))
+    assert calc.check_state(other) == []

@@ -299,3 +299,29 @@ def test_driver_step_matches_the_compiled_engine():
     q = ref.y[-1, : nb.dim].reshape(-1, 3)
     assert np.array_equal(_xyz(sim), q)     # measured: identical to the last bit
     assert drv.niter == ref.iterations and drv.nfev == ref.nfev
+
+
+def test_shortest_period_is_the_shortest_over_pairs_with_a_gravitating_member():
+    """The time scale that sizes the k probe and the first adaptive step: the shortest
+    two-body period over every pair with a gravitating member (test particles among
+    themselves do not count), the same from the simulation or its NBody."""
+    from hbvm_md.rebound_driver import shortest_period
+    rng = np.random.default_rng(3)
+    sim = rebound.Simulation()
+    sim.G = 2.5
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.2, primary=sim.particles[0])
+    sim.add(m=2e-3, a=3.0, e=0.1, primary=sim.particles[0])
+    sim.add(m=0.0, a=0.3, e=0.05, primary=sim.particles[0])   # the shortest: star and this one
+    for _ in range(40):         # test particles, two of them close to each other
+        sim.add(m=0.0, a=1.5 + rng.random(), e=0.1 * rng.random(), primary=sim.particles[0])
+    sim.particles[-1].x = sim.particles[-2].x + 1e-6
+    sim.particles[-1].y, sim.particles[-1].z = sim.particles[-2].y, sim.particles[-2].z
+    sim.N_active = 3
+    x = np.array([[p.x, p.y, p.z] for p in sim.particles])
+    g = np.array([p.m if i < 3 else 0.0 for i, p in enumerate(sim.particles)])
+    want = min(2 * math.pi * math.sqrt(np.linalg.norm(x[i] - x[j]) ** 3 / (sim.G * (g[i] + g[j])))
+               for i in range(sim.N) for j in range(i + 1, sim.N) if g[i] + g[j] > 0)
+    got = shortest_period(sim)
+    assert got == pytest.approx(want, rel=1e-12)
+    assert shortest_period(NBody.from_rebound(sim)) == got

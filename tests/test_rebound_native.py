@@ -65,6 +65,36 @@ def test_native_run_resyncs_after_the_user_changes_particles():
     _same(a, b)
 
 
+def test_native_or_python_is_decided_again_when_the_settings_change():
+    """The native/Python choice is remembered between runs while nothing it depends on
+    changed: a heartbeat or pre-timestep callback set (or removed) between runs, and the
+    debugging switch, must be honoured by the very next run."""
+    sim = outer_solar_system().to_rebound()
+    drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    sim.integrate(1000.0)
+    assert drv.last_run_native
+    calls = []
+    sim.heartbeat = lambda simp: calls.append(1)
+    sim.integrate(2000.0)
+    assert not drv.last_run_native and len(calls) >= 10
+    sim.heartbeat = 0                    # REBOUND: a NULL function pointer
+    n = len(calls)
+    sim.integrate(3000.0)
+    assert drv.last_run_native and len(calls) == n
+    sim.pre_timestep_modifications = lambda simp: calls.append(2)
+    sim.integrate(4000.0)
+    assert not drv.last_run_native and calls.count(2) >= 10
+    sim.pre_timestep_modifications = 0
+    sim.integrate(5000.0)
+    assert drv.last_run_native
+    drv._allow_native = False
+    sim.integrate(6000.0)
+    assert not drv.last_run_native
+    drv._allow_native = True
+    sim.integrate(7000.0)
+    assert drv.last_run_native
+
+
 def test_native_failure_leaves_the_state_and_raises():
     a, b = _pair(s=6, k=8, dt=100.0)
     for sim, drv in (a, b):
