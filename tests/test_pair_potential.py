@@ -277,9 +277,9 @@ def test_hessian_rejects_wrong_shapes_and_missing_atoms():
 
 
 def test_check_state_answers_as_ase_does_and_skips_recomputing_unchanged_atoms():
-    """The calculator's fast answer for atoms that did not change must be ASE's answer
-    (compare_atoms) for every kind of change, tiny ones within ASE's tolerance included, and a
-    cached property read must not recompute."""
+    """The calculator's fast answers (nothing changed; only the positions changed) must be
+    ASE's answer (compare_atoms) for every kind of change, a move within ASE's tolerance and
+    two changes at once included, and a cached property read must not recompute."""
     from ase.calculators.calculator import compare_atoms
     atoms = bulk("Ar", "sc", a=3.5) * (3, 3, 3)
     atoms.rattle(0.05, seed=1)
@@ -304,6 +304,7 @@ def test_check_state_answers_as_ase_does_and_skips_recomputing_unchanged_atoms()
         yield "pbc", lambda a: a.set_pbc([True, False, True])
         yield "charges", lambda a: a.set_initial_charges(np.full(len(a), 0.1))
         yield "magmoms", lambda a: a.set_initial_magnetic_moments(np.zeros(len(a)))
+        yield "move and cell", lambda a: (a.positions.__setitem__((2, 0), 0.5), a.set_cell(a.cell * 2))
 
     for label, change in mutations():
         other = atoms.copy()
