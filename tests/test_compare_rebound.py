@@ -84,3 +84,27 @@ def test_heyoka_peer_energy_and_positions():
     # heyoka at tol = eps: round-off energy error, and the extended-precision reference agrees
     assert np.median(errs) < 1e-14
     assert np.median(pos) < 1e-11
+
+
+def test_wall_time_leaves_out_the_energy_samples(monkeypatch):
+    """The wall time is the integration's (attach included), not the energy read at each output
+    time, which heyoka's runs do not pay either: with a clock that only the energy evaluation
+    advances, every run reports zero wall time (it reported n_samples when the energy was
+    inside the timed region)."""
+    import rebound
+
+    from hbvm_md.reports import rebound_comparison as rc
+
+    ticks = [0.0]
+    energy = rebound.Simulation.energy
+
+    def slow_energy(sim):
+        ticks[0] += 1.0
+        return energy(sim)
+
+    monkeypatch.setattr(rc.time, "perf_counter", lambda: ticks[0])
+    monkeypatch.setattr(rebound.Simulation, "energy", slow_energy)
+    cmp = hbvm_md.compare_rebound("outer_solar_system", t_end=2e3, hbvm=((6, 7, 100.0),),
+                                  peers=("ias15",), n_samples=10)
+    assert ticks[0] >= 2 * 10                              # the energy was read at every output
+    assert [r["wall_time_s"] for r in cmp.rows] == [0.0, 0.0]

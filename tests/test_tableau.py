@@ -198,3 +198,11 @@ def test_tableau_is_immutable_and_hashable():
         m.tau[0] = 0.0
     assert m == HBVM(4, 2) and hash(m) == hash(HBVM(4, 2)) and m != HBVM(4, 2, "lobatto")
     assert repr(HBVM(4, 2, "lobatto")) == "HBVM(4, 2, nodes='lobatto')"
+    # the arrays are built once per (k, s, nodes) and shared, which only read-only arrays allow
+    other = HBVM(4, 2)
+    for name in ("tau", "tau_lo", "omega", "P", "I", "W", "W_lo", "I_lo", "C2", "C2_lo", "E",
+                 "P_next", "X", "X_lo"):
+        a = getattr(m, name)
+        assert a is getattr(other, name) and not a.flags.writeable, name
+        with pytest.raises(ValueError, match="read-only"):
+            a.flat[0] = 0.0
