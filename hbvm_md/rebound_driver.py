@@ -82,7 +82,7 @@ from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, TOO_SMALL
 from integrators.engine import DEFAULT_EPSILON, Binding, Counted, Extrapolation, check_adaptive
 from integrators.errors import StepSizeError, step_error
 from integrators.jit import entry_point
-from systems.nbody import NBody
+from systems.nbody import NBody, shortest_r3_over_m
 
 _LOG = logging.getLogger(__name__)
 _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValueDictionary()
@@ -94,6 +94,7 @@ _CONFIG_FIELDS = ("integrator", "_post_timestep_modifications", "softening", "_a
 # and the fields :meth:`HBVMIntegrator._native` reads (the callbacks that need Python between
 # steps, the particles' address): while all these bytes are unchanged its answer is too
 _NATIVE_FIELDS = ("_heartbeat", "_pre_timestep_modifications", "extras", "_particles")
+_CFG_IDX: dict = {}        # the byte indices of those fields, by Simulation class
 _DOUBLES_PER_PARTICLE = glue.PARTICLE_DOUBLES       # sizeof(reb_particle) = 112 bytes
 
 
@@ -131,7 +132,7 @@ def _make_class():
             drv = _REGISTRY.get(ctypes.addressof(self))
             if drv is None:
                 return super().integrate(tmax, exact_finish_time)
-            drv._run(_integrate, tmax, exact_finish_time)
+            drv._run(drv._reb_integrate, tmax, exact_finish_time)
 
         def steps(self, N_steps):
             drv = _REGISTRY.get(ctypes.addressof(self))
@@ -152,17 +153,50 @@ def _make_class():
                 drv._clone_onto(new)
             return new
 
-    # what HBVMIntegrator._run calls: REBOUND's own methods, ``done`` steps taken already (a
-    # function made once and its arguments, not a lambda and super() at each call: 0.3 us)
+    # what HBVMIntegrator._run calls for sim.steps: REBOUND's own method, ``done`` steps taken
+    # already (a function made once and its arguments, not a lambda and super() at each call:
+    # 0.3 us); sim.integrate calls HBVMIntegrator._reb_integrate
     base = rebound.Simulation
-
-    def _integrate(sim, done, tmax, exact_finish_time):
-        base.integrate(sim, tmax, exact_finish_time)
 
     def _steps(sim, done, N_steps):
         base.steps(sim, N_steps - done)
 
     return HBVMSimulation
+
+
+_REB_INTEGRATE = None
+# what reb_simulation_integrate's return value means (REBOUND's enum REB_STATUS): the exception
+# rebound.Simulation.integrate raises for it (5, REB_STATUS_USER: a stop asked for, no error)
+_REB_ERRORS = {1: ("GenericError", "An error occurred during the integration."),
+               2: ("NoParticles", "No more particles left in simulation."),
+               3: ("Encounter", "Two particles had a close encounter (d<exit_min_distance)."),
+               4: ("Escape", "A particle escaped (r>exit_max_distance)."),
+               7: ("Collision", "Two particles collided (d < r1+r2)")}
+
+
+def _reb_integrate_fn():
+    """REBOUND's C ``reb_simulation_integrate(struct reb_simulation*, double)`` as a ctypes
+    function of our own (the address and a float in, the status out), made once."""
+    global _REB_INTEGRATE
+    if _REB_INTEGRATE is None:
+        lib = _rebound().clibrebound
+        proto = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_double)
+        _REB_INTEGRATE = proto(ctypes.cast(lib.reb_simulation_integrate, ctypes.c_void_p).value)
+    return _REB_INTEGRATE
+
+
+def _reb_status_error(sim, status: int) -> BaseException:
+    """The exception ``rebound.Simulation.integrate`` raises for the C call's ``status``."""
+    if status == 6:                       # REB_STATUS_SIGINT
+        return KeyboardInterrupt()
+    rebound = _rebound()
+    if status == 1:
+        sim.process_messages()            # an error message of REBOUND's is raised from there
+    if status == 2 and sim._N_odes > 0:
+        return rebound.NoParticles("No particles found. Will exit. Use BS integrator to "
+                                   "integrate user-defined ODEs without any particles present.")
+    name, message = _REB_ERRORS.get(status, ("GenericError", f"REBOUND returned status {status}"))
+    return getattr(rebound, name)(message)
 
 
 _SIM_CLASS = None
@@ -275,19 +309,42 @@ def choose_k(system, y0: np.ndarray, s: int, h: float, period: float,
     error of k_ref = k_max (default max(2 s, s + 8)), and return k + 1 (at most k_ref) as a
     margin: the energy error of HBVM(k, s) on a non-polynomial H is the quadrature error
     O(h^(2k)), oscillating with the orbits, so one period of the fastest orbit shows its
-    amplitude; long runs add round-off on top, hence the margin.  Costs a few milliseconds at
-    attach.  When even k_ref fails on that stretch (an encounter ahead that a step of size h
-    does not resolve), the probe is shortened to the steps before the failure, or k_ref is
-    returned when fewer than 8 remain; either is logged.
+    amplitude; long runs add round-off on top, hence the margin.
+
+    One run usually settles it: k = s is kept without the reference run when its error is
+    within EARLY_ULPS ulps of the energy's own rounding, eps (|T| + |V|) / |T + V| at y0 (what
+    evaluating T + V in double precision leaves, which the reference, measured with the same
+    energy, does not go below).  Measured on the scenes and steps of
+    ``benchmarks/bench_rebound.py`` (15 settings x 9 starts): HBVM(s, s) at round-off shows
+    0.97-3.11 such ulps and exits early in 89 of the 135 starts; with a visible quadrature
+    error (outer solar system, s = 6, dt = 300 d) it shows 6.5-8.7 and never does.  Where it
+    exits early, the full measurement picks the same k, except in 5 starts where its k = s and
+    reference draws differed by more than 1.5x by chance and it took 8, 10, 11, 13 or 14 for
+    s + 1 (the noise of comparing two round-off draws, which the early exit does not have).
+    The probe then costs one run of HBVM(s, s), not that and one of HBVM(k_ref, s) with twice
+    the stages.
+    When even k_ref fails on that stretch (an encounter ahead that a step of size h does not
+    resolve), the probe is shortened to the steps before the failure, or k_ref is returned
+    when fewer than 8 remain; either is logged.
     """
     from integrators import integrate
     k_ref = int(k_max or max(2 * s, s + 8))
     steps = int(min(400, max(8, math.ceil(period / abs(h))))) if math.isfinite(period) else 8
+    errors = {}
 
     def err(k):
-        res = integrate(HBVM(k, s), system, y0, h, steps, fast=True, solver="fixed_point")
-        return res.max_energy_error
+        if (k, steps) not in errors:
+            res = integrate(HBVM(k, s), system, y0, h, steps, fast=True, solver="fixed_point")
+            errors[k, steps] = res.max_energy_error
+        return errors[k, steps]
 
+    early = _energy_rounding(system, y0)
+    if early > 0.0:
+        try:
+            if err(s) <= EARLY_ULPS * early:
+                return min(s + 1, k_ref)
+        except StepError:
+            pass                  # the full measurement below says what to do
     try:
         e_ref = err(k_ref)
     except StepError as exc:
@@ -316,6 +373,29 @@ def choose_k(system, y0: np.ndarray, s: int, h: float, period: float,
     return k_ref
 
 
+#: choose_k keeps k = s after one run when its energy error is within this many ulps of the
+#: energy's rounding (see there)
+EARLY_ULPS = 2.0
+
+
+def _energy_rounding(system, y0) -> float:
+    """eps (|T| + |V|) / |T + V| at y0: the relative rounding of evaluating the energy in double
+    precision (0 when the system does not give T and V, or T + V is 0 or not finite)."""
+    m = y0.shape[0] // 2
+    try:
+        if hasattr(system, "separable_kernels") and hasattr(system, "kinetic_weights"):
+            _, potential, params = system.separable_kernels()      # compiled: 0.1 ms fewer
+            p = y0[m:]
+            T = 0.5 * float(np.dot(p * p, system.kinetic_weights))
+            V = float(potential(np.ascontiguousarray(y0[:m]), params))
+        else:
+            T, V = float(system.kinetic(y0[m:])), float(system.potential(y0[:m]))
+    except (AttributeError, TypeError, ValueError):
+        return 0.0
+    r = np.finfo(float).eps * (abs(T) + abs(V)) / abs(T + V) if T + V != 0.0 else 0.0
+    return r if math.isfinite(r) else 0.0
+
+
 def adaptive_k(s: int, epsilon: float) -> int:
     """k for adaptive steps: the smallest k > s with epsilon^(2k / (s - 1)) <= 1e-17.
 
@@ -335,22 +415,8 @@ def shortest_period(sim) -> float:
     gravitating member, from the current positions (a crude time scale of the scene).
     ``sim``: a ``rebound.Simulation`` or the :class:`systems.NBody` read from one."""
     nb = sim if isinstance(sim, NBody) else NBody.from_rebound(sim)
-    x = nb.positions
     g = np.where(nb.is_source, nb.body_masses, 0.0)
-    best = math.inf
-    N = nb.N
-    src = np.flatnonzero(g > 0)          # every pair with a gravitating member has one in src
-    rows = max(1, 2 ** 20 // max(N, 1))     # in blocks of rows: memory O(N), not O(N^2)
-    j = np.arange(N)
-    for b in range(0, src.size, rows):
-        i = src[b:b + rows]
-        d = x[None, :, :] - x[i, None, :]
-        r2 = np.einsum("ijk,ijk->ij", d, d)
-        M = g[i, None] + g[None, :]
-        ok = j[None, :] != i[:, None]
-        if np.any(ok):
-            best = min(best, float(np.min(2 * math.pi * np.sqrt(r2[ok] ** 1.5 / (nb.G * M[ok])))))
-    return best
+    return 2 * math.pi * math.sqrt(shortest_r3_over_m(np.ascontiguousarray(nb.positions), g) / nb.G)
 
 
 class HBVMIntegrator(Counted):
@@ -460,16 +526,19 @@ class HBVMIntegrator(Counted):
             h = math.copysign(h, sim.dt) if sim.dt != 0 else h
         else:
             h = _step_size("sim.dt", sim.dt)
+        nb = None
         if k is None and adaptive:
             # the steps vary (pericentres, encounters): no single step to probe k on
             method = HBVM(adaptive_k(method.s, epsilon), method.s, nodes=nodes)
         elif k is None and sim.N > 1:
             nb = NBody.from_rebound(sim)
-            check_particles(nb.initial_state(), nb)
-            method = HBVM(choose_k(nb, nb.initial_state(), method.s, h, shortest_period(nb)),
-                          method.s, nodes=nodes)
+            y0 = nb.initial_state()
+            check_particles(y0, nb)
+            method = HBVM(choose_k(nb, y0, method.s, h, shortest_period(nb)), method.s,
+                          nodes=nodes)
         self._attach(sim, method, h, int(max_iter), tol, energy_tol)
         self._set_control(bool(adaptive), epsilon, min_dt)
+        self._premodel = nb     # the first run's model, while the particles are still these
 
     def _attach(self, sim, method: HBVM, h: float, max_iter: int, tol, energy_tol) -> None:
         self.method = method
@@ -497,13 +566,18 @@ class HBVMIntegrator(Counted):
         self._simi = np.frombuffer(head, dtype=np.int64)
         self._steps_done = ctypes.c_int64.from_address(self._addr + 8 * glue.STEPS_AT)
         self._extras_c = ctypes.c_void_p.from_address(self._addr + type(sim).extras.offset)
+        self._exact_finish = ctypes.c_int.from_address(self._addr + type(sim).exact_finish_time.offset)
+        self._messages = ctypes.c_void_p.from_address(self._addr + type(sim).messages.offset)
+        self._reb_call = _reb_integrate_fn()
         # the bytes of the settings _before_run checks (integrator, callbacks, gravity, ...):
         # while they are those of the last run that passed, the checks are not read again
         # field by field (about 8 us a sim.integrate call, which 200 outputs pay 200 times)
         S = type(sim)
-        self._cfg_idx = np.concatenate([np.arange(getattr(S, f).offset,
-                                                  getattr(S, f).offset + getattr(S, f).size)
-                                        for f in _CONFIG_FIELDS + _NATIVE_FIELDS])
+        self._cfg_idx = _CFG_IDX.get(S)
+        if self._cfg_idx is None:
+            self._cfg_idx = _CFG_IDX[S] = np.concatenate(
+                [np.arange(getattr(S, f).offset, getattr(S, f).offset + getattr(S, f).size)
+                 for f in _CONFIG_FIELDS + _NATIVE_FIELDS])
         self._cfg_bytes = np.frombuffer((ctypes.c_uint8 * ctypes.sizeof(S)).from_address(self._addr),
                                         dtype=np.uint8)
         self._cfg_ok = None
@@ -514,6 +588,7 @@ class HBVMIntegrator(Counted):
         self._gamma = None
         self._ctx = None            # addresses and sizes for the compiled step (rebound_step)
         self._written = None        # (N, 7): x, y, z, vx, vy, vz, m as written last step
+        self._premodel = None       # see __init__ and _model
         # remember what to restore on detach
         self._prev_integrator = str(sim.integrator)
         # A ctypes function-pointer field read from the struct shares the struct's memory, so
@@ -713,6 +788,18 @@ class HBVMIntegrator(Counted):
         self._scal[glue.S_T_WRITTEN] = float(d["t_written"])
 
     # -- called by the wrapped Simulation ----------------------------------------------
+    def _reb_integrate(self, sim, done, tmax, exact_finish_time) -> None:
+        """``rebound.Simulation.integrate(sim, tmax, exact_finish_time)``: the same C call, the
+        same exceptions, without the wrapper's per-call work (the field set through
+        ``Simulation.__setattr__``, a message buffer made whether or not there are messages:
+        4.1 -> 1.3 us a call that takes no step, which 200 output times pay 200 times)."""
+        self._exact_finish.value = exact_finish_time        # a TypeError as REBOUND's c_int
+        status = self._reb_call(self._addr, ctypes.c_double(tmax))
+        if status != 0 and status != 5:
+            raise _reb_status_error(sim, status)
+        if self._messages.value:
+            sim.process_messages()
+
     def _run(self, go, *args) -> None:
         """Run REBOUND (``go(sim, done, *args)``: its integrate, or its steps minus the ``done``
         ones) with the step in C when nothing in Python has to run between steps
@@ -868,9 +955,19 @@ class HBVMIntegrator(Counted):
         check_simulation(sim)
         N = view.shape[0]
         na = sim.N_active
-        nb = NBody(view[:, 9].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
-        y = np.concatenate([view[:, :3].reshape(-1), nb.momenta_from_velocities(view[:, 3:6])])
-        check_particles(y, nb)
+        n_active = None if na < 0 or na >= N else na
+        nb, self._premodel = self._premodel, None
+        if (nb is not None and nb.N == N and nb.G == sim.G and nb.n_active == (N if n_active is None else n_active)
+                and np.array_equal(nb.positions, view[:, :3])
+                and np.array_equal(nb.velocities, view[:, 3:6])
+                and np.array_equal(nb.body_masses, view[:, 9])):
+            # the model the k probe ran on (built and checked at attach from these particles:
+            # the same numbers as building it again, 0.25 ms fewer on the first run)
+            y = nb.initial_state()
+        else:
+            nb = NBody(view[:, 9].copy(), G=sim.G, n_active=n_active)
+            y = np.concatenate([view[:, :3].reshape(-1), nb.momenta_from_velocities(view[:, 3:6])])
+            check_particles(y, nb)
         self._system = nb
         self._binding = Binding(self.method, nb, form="separable", fast=True,
                                 glue="hbvm_md.rebound_step")
@@ -927,7 +1024,10 @@ class HBVMIntegrator(Counted):
         for i, a in enumerate(self._args):
             if not (a.flags.c_contiguous and a.dtype in (np.float64, np.complex128)):
                 raise AssertionError(f"rebound_step argument {i} is not a contiguous array")
-            ctx[i] = a.ctypes.data
+            # the address through the buffer protocol (0.6 us) rather than a.ctypes (1.9 us),
+            # where it is writable and not empty
+            ctx[i] = (ctypes.addressof(ctypes.c_char.from_buffer(a))
+                      if a.flags.writeable and a.size else a.ctypes.data)
         ctx[[glue.D_S, glue.D_K, glue.D_M, glue.D_N, glue.D_P, glue.D_NF, glue.D_NC]] = (
             self.method.s, self.method.n_stages, b.minv.shape[0], view.shape[0],
             b.params.shape[0], b.work.shape[0], b.cwork.shape[0])

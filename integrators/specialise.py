@@ -168,9 +168,8 @@ def specialise(force, potential, python: bool = False, glue: str | None = None):
     ``GLUE_FUNCTIONS`` are compiled like the step and become attributes of the result, and its
     ``GLUE_CFUNCS`` (name: signature) become C callbacks (compiled only: a Python step has
     none).  The hash of the generated module covers the glue's source."""
-    glue_ = _glue(glue)
     if python:
-        out = _executed(force, potential, False, glue_)
+        out = _executed(force, potential, False, _glue(glue))
         out.kind = "python"
         return out
     key = (force, potential, glue)
@@ -178,8 +177,9 @@ def specialise(force, potential, python: bool = False, glue: str | None = None):
         hit = _CACHE.get(key)
     except TypeError:            # unhashable callables: no cache
         hit, key = None, None
-    if hit is not None:
+    if hit is not None:          # (before the glue's paths are looked up: 15 us a Binding)
         return hit
+    glue_ = _glue(glue)
     with _LOCK:
         if _is_compiled(force) and _is_compiled(potential):
             refs = [_import_ref(force), _import_ref(potential)]

@@ -103,6 +103,30 @@ def _add_pair(out, r, i, j, ci, cj, dx, dy, dz):
 
 
 @jit
+def shortest_r3_over_m(x, g):
+    """min of r^3 / (g_i + g_j) over the pairs of rows of x (N, 3) with g_i + g_j > 0 (inf
+    when there is none): the shortest two-body period is 2 pi sqrt(that / G).  Every such pair
+    has a member with g > 0, so the loop runs over those: O(N) for one star among test
+    particles, no memory."""
+    N = x.shape[0]
+    best = np.inf
+    for i in range(N):
+        if not g[i] > 0.0:
+            continue
+        for j in range(N):
+            if j == i or (g[j] > 0.0 and j < i):     # a pair of two sources once
+                continue
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            t = r2 * np.sqrt(r2) / (g[i] + g[j])
+            if t < best:
+                best = t
+    return best
+
+
+@jit
 def nbody_potential(q, params):
     """V(q) of the sources, q (3N,)."""
     G = params[0]

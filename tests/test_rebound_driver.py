@@ -325,3 +325,112 @@ def test_shortest_period_is_the_shortest_over_pairs_with_a_gravitating_member():
     got = shortest_period(sim)
     assert got == pytest.approx(want, rel=1e-12)
     assert shortest_period(NBody.from_rebound(sim)) == got
+
+
+def _probe_scene(rep: int):
+    """The outer solar system with the planets' positions scaled by 1 + rep 1e-13 (as the
+    benchmark's starts)."""
+    nb = outer_solar_system()
+    x = nb.positions.copy()
+    x[1:] *= 1 + rep * 1e-13
+    return NBody(nb.body_masses, G=nb.G, positions=x, velocities=nb.velocities)
+
+
+@pytest.mark.parametrize("s, h", [(8, 500.0), (6, 250.0), (6, 300.0)])
+def test_k_probe_early_exit_keeps_the_energy_at_the_references_round_off(monkeypatch, s, h):
+    """choose_k keeps k = s after one run when its error is at the energy's rounding.  Over
+    the benchmark's steps and 5 starts, HBVM(k, s) with the k it picks conserves the energy
+    over five times the probe's stretch as well as the reference HBVM(k_ref, s) does (medians:
+    one run's error at round-off is a random draw).  At s = 6, dt = 300 d HBVM(6, 6)'s
+    quadrature error shows (22 eps against 5): the early exit must not take it, and the full
+    measurement decides as before."""
+    import hbvm_md.rebound_driver as rd
+    from hbvm_md.rebound_driver import choose_k, shortest_period
+    from integrators import HBVM, integrate
+    picked, full, e_k, e_ref = [], [], [], []
+    k_ref = max(2 * s, s + 8)
+    for rep in range(5):
+        nb = _probe_scene(rep)
+        y0, T = nb.initial_state(), shortest_period(nb)
+        k = choose_k(nb, y0, s, h, T)
+        picked.append(k)
+        with monkeypatch.context() as m:
+            m.setattr(rd, "EARLY_ULPS", 0.0)
+            full.append(choose_k(nb, y0, s, h, T))
+        steps = 5 * max(8, math.ceil(T / h))
+        e_k.append(integrate(HBVM(k, s), nb, y0, h, steps, fast=True).max_energy_error)
+        e_ref.append(integrate(HBVM(k_ref, s), nb, y0, h, steps, fast=True).max_energy_error)
+    if (s, h) == (6, 300.0):
+        assert picked == full == [s + 2] * 5
+    else:
+        assert picked == [s + 1] * 5 and min(full) == s + 1
+    assert np.median(e_k) <= 1.5 * np.median(e_ref)
+
+
+def test_k_probe_early_exit_runs_one_method(monkeypatch):
+    """When HBVM(s, s) is at round-off the probe runs it alone (not the reference HBVM(k_ref,
+    s), twice the stages); when it is not, the reference and the k = s run measured already
+    decide (no run repeated)."""
+    import integrators
+    from hbvm_md.rebound_driver import choose_k, shortest_period
+    calls = []
+    real = integrators.integrate
+
+    def counting(method, *args, **kw):
+        calls.append(method.k)
+        return real(method, *args, **kw)
+    monkeypatch.setattr(integrators, "integrate", counting)
+    nb = _probe_scene(0)
+    y0, T = nb.initial_state(), shortest_period(nb)
+    assert choose_k(nb, y0, 8, 500.0, T) == 9 and calls == [8]
+    calls.clear()
+    assert choose_k(nb, y0, 6, 300.0, T) == 8 and calls == [6, 14, 7]
+
+
+@pytest.mark.parametrize("field, value, error", [("exit_max_distance", 15.0, rebound.Escape),
+                                                 ("exit_min_distance", 6.0, rebound.Encounter)])
+def test_rebounds_own_stops_raise_as_under_rebound(field, value, error):
+    """sim.integrate with HBVM attached calls REBOUND's C integrate itself (not through
+    rebound.Simulation.integrate): REBOUND's own stops (a particle beyond exit_max_distance,
+    two closer than exit_min_distance) raise the exception REBOUND raises, with its message,
+    and the run can go on once the cause is gone."""
+    plain = outer_solar_system().to_rebound()
+    plain.integrator = "ias15"
+    setattr(plain, field, value)
+    with pytest.raises(error) as want:
+        plain.integrate(1000.0)
+    sim = outer_solar_system().to_rebound()
+    drv = HBVMIntegrator(sim, s=6, k=7, dt=100.0)
+    setattr(sim, field, value)
+    with pytest.raises(error) as got:
+        sim.integrate(1000.0)
+    assert str(got.value) == str(want.value)
+    assert drv.last_run_native
+    setattr(sim, field, 0.0)
+    sim.integrate(1000.0)
+    assert sim.t == 1000.0 and drv.nsteps == 10
+
+
+@pytest.mark.parametrize("change", ["none", "position", "velocity", "mass"])
+def test_first_run_starts_from_the_particles_as_they_are_then(change):
+    """The first run reuses the model the k probe built at attach only while the particles are
+    those it was built from: a particle moved, pushed or made heavier between the attach and
+    the first sim.integrate is honoured.  Either way the run is the one of a driver attached
+    with that k (no probe), bit for bit."""
+    nb = outer_solar_system()
+    a, b = nb.to_rebound(), nb.to_rebound()
+    da = HBVMIntegrator(a, s=6, dt=100.0)
+    HBVMIntegrator(b, s=6, k=da.method.k, dt=100.0)
+    for sim in (a, b):
+        p = sim.particles[2]
+        if change == "position":
+            p.x += 1e-3
+        elif change == "velocity":
+            p.vy *= 1.001
+        elif change == "mass":
+            p.m *= 1.01
+    a.integrate(1e4)
+    b.integrate(1e4)
+    assert np.array_equal(_xv(a), _xv(b))
+    if change == "mass":
+        assert da._system.body_masses[2] == b.particles[2].m
