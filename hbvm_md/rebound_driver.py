@@ -166,7 +166,8 @@ def _make_class():
 
 _REB_INTEGRATE = None
 # what reb_simulation_integrate's return value means (REBOUND's enum REB_STATUS): the exception
-# rebound.Simulation.integrate raises for it (5, REB_STATUS_USER: a stop asked for, no error)
+# rebound.Simulation.integrate raises for it; it raises none for 0 (success), 5 (REB_STATUS_USER,
+# a stop asked for) and any other value, and neither does HBVMIntegrator
 _REB_ERRORS = {1: ("GenericError", "An error occurred during the integration."),
                2: ("NoParticles", "No more particles left in simulation."),
                3: ("Encounter", "Two particles had a close encounter (d<exit_min_distance)."),
@@ -195,7 +196,7 @@ def _reb_status_error(sim, status: int) -> BaseException:
     if status == 2 and sim._N_odes > 0:
         return rebound.NoParticles("No particles found. Will exit. Use BS integrator to "
                                    "integrate user-defined ODEs without any particles present.")
-    name, message = _REB_ERRORS.get(status, ("GenericError", f"REBOUND returned status {status}"))
+    name, message = _REB_ERRORS[status]
     return getattr(rebound, name)(message)
 
 
@@ -795,7 +796,7 @@ class HBVMIntegrator(Counted):
         4.1 -> 1.3 us a call that takes no step, which 200 output times pay 200 times)."""
         self._exact_finish.value = exact_finish_time        # a TypeError as REBOUND's c_int
         status = self._reb_call(self._addr, ctypes.c_double(tmax))
-        if status != 0 and status != 5:
+        if status == 6 or status in _REB_ERRORS:
             raise _reb_status_error(sim, status)
         if self._messages.value:
             sim.process_messages()
