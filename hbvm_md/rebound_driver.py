@@ -324,6 +324,7 @@ def choose_k(system, y0: np.ndarray, s: int, h: float, period: float,
     s + 1 (the noise of comparing two round-off draws, which the early exit does not have).
     The probe then costs one run of HBVM(s, s), not that and one of HBVM(k_ref, s) with twice
     the stages.
+
     When even k_ref fails on that stretch (an encounter ahead that a step of size h does not
     resolve), the probe is shortened to the steps before the failure, or k_ref is returned
     when fewer than 8 remain; either is logged.
@@ -566,14 +567,14 @@ class HBVMIntegrator(Counted):
         self._simd = np.frombuffer(head, dtype=np.float64)
         self._simi = np.frombuffer(head, dtype=np.int64)
         self._steps_done = ctypes.c_int64.from_address(self._addr + 8 * glue.STEPS_AT)
-        self._extras_c = ctypes.c_void_p.from_address(self._addr + type(sim).extras.offset)
-        self._exact_finish = ctypes.c_int.from_address(self._addr + type(sim).exact_finish_time.offset)
-        self._messages = ctypes.c_void_p.from_address(self._addr + type(sim).messages.offset)
+        S = type(sim)
+        self._extras_c = ctypes.c_void_p.from_address(self._addr + S.extras.offset)
+        self._exact_finish = ctypes.c_int.from_address(self._addr + S.exact_finish_time.offset)
+        self._messages = ctypes.c_void_p.from_address(self._addr + S.messages.offset)
         self._reb_call = _reb_integrate_fn()
         # the bytes of the settings _before_run checks (integrator, callbacks, gravity, ...):
         # while they are those of the last run that passed, the checks are not read again
         # field by field (about 8 us a sim.integrate call, which 200 outputs pay 200 times)
-        S = type(sim)
         self._cfg_idx = _CFG_IDX.get(S)
         if self._cfg_idx is None:
             self._cfg_idx = _CFG_IDX[S] = np.concatenate(
@@ -958,12 +959,13 @@ class HBVMIntegrator(Counted):
         na = sim.N_active
         n_active = None if na < 0 or na >= N else na
         nb, self._premodel = self._premodel, None
-        if (nb is not None and nb.N == N and nb.G == sim.G and nb.n_active == (N if n_active is None else n_active)
+        if (nb is not None and nb.N == N and nb.G == sim.G
+                and nb.n_active == (N if n_active is None else n_active)
                 and np.array_equal(nb.positions, view[:, :3])
                 and np.array_equal(nb.velocities, view[:, 3:6])
                 and np.array_equal(nb.body_masses, view[:, 9])):
-            # the model the k probe ran on (built and checked at attach from these particles:
-            # the same numbers as building it again, 0.25 ms fewer on the first run)
+            # the model the k probe ran on, built and checked at attach from these particles:
+            # the same numbers as building and checking it again (about 0.1 ms of a first run)
             y = nb.initial_state()
         else:
             nb = NBody(view[:, 9].copy(), G=sim.G, n_active=n_active)
