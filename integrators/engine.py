@@ -49,6 +49,14 @@ def check_state(system, y, name: str = "y0"):
     return system, y
 
 
+def check_count(name: str, value, minimum: int) -> int:
+    """``value`` as an int, or ValueError naming ``name`` when it is not an integer >= minimum
+    (a bool, a float such as 10.0, or a smaller number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"`{name}` must be an integer >= {minimum} (got {name}={value!r})")
+    return int(value)
+
+
 def check_step(h) -> float:
     try:
         hf = float(h)
@@ -372,6 +380,8 @@ class Stepper(Counted):
         on failure with solver="auto" the run goes on with Newton.  A failure raises with the
         samples so far in the exception's ``result``."""
         h = check_step(h)
+        steps = check_count("steps", steps, 0)
+        sample_every = check_count("sample_every", sample_every, 1)
         b = self.binding
         nsamp = steps // sample_every + 1
         out_t, out_y, out_e = np.empty(nsamp), np.empty((nsamp, self._y.size)), np.empty(nsamp)
@@ -455,6 +465,7 @@ class Stepper(Counted):
         """Adaptive steps from t to t_end, h the first step tried: samples every
         ``sample_every`` accepted steps, and at each of ``sample_times`` (the steps are
         shortened to land on them exactly, and on t_end)."""
+        sample_every = check_count("sample_every", sample_every, 1)
         t_start = time.perf_counter()
         marks = sorted(float(x) for x in (sample_times if sample_times is not None else ()))
         marks = [x for x in marks if (x - self.t) * (t_end - self.t) > 0 and abs(x) <= abs(t_end)]
@@ -633,13 +644,12 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
             raise ValueError(f"`t_end` must be a finite time other than t0 with adaptive=True "
                              f"(got t_end={t_end!r})")
         epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
+        sample_every = check_count("sample_every", sample_every, 1)
         st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
-        return st.run_adaptive(h, float(t_end), epsilon, min_dt, int(sample_every), sample_times)
+        return st.run_adaptive(h, float(t_end), epsilon, min_dt, sample_every, sample_times)
     if steps is None:
         raise ValueError("`steps` is required without adaptive=True")
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
-        raise ValueError(f"`steps` must be an integer >= 0 (got steps={steps!r})")
-    if isinstance(sample_every, bool) or not isinstance(sample_every, (int, np.integer)) or sample_every < 1:
-        raise ValueError(f"`sample_every` must be an integer >= 1 (got sample_every={sample_every!r})")
+    steps = check_count("steps", steps, 0)
+    sample_every = check_count("sample_every", sample_every, 1)
     st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
-    return st.run(h, int(steps), int(sample_every))
+    return st.run(h, steps, sample_every)

@@ -94,6 +94,26 @@ def test_bad_steps(steps):
 def test_bad_sample_every(every):
     with pytest.raises(ValueError, match=r"`sample_every` must be an integer >= 1 \(got sample_every="):
         integrate(HBVM(4, 2), KEP, Y0, 0.1, 10, sample_every=every)
+    # the adaptive path and the Stepper's own methods say the same (they raised
+    # ZeroDivisionError or numpy's negative-dimension error before), and take no step
+    with pytest.raises(ValueError, match=r"`sample_every` must be an integer >= 1 \(got sample_every="):
+        integrate(HBVM(4, 2), KEP, Y0, 0.1, t_end=1.0, adaptive=True, sample_every=every)
+    for fast in (True, False):
+        st = Stepper(HBVM(4, 2), KEP, Y0, fast=fast)
+        with pytest.raises(ValueError, match=r"`sample_every` must be an integer >= 1 \(got "):
+            st.run(0.1, 10, sample_every=every)
+        with pytest.raises(ValueError, match=r"`sample_every` must be an integer >= 1 \(got "):
+            st.run_adaptive(0.1, 1.0, 1e-6, 1e-12, sample_every=every)
+        assert st.nsteps == 0 and np.array_equal(st.y, Y0)
+
+
+@pytest.mark.parametrize("steps", [-1, 2.0, True, "10"])
+def test_bad_steps_on_the_stepper(steps):
+    for fast in (True, False):
+        st = Stepper(HBVM(4, 2), KEP, Y0, fast=fast)
+        with pytest.raises(ValueError, match=r"`steps` must be an integer >= 0 \(got steps="):
+            st.run(0.1, steps)
+        assert st.nsteps == 0 and np.array_equal(st.y, Y0)
 
 
 def test_zero_steps_is_the_initial_state():
