@@ -38,13 +38,18 @@ def _distinct_symbol_ids() -> None:
 _distinct_symbol_ids()
 
 
-def jit(fn):
+def jit(fn=None, *, nogil: bool = False):
     """``njit(cache=True, error_model="numpy")(fn)``, or without the cache when none can be
     written.  numpy's error model makes a division by zero an inf or a nan, which the step
-    reports as a clear error, instead of an exception raised inside compiled code."""
+    reports as a clear error, instead of an exception raised inside compiled code.
+    ``@jit(nogil=True)``: the compiled function releases the GIL while it runs (for one that
+    calls into a C library, as ctypes would)."""
     global _warned
+    if fn is None:
+        return lambda f: jit(f, nogil=nogil)
+    options = dict(error_model="numpy", nogil=True) if nogil else dict(error_model="numpy")
     try:
-        return njit(cache=True, error_model="numpy")(fn)
+        return njit(cache=True, **options)(fn)
     except RuntimeError as exc:       # numba: "cannot cache function ...: no locator available"
         if "cache" not in str(exc):
             raise
@@ -53,7 +58,7 @@ def jit(fn):
             warnings.warn(f"hbvm-md: compiled code cannot be cached on disk ({exc}); it is "
                           "compiled in memory in every process. Set NUMBA_CACHE_DIR to a writable "
                           "folder to cache it.", RuntimeWarning, stacklevel=2)
-        return njit(error_model="numpy")(fn)
+        return njit(**options)(fn)
 
 
 def cjit(signature):

@@ -91,3 +91,21 @@ def _view1_compiled(buf, offset, n):
     def impl(buf, offset, n):
         return carray(pointer(buf.ctypes.data + size * offset), n)
     return impl
+
+
+@intrinsic
+def call_int32_voidptr_double(typingctx, fn, ptr, x):
+    """Call the C function at address ``fn`` (``int f(void*, double)``) with the address
+    ``ptr`` and ``x``; its int32 result.  For a C library's entry point whose address is only
+    known at run time (compiled code cached on disk cannot hold one)."""
+    if not (isinstance(fn, types.Integer) and isinstance(ptr, types.Integer)
+            and x == types.float64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        fnty = ir.FunctionType(ir.IntType(32), [ir.IntType(8).as_pointer(), ir.DoubleType()])
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        p = builder.inttoptr(args[1], ir.IntType(8).as_pointer())
+        return builder.call(f, [p, args[2]])
+    return types.int32(fn, ptr, x), codegen

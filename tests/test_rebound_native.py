@@ -1,6 +1,8 @@
 """The REBOUND step as one compiled call: the C callback (no Python between steps) and the
 Python callback run the same compiled step and must agree bit for bit, also when the user
 changes the particles between runs and when a step fails."""
+import ctypes
+
 import numpy as np
 import pytest
 import rebound
@@ -124,3 +126,48 @@ def test_stop_status_is_rebounds():
     sim.add(m=1.0)
     sim.stop()
     assert sim._status == glue.REB_STATUS_USER
+
+
+def test_native_integrate_call_restores_the_slots_and_takes_rebounds_arguments():
+    """A native sim.integrate is one compiled call that sets REBOUND's post-timestep slot and
+    ``extras`` to the C step, runs REBOUND's integrate and sets them back: after a run that
+    ends normally, on REBOUND's own stop (Escape) and on a failed step alike, the slot holds
+    the Python callback and ``extras`` is NULL again.  tmax and exact_finish_time are taken
+    and refused as rebound.Simulation.integrate takes and refuses them."""
+    sim = outer_solar_system().to_rebound()
+    drv = HBVMIntegrator(sim, s=6, k=7, dt=100.0)
+    cb = drv._cb_ptr
+
+    def slots_are_pythons():
+        return (drv._slots[0] == cb and drv._slots[-1] == 0 and not sim.extras
+                and ctypes.cast(sim._post_timestep_modifications, ctypes.c_void_p).value == cb)
+
+    sim.integrate(1000.0)
+    assert drv.last_run_native and slots_are_pythons() and sim.t == 1000.0
+    sim.exit_max_distance = 1.0
+    with pytest.raises(rebound.Escape):
+        sim.integrate(2000.0)
+    assert drv.last_run_native and slots_are_pythons()
+    sim.exit_max_distance = 0.0
+    # an int, a numpy float and a float give the same run; a string is refused as REBOUND
+    # refuses it (TypeError), and so is a float exact_finish_time, with nothing stepped
+    ref = outer_solar_system().to_rebound()
+    HBVMIntegrator(ref, s=6, k=7, dt=100.0)
+    ref.integrate(1000.0)
+    ref.integrate(sim.t)
+    for tmax in (3000, np.float64(3500.0), 4000.25):
+        sim.integrate(tmax)
+        ref.integrate(float(tmax))
+        assert sim.t == ref.t and np.array_equal(_xv(sim), _xv(ref))
+    for tmax, eft in (("5000", 1), (5000.0, 1.5)):
+        before = _xv(sim), sim.t
+        for s in (sim, outer_solar_system().to_rebound()):      # REBOUND's own refuses too
+            with pytest.raises(TypeError):
+                s.integrate(tmax, exact_finish_time=eft)
+        assert sim.t == before[1] and np.array_equal(_xv(sim), before[0])
+        assert slots_are_pythons()
+    # a failed step: the slots are set back as well
+    drv.max_iter = 1
+    with pytest.raises(ConvergenceError):
+        sim.integrate(9000.0)
+    assert drv.last_run_native and slots_are_pythons()
