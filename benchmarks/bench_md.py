@@ -14,7 +14,9 @@ Timed: building the dynamics object and ``dyn.run(steps)`` (which includes ASE's
 call and all neighbour-list builds), nothing else.  The numba kernels are loaded beforehand on a
 small system (the one-off compilation is not timed).  Each run of a (size, method) is its own
 process, so that the peak resident memory it reports is its own; the fastest of ``--repeat``
-runs is reported (a shared machine slows single runs by 10-30 %).  ``force evals`` counts
+runs is reported (a shared machine slows single runs by 10-30 %), every row run once per round
+and the rounds in turn, so that the machine's drift over minutes reaches every row alike (with
+a row's runs back to back, three runs on one code gave a flatness of 1.44, 1.20 and 1.30).  ``force evals`` counts
 configurations at which forces were computed (calculator calls plus batched stage
 configurations), so HBVM's count includes every stage of every iteration.
 
@@ -110,19 +112,23 @@ def main(argv=None) -> str:
         method, n, steps = args.worker
         print(json.dumps(worker(method, int(n), int(steps))))
         return ""
+    # every row once per round, the rounds in turn (interleaved), then the fastest of each row:
+    # the machine's speed drifts over minutes, and with a row's runs back to back the flatness
+    # (a ratio across rows) measured that drift as much as the code
+    cells = [(n, m) for idx, n in enumerate(args.sizes)
+             for m in ["VV"] + [str(s) for s in (args.s if idx == 0 else [2])]]
+    runs = {cell: [] for cell in cells}
+    for _ in range(max(1, args.repeat)):
+        for n, m in cells:
+            out = subprocess.run([sys.executable, __file__, "--worker", m, str(n), str(args.steps)],
+                                 check=True, capture_output=True, text=True).stdout
+            runs[n, m].append(json.loads(out.strip().splitlines()[-1]))
     rows = []
-    for idx, n in enumerate(args.sizes):
-        methods = ["VV"] + [str(s) for s in (args.s if idx == 0 else [2])]
-        for m in methods:
-            runs = []
-            for _ in range(max(1, args.repeat)):
-                out = subprocess.run([sys.executable, __file__, "--worker", m, str(n), str(args.steps)],
-                                     check=True, capture_output=True, text=True).stdout
-                runs.append(json.loads(out.strip().splitlines()[-1]))
-            r = min(runs, key=lambda x: x["wall"])
-            r["method"] = m
-            rows.append(r)
-            print({k: r[k] for k in ("n", "label", "wall", "nfev", "builds", "peak_mb", "rel")}, flush=True)
+    for n, m in cells:
+        r = min(runs[n, m], key=lambda x: x["wall"])
+        r["method"] = m
+        rows.append(r)
+        print({k: r[k] for k in ("n", "label", "wall", "nfev", "builds", "peak_mb", "rel")}, flush=True)
     vv = {r["n"]: r for r in rows if r["method"] == "VV"}
     head = (f"Soft-sphere fluid phi(r) = {EPS} eV (1 - r^2/{RC}^2)^4 (cutoff {RC} A, periodic), "
             f"rattled simple-cubic argon (a = {LATTICE} A), {T_K:g} K, dt = {DT_FS:g} fs, "
@@ -130,7 +136,8 @@ def main(argv=None) -> str:
             f"PolynomialPairPotential.soft_sphere(...)` and `dyn.run({args.steps})` (timed: building "
             f"the dynamics and the run); `python benchmarks/bench_md.py --steps {args.steps} --sizes "
             f"{' '.join(map(str, args.sizes))} --repeat {args.repeat}` on {machine()}, "
-            f"each run in its own process, the fastest of {args.repeat} runs per row.\n\n")
+            f"each run in its own process, the fastest of {args.repeat} runs per row (every row "
+            f"once per round, the rounds in turn).\n\n")
     table = ["| atoms | method | ms / step | us / (step atom) | x VelocityVerlet | force evals / step | "
              "neighbour-list builds | peak memory [MB] (idle) | max rel. energy error |",
              "|---|---|---|---|---|---|---|---|---|"]
