@@ -656,10 +656,9 @@ class HBVMIntegrator(Counted):
         self._python_slots = np.array([self._cb_ptr, 0], dtype=np.int64)
         # _integrate_native's arguments: REBOUND's integrate, the simulation, the two slots,
         # their values during a native run (set with ctx, see _arrays) and after it
-        self._nat = np.array([ctypes.cast(_rebound().clibrebound.reb_simulation_integrate,
-                                          ctypes.c_void_p).value, self._addr, self._addr + first,
-                              self._addr + first + 8 * (n - 1), 0, 0, self._cb_ptr, 0],
-                             dtype=np.int64)
+        self._nat = np.array([ctypes.cast(self._reb_call, ctypes.c_void_p).value, self._addr,
+                              self._addr + first, self._addr + first + 8 * (n - 1), 0, 0,
+                              self._cb_ptr, 0], dtype=np.int64)
         sim.__class__ = _sim_class()
         _REGISTRY[self._addr] = self
         self.attached = True
