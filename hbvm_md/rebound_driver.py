@@ -208,20 +208,20 @@ def _integrate_native(a, tmax):
     return status
 
 
-_NATIVE_CALL = []
+_NATIVE_CALL = _UNSET = object()
 
 
 def _integrate_native_fn():
     """:func:`_integrate_native`'s compiled entry point (its one signature compiled, or loaded
-    from the cache, on first use), or None when nothing is compiled (NUMBA_DISABLE_JIT: there is
-    no native run either)."""
-    if not _NATIVE_CALL:
-        fn = None
+    from the cache, on first use), or None when nothing is compiled (NUMBA_DISABLE_JIT: then
+    :meth:`HBVMIntegrator._native` says no native run)."""
+    global _NATIVE_CALL
+    if _NATIVE_CALL is _UNSET:
+        _NATIVE_CALL = None
         if hasattr(_integrate_native, "compile"):
             _integrate_native.compile("int32(int64[::1], float64)")
-            fn = entry_point(_integrate_native)
-        _NATIVE_CALL.append(fn)
-    return _NATIVE_CALL[0]
+            _NATIVE_CALL = entry_point(_integrate_native)
+    return _NATIVE_CALL
 
 
 def _reb_status_error(sim, status: int) -> BaseException:
@@ -653,12 +653,13 @@ class HBVMIntegrator(Counted):
         sim.integrator = "none"
         sim.post_timestep_modifications = self._callback
         self._cb_ptr = ctypes.cast(sim._post_timestep_modifications, ctypes.c_void_p).value
-        self._python_slots = np.array([self._cb_ptr, 0], dtype=np.int64)
         # _integrate_native's arguments: REBOUND's integrate, the simulation, the two slots,
-        # their values during a native run (set with ctx, see _arrays) and after it
+        # their values during a native run (set with ctx, see _arrays) and after it; a native
+        # sim.steps sets the slots from the same two pairs (views)
         self._nat = np.array([ctypes.cast(self._reb_call, ctypes.c_void_p).value, self._addr,
                               self._addr + first, self._addr + first + 8 * (n - 1), 0, 0,
                               self._cb_ptr, 0], dtype=np.int64)
+        self._native_slots, self._python_slots = self._nat[4:6], self._nat[6:8]
         sim.__class__ = _sim_class()
         _REGISTRY[self._addr] = self
         self.attached = True
@@ -870,7 +871,7 @@ class HBVMIntegrator(Counted):
                 before = steps_done.value
                 scal = self._scal
                 scal[glue.S_STATUS] = OK
-                if go is None and self._native_call is not None:
+                if go is None:
                     tmax, eft = args
                     self._exact_finish.value = eft       # a TypeError as REBOUND's c_int
                     if type(tmax) is not float:
@@ -879,7 +880,7 @@ class HBVMIntegrator(Counted):
                 else:
                     try:
                         slots[idx] = self._native_slots
-                        (go or self._reb_integrate)(self.sim, done, *args)
+                        go(self.sim, done, *args)
                     finally:
                         slots[idx] = self._python_slots
                 status = scal[glue.S_STATUS]
@@ -899,8 +900,8 @@ class HBVMIntegrator(Counted):
         """Can REBOUND call the compiled step directly (no Python between steps)?  Yes when
         the step is compiled, its state is current, and the simulation has no heartbeat, no
         other callback and no ``extras`` of its own."""
-        if (self._cstep is None or self._chain is not None or self._ctx is None
-                or not self._allow_native):
+        if (self._cstep is None or self._native_call is None or self._chain is not None
+                or self._ctx is None or not self._allow_native):
             return False
         sim = self.sim
         if sim._heartbeat or sim._pre_timestep_modifications or self._extras_c.value:
@@ -1103,8 +1104,7 @@ class HBVMIntegrator(Counted):
                                                       self._simi[glue.N_AT])
         self._ctx = ctx
         if self._cstep is not None:   # the two slots' values during a native run (see _run)
-            self._native_slots = np.array([self._cstep, ctx.ctypes.data], dtype=np.int64)
-            self._nat[4:6] = self._native_slots
+            self._native_slots[:] = (self._cstep, ctx.ctypes.data)
 
     def _step(self) -> None:
         """One REBOUND step through the Python callback: one compiled call (the step and its
