@@ -126,6 +126,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         newton = NM.shape[0] > 0
         hist[0] = np.inf
         hist[1] = 0.0
+        hist[2] = np.inf
+        hist[3] = np.inf
         yscale = EPS * max_abs(y)
         lip = 0.0
         xmax = 0.0

@@ -423,7 +423,7 @@ def test_carved_work_arrays_tile_their_buffers_and_a_short_buffer_is_refused():
     nf, nc = core.work_sizes(n, s, u, m, d)
     work, cwork = np.zeros(nf), np.zeros(nc, dtype=complex)
     views = core.carve(work, cwork, n, s, u, m, d)
-    shapes = [(n,), (n,), (2,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
+    shapes = [(n,), (n,), (4,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
               (n, u), (n, u), (d,), (d,), (5, min(u, core.BLOCK)), (s, u), (s, u)]
     assert [v.shape for v in views] == shapes
     spans = {0: [], 1: []}
@@ -440,3 +440,40 @@ def test_carved_work_arrays_tile_their_buffers_and_a_short_buffer_is_refused():
     assert work.sum() == sum(v.size for v in views if v.dtype != complex)
     with pytest.raises(ValueError, match="work_sizes"):
         core.carve(work[:-1], cwork, n, s, u, m, d)
+
+
+def _stop_sequence(deltas, scale=1.0, floor=0.0, hstate=np.inf, F=None):
+    """core.stop_action over a sequence of increments as the step's loop calls it: the actions
+    until the first that is not ITERATE, and the iteration it came at."""
+    from integrators import core
+
+    hist = np.array([np.inf, 0.0, np.inf, np.inf])
+    F = np.zeros((2, 3)) if F is None else F
+    for it, d in enumerate(deltas, 1):
+        a = core.stop_action(d, scale, F, floor, hstate, it, hist, 0.0)
+        if a != core.ITERATE:
+            return a, it
+    return core.ITERATE, len(deltas)
+
+
+def test_a_strong_contraction_polishes_at_round_off_without_waiting_for_the_stall():
+    """stop_action: increments of a soft-sphere fluid (ratios 3e-5, 1.4e-5, then the max norm of
+    1e5 atoms' round-off, 60 ulps of the coefficients) polish at that round-off increment; the
+    stall rule alone waited two more iterations.  A weaker contraction (ratio 1e-2, planets and
+    Kepler) or an increment above every round-off level still iterates, and a stall at
+    round-off still polishes."""
+    from integrators import core
+
+    fluid = [8e-3, 2.4e-7, 3.3e-12, 1.3e-14, 1.4e-15, 1.4e-15]
+    assert _stop_sequence(fluid, floor=5e-13) == (core.POLISH, 4)
+    assert _stop_sequence(fluid, hstate=0.5) == (core.POLISH, 4)          # the state level
+    assert _stop_sequence(fluid) == (core.POLISH, 4)                      # 64 ulps of scale
+    assert _stop_sequence(fluid, scale=0.1) == (core.POLISH, 6)           # 1.3e-14 > 64 ulps of 0.1: the stall
+    weak = [1e-6, 1e-8, 1e-10, 1e-12, 1e-14, 1e-15, 1e-15]                # ratio 1e-2
+    assert _stop_sequence(weak, floor=5e-13) == (core.POLISH, 7)
+    # the contraction is strong but the last ratio before the stop is not: theta is the larger
+    assert _stop_sequence([1e-3, 1e-8, 1e-10, 1e-14, 1e-15, 1e-15]) == (core.POLISH, 6)
+    # strong, at the state's round-off, but theta^2 delta_prev (1e-18) above 1e-3 ulp of scale
+    assert _stop_sequence([1e-1, 1e-5, 1e-9, 1e-15, 1e-15], hstate=1.0) == (core.POLISH, 5)
+    # strong, but the increments stop above every round-off level: never accepted
+    assert _stop_sequence([1e-3, 1e-8, 1e-13, 5e-14, 4e-14, 4e-14, 4e-14]) == (-core.DIVERGED, 7)
