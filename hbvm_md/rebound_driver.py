@@ -67,7 +67,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import logging
 import math
 import numbers
 import sys
@@ -84,10 +83,10 @@ from integrators.core import C_ITER, C_NFEV, OK, N_COUNTERS, TOO_SMALL
 from integrators.engine import DEFAULT_EPSILON, Binding, Counted, Extrapolation, check_adaptive
 from integrators.errors import StepSizeError, step_error
 from integrators.jit import entry_point, jit
+from integrators.kchoice import adaptive_k, choose_k, period_steps
 from integrators.pointers import call_int32_voidptr_double, int64_pointer
 from systems.nbody import NBody, shortest_r3_over_m
 
-_LOG = logging.getLogger(__name__)
 _REGISTRY: "weakref.WeakValueDictionary[int, HBVMIntegrator]" = weakref.WeakValueDictionary()
 # struct reb_simulation fields whose values _before_run checks (settings HBVM cannot honour,
 # the integrator and callback it owns while attached)
@@ -338,118 +337,6 @@ def check_particles(y: np.ndarray, model: NBody) -> None:
                 "of them or move it")
 
 
-def choose_k(system, y0: np.ndarray, s: int, h: float, period: float,
-             k_max: int | None = None) -> int:
-    """Smallest k >= s for which HBVM(k, s)'s quadrature error is below round-off on this scene.
-
-    Measured, not guessed: from the scene's state y0, integrate one shortest period (at least 8,
-    at most 400 steps of size h) with k = s, s + 1, ... and keep the first k whose maximum
-    relative energy error over that stretch is at most max(2 eps, 1.5 e_ref), e_ref being the
-    error of k_ref = k_max (default max(2 s, s + 8)), and return k + 1 (at most k_ref) as a
-    margin: the energy error of HBVM(k, s) on a non-polynomial H is the quadrature error
-    O(h^(2k)), oscillating with the orbits, so one period of the fastest orbit shows its
-    amplitude; long runs add round-off on top, hence the margin.
-
-    One run usually settles it: k = s is kept without the reference run when its error is
-    within EARLY_ULPS ulps of the energy's own rounding, eps (|T| + |V|) / |T + V| at y0 (what
-    evaluating T + V in double precision leaves, which the reference, measured with the same
-    energy, does not go below).  Measured on the scenes and steps of
-    ``benchmarks/bench_rebound.py`` (15 settings x 9 starts): HBVM(s, s) at round-off shows
-    0.97-3.11 such ulps and exits early in 89 of the 135 starts; with a visible quadrature
-    error (outer solar system, s = 6, dt = 300 d) it shows 6.5-8.7 and never does.  Where it
-    exits early, the full measurement picks the same k, except in 5 starts where its k = s and
-    reference draws differed by more than 1.5x by chance and it took 8, 10, 11, 13 or 14 for
-    s + 1 (the noise of comparing two round-off draws, which the early exit does not have).
-    The probe then costs one run of HBVM(s, s), not that and one of HBVM(k_ref, s) with twice
-    the stages.
-
-    When even k_ref fails on that stretch (an encounter ahead that a step of size h does not
-    resolve), the probe is shortened to the steps before the failure, or k_ref is returned
-    when fewer than 8 remain; either is logged.
-    """
-    from integrators import integrate
-    k_ref = int(k_max or max(2 * s, s + 8))
-    steps = int(min(400, max(8, math.ceil(period / abs(h))))) if math.isfinite(period) else 8
-    errors = {}
-
-    def err(k):
-        if (k, steps) not in errors:
-            res = integrate(HBVM(k, s), system, y0, h, steps, fast=True, solver="fixed_point")
-            errors[k, steps] = res.max_energy_error
-        return errors[k, steps]
-
-    early = _energy_rounding(system, y0)
-    if early > 0.0:
-        try:
-            if err(s) <= EARLY_ULPS * early:
-                return min(s + 1, k_ref)
-        except StepError:
-            pass                  # the full measurement below says what to do
-    try:
-        e_ref = err(k_ref)
-    except StepError as exc:
-        # the probe ran into something a step of size h does not resolve (an encounter ahead):
-        # measure on the stretch before it, or keep k_ref if that is too short.  The run itself
-        # reports the unresolved step when it gets there.
-        done = int(round((exc.t or 0.0) / abs(h)))
-        if done < 8:
-            _LOG.warning("k probe: HBVM(%d, %d) failed after %d steps of h=%.6g (%s); using "
-                         "k=%d", k_ref, s, done, h, exc, k_ref)
-            return k_ref
-        _LOG.warning("k probe: HBVM(%d, %d) failed after %d steps of h=%.6g; probing k on "
-                     "those %d steps only", k_ref, s, done, h, done)
-        steps = done
-        try:
-            e_ref = err(k_ref)
-        except StepError:
-            return k_ref
-    bound = max(2 * np.finfo(float).eps, 1.5 * e_ref)
-    for k in range(s, k_ref):
-        try:
-            if err(k) <= bound:
-                return min(k + 1, k_ref)
-        except StepError:
-            continue
-    return k_ref
-
-
-#: choose_k keeps k = s after one run when its energy error is within this many ulps of the
-#: energy's rounding (see there)
-EARLY_ULPS = 2.0
-
-
-def _energy_rounding(system, y0) -> float:
-    """eps (|T| + |V|) / |T + V| at y0: the relative rounding of evaluating the energy in double
-    precision (0 when the system does not give T and V, or T + V is 0 or not finite)."""
-    m = y0.shape[0] // 2
-    try:
-        if hasattr(system, "separable_kernels") and hasattr(system, "kinetic_weights"):
-            _, potential, params = system.separable_kernels()      # compiled: 0.1 ms fewer
-            p = y0[m:]
-            T = 0.5 * float(np.dot(p * p, system.kinetic_weights))
-            V = float(potential(np.ascontiguousarray(y0[:m]), params))
-        else:
-            T, V = float(system.kinetic(y0[m:])), float(system.potential(y0[:m]))
-    except (AttributeError, TypeError, ValueError):
-        return 0.0
-    r = np.finfo(float).eps * (abs(T) + abs(V)) / abs(T + V) if T + V != 0.0 else 0.0
-    return r if math.isfinite(r) else 0.0
-
-
-def adaptive_k(s: int, epsilon: float) -> int:
-    """k for adaptive steps: the smallest k > s with epsilon^(2k / (s - 1)) <= 1e-17.
-
-    The control keeps the error estimate, about (h / T)^(s - 1) for the local time scale T,
-    near epsilon; the quadrature error of HBVM(k, s) in the energy is about (h / T)^(2k), so
-    this k keeps it below round-off on every step the control takes.  For the default s = 6,
-    epsilon = 1e-5 it gives k = 9; measured (medians of 3 starts, same steps for every k;
-    `python benchmarks/bench_adaptive.py` scenes), the relative energy error is at its round-off
-    level for k = 8, 9 and 10 alike (e = 0.9 and 0.99 over 1000 orbits, the outer solar system
-    over 1e6 days, the close encounter), and k = 9 costs 8 % less than k = 10."""
-    need = 17.0 * (s - 1) / (2.0 * -math.log10(epsilon))
-    return int(min(128, max(s + 1, math.ceil(need - 1e-9))))
-
-
 def shortest_period(sim) -> float:
     """The shortest two-body orbital period 2 pi sqrt(r^3 / (G M)) over pairs with a
     gravitating member, from the current positions (a crude time scale of the scene).
@@ -472,7 +359,8 @@ class HBVMIntegrator(Counted):
         Degree of the method (order 2s).
     k : int, optional
         Quadrature nodes (k >= s).  None: measured on the scene at attach time for ``sim.dt``
-        (:func:`choose_k`) with a fixed step, :func:`adaptive_k` (9 for the defaults) with adaptive
+        (:func:`integrators.kchoice.choose_k` over one shortest orbital period) with
+        a fixed step, :func:`integrators.kchoice.adaptive_k` (9 for the defaults) with adaptive
         steps.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
@@ -574,8 +462,9 @@ class HBVMIntegrator(Counted):
             nb = NBody.from_rebound(sim)
             y0 = nb.initial_state()
             check_particles(y0, nb)
-            method = HBVM(choose_k(nb, y0, method.s, h, shortest_period(nb)), method.s,
-                          nodes=nodes)
+            steps = period_steps(shortest_period(nb), h)
+            method = HBVM(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k,
+                          method.s, nodes=nodes)
         self._attach(sim, method, h, int(max_iter), tol, energy_tol)
         self._set_control(bool(adaptive), epsilon, min_dt)
         self._premodel = nb     # the first run's model, while the particles are still these

@@ -344,19 +344,20 @@ def test_k_probe_early_exit_keeps_the_energy_at_the_references_round_off(monkeyp
     one run's error at round-off is a random draw).  At s = 6, dt = 300 d HBVM(6, 6)'s
     quadrature error shows (22 eps against 5): the early exit must not take it, and the full
     measurement decides as before."""
-    import hbvm_md.rebound_driver as rd
-    from hbvm_md.rebound_driver import choose_k, shortest_period
+    import integrators.kchoice as kc
+    from hbvm_md.rebound_driver import shortest_period
     from integrators import HBVM, integrate
+    from integrators.kchoice import period_steps
     picked, full, e_k, e_ref = [], [], [], []
     k_ref = max(2 * s, s + 8)
     for rep in range(5):
         nb = _probe_scene(rep)
         y0, T = nb.initial_state(), shortest_period(nb)
-        k = choose_k(nb, y0, s, h, T)
+        k = kc.choose_k(nb, y0, s, h, period_steps(T, h), solver="fixed_point").k
         picked.append(k)
         with monkeypatch.context() as m:
-            m.setattr(rd, "EARLY_ULPS", 0.0)
-            full.append(choose_k(nb, y0, s, h, T))
+            m.setattr(kc, "EARLY_ULPS", 0.0)
+            full.append(kc.choose_k(nb, y0, s, h, period_steps(T, h), solver="fixed_point").k)
         steps = 5 * max(8, math.ceil(T / h))
         e_k.append(integrate(HBVM(k, s), nb, y0, h, steps, fast=True).max_energy_error)
         e_ref.append(integrate(HBVM(k_ref, s), nb, y0, h, steps, fast=True).max_energy_error)
@@ -367,24 +368,17 @@ def test_k_probe_early_exit_keeps_the_energy_at_the_references_round_off(monkeyp
     assert np.median(e_k) <= 1.5 * np.median(e_ref)
 
 
-def test_k_probe_early_exit_runs_one_method(monkeypatch):
+def test_k_probe_early_exit_runs_one_method(runs):
     """When HBVM(s, s) is at round-off the probe runs it alone (not the reference HBVM(k_ref,
     s), twice the stages); when it is not, the reference and the k = s run measured already
     decide (no run repeated)."""
-    import integrators
-    from hbvm_md.rebound_driver import choose_k, shortest_period
-    calls = []
-    real = integrators.integrate
-
-    def counting(method, *args, **kw):
-        calls.append(method.k)
-        return real(method, *args, **kw)
-    monkeypatch.setattr(integrators, "integrate", counting)
+    from hbvm_md.rebound_driver import shortest_period
+    from integrators.kchoice import choose_k, period_steps
     nb = _probe_scene(0)
     y0, T = nb.initial_state(), shortest_period(nb)
-    assert choose_k(nb, y0, 8, 500.0, T) == 9 and calls == [8]
-    calls.clear()
-    assert choose_k(nb, y0, 6, 300.0, T) == 8 and calls == [6, 14, 7]
+    assert choose_k(nb, y0, 8, 500.0, period_steps(T, 500.0)).k == 9 and runs == [8]
+    runs.clear()
+    assert choose_k(nb, y0, 6, 300.0, period_steps(T, 300.0)).k == 8 and runs == [6, 14, 7]
 
 
 @pytest.mark.parametrize("field, value, error", [("exit_max_distance", 15.0, rebound.Escape),
