@@ -172,6 +172,12 @@ def choose_k(system, y0, s: int, h: float, steps: int, k_max: int | None = None,
     steps = _count("steps", steps, 1)
     k_ref = max(2 * s, s + 8) if k_max is None else _count("k_max", k_max, s)
     y0 = np.asarray(y0, dtype=float)
+    if y0.ndim != 1 or y0.size == 0 or y0.size % 2:
+        raise ValueError(f"`y0` must be one state (q, p) of shape (2m,) (got shape {y0.shape}); "
+                         "pass the state the run starts from, not a stack of states")
+    if not np.all(np.isfinite(y0)):
+        raise ValueError("`y0` has non-finite entries: k is measured by running from it; pass "
+                         "a finite state")
     errors: dict = {}
 
     def err(k):

@@ -82,3 +82,11 @@ def test_adaptive_k_keeps_the_quadrature_below_round_off_at_the_controls_precisi
     for s, eps in [(4, 1e-4), (6, 1e-5), (8, 1e-6)]:
         k = adaptive_k(s, eps)
         assert eps ** (2 * k / (s - 1)) <= 1e-17 < eps ** (2 * (k - 1) / (s - 1)) or k == s + 1
+
+
+@pytest.mark.parametrize("y0, match", [(np.full(4, np.nan), "non-finite"), (np.zeros((2, 4)), "shape"),
+                                       (np.zeros(3), "shape")])
+def test_a_state_that_cannot_be_measured_from_is_refused(y0, match):
+    """Not a warning and the largest k: a clear error naming y0."""
+    with pytest.raises(ValueError, match=f"`y0`.*{match}"):
+        choose_k(Kepler(0.6), y0, 2, 0.05, 20)
