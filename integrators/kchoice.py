@@ -217,8 +217,7 @@ def choose_k(system, y0, s: int, h: float, steps: int, k_max: int | None = None,
         except StepError:
             return done(k_ref, "reference k (test steps failed)")
     if k_max is None:
-        # k_ref must itself be on the round-off plateau: a coarse step (Kepler e = 0.6 at 25
-        # steps a period, s = 2) leaves HBVM(10, 2) a visible 7e-12.  Unless its error is at
+        # k_ref must itself be on the round-off plateau (see the notes): unless its error is at
         # the energy's rounding, k_ref grows while each larger k halves the error.
         while e_ref > PLATEAU_ULPS * early and k_ref < k_cap(s):
             k_next = min(k_cap(s), k_ref + max(2, s // 2))
