@@ -68,10 +68,6 @@ class KChoice:
     trial_errors: dict = field(default_factory=dict)
     steps: int = 0
 
-    @property
-    def method(self) -> HBVM:
-        return HBVM(self.k, self.s)
-
 
 def energy_rounding(system, y0) -> float:
     """eps (|T| + |V|) / |T + V| at y0: the relative rounding of evaluating the energy in double
