@@ -287,7 +287,7 @@ class _Store:
             raise ValueError("its content does not match its checksum")
         if f.name != self._file(row["member"]).name:
             raise ValueError(f"it holds member {row['member']}")
-        blob = row.pop("result_pickle")
+        blob = row["result_pickle"]
         row["result"] = pickle.loads(blob) if blob is not None else None
         return row
 
@@ -323,10 +323,10 @@ class _Store:
         import cloudpickle
         import pyarrow as pa
         import pyarrow.parquet as pq
+        blob = None if rec["result"] is None else cloudpickle.dumps(rec["result"])
         row = {"member": i, "param": self.texts[i], "task": self.task, "status": rec["status"],
                "error": rec["error"], "wall_time_s": float(rec["wall_time_s"]),
-               "result": rec["result"]}
-        blob = None if rec["result"] is None else cloudpickle.dumps(rec["result"])
+               "result": rec["result"], "result_pickle": blob}
         table = pa.table({"member": pa.array([i], pa.int64()), "param": [row["param"]],
                           "task": [self.task], "status": [row["status"]],
                           "error": pa.array([row["error"]], pa.string()),
@@ -340,7 +340,6 @@ class _Store:
 
     def consolidate(self) -> Path | None:
         """Join the stored records into one table (see the module docstring)."""
-        import cloudpickle
         import pyarrow as pa
         import pyarrow.parquet as pq
         if not self.saved:
@@ -360,8 +359,7 @@ class _Store:
             cols[name], exact = _column([(r["result"] or {}).get(k) for r in rows])
             if not exact:
                 text_columns.append(name)
-        cols["result_pickle"] = pa.array([None if r["result"] is None else cloudpickle.dumps(r["result"])
-                                          for r in rows], pa.binary())
+        cols["result_pickle"] = pa.array([r["result_pickle"] for r in rows], pa.binary())
         table = pa.table(cols).replace_schema_metadata(
             {"hbvm_md.json_columns": json.dumps(text_columns), "hbvm_md.task": self.task})
         out = self.path / _STORE_TABLE

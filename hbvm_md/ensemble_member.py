@@ -83,6 +83,9 @@ class MemberProcess:
     """
 
     def __init__(self):
+        if os.name != "posix":
+            raise OSError(f"run_ensemble(timeout=...) needs POSIX workers (process groups, "
+                          f"inherited pipes); this worker runs on {sys.platform!r}: pass timeout=None")
         parent_r, child_w = os.pipe()
         child_r, parent_w = os.pipe()
         cmd = [sys.executable, "-m", "hbvm_md.ensemble_member", str(child_r), str(child_w),

@@ -383,9 +383,11 @@ def test_cli_stability_map_writes_csv_and_png(client, tmp_path, capsys):
 
     from hbvm_md.cli import main
     out = tmp_path / "map"
+    # --timeout: the members run in the workers' member processes (and well within it)
     args = ["ensemble", "stability-map", "--grid", "2x2", "--a-range", "7", "25", "--t-end", "3000",
-            "--scheduler", client.scheduler.address, "--out", str(out)]
+            "--scheduler", client.scheduler.address, "--out", str(out), "--timeout", "600"]
     assert main(args) == 0
+    assert "4 survived, 0 unstable, 0 failed, 0 timed out" in capsys.readouterr().out
     rows = list(csv.DictReader(open(out / "stability_map.csv")))
     assert [(float(r["a"]), float(r["e"])) for r in rows] == [(7.0, 0.0), (7.0, 0.5), (25.0, 0.0), (25.0, 0.5)]
     assert all(r["status"] == "ok" and float(r["max_rel_energy_error"]) < 1e-12 for r in rows)
@@ -399,3 +401,6 @@ def test_cli_rejects_workers_with_scheduler(capsys):
     from hbvm_md.cli import main
     assert main(["ensemble", "stability-map", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
     assert "not both" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["ensemble", "stability-map", "--timeout", "0"])
+    assert "--timeout: expected a positive number, got '0'" in capsys.readouterr().err
