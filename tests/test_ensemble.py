@@ -210,7 +210,8 @@ def test_corrupt_part_and_meta_are_named_and_their_members_rerun(client, tmp_pat
     assert sorted(log.read_text().split()) == ["0", "1", "1", "2", "2", "3"]   # 1 and 2 ran again
     assert all(same(r["result"], VARIED[i]) for i, r in enumerate(recs))
     assert (store / "parts" / "member-0000001.parquet.corrupt").exists()
-    assert json.loads((store / "meta.json").read_text())["task"].endswith("varied(log=" + repr(str(log)) + ")")
+    meta = json.loads((store / "meta.json").read_text())
+    assert meta["task"] == f"{__name__}.varied(log={str(log)!r})"
     # the store is whole again: a rerun runs nothing and warns nothing
     with warnings.catch_warnings():
         warnings.simplefilter("error")
