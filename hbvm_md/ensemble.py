@@ -153,26 +153,35 @@ _INT64 = (-2**63, 2**63)
 _FLOAT_INTS = 2**53          # integers of at most this size are exact in float64
 
 
-def _kind(v) -> str | None:
-    """The Arrow type a value fits without loss: "bool", "int", "float", "str", "list<...>",
-    "list" (empty), None (null) or "other" (a big integer, a nested or mixed value, an object)."""
+def _scalar_kind(v) -> str | None:
+    """"bool", "int", "float", "str" when ``v`` fits that Arrow type without loss; None for
+    None; "other" for anything else (an int beyond int64, a long double, a list, an object)."""
     if v is None:
         return None
     if isinstance(v, (bool, np.bool_)):
         return "bool"
     if isinstance(v, (int, np.integer)):
         return "int" if _INT64[0] <= v < _INT64[1] else "other"
-    if isinstance(v, (float, np.floating)):
-        return "float" if np.dtype(type(v)).itemsize <= 8 else "other"     # not long double
+    if isinstance(v, float) or (isinstance(v, np.floating) and v.dtype.itemsize <= 8):
+        return "float"
     if isinstance(v, str):
         return "str"
-    if isinstance(v, (list, tuple)) or (isinstance(v, np.ndarray) and v.ndim == 1):
-        kinds = {_kind(e) for e in v}
-        if not kinds:
-            return "list"
-        inner = _common(kinds, v)
-        return f"list<{inner}>" if inner in ("bool", "int", "float", "str") else "other"
     return "other"
+
+
+def _kind(v) -> str | None:
+    """The Arrow type a value fits without loss: a scalar kind, "list<kind>" for a flat list,
+    tuple or 1-d array of one scalar kind, "list" when empty, None (null) or "other"."""
+    if isinstance(v, (list, tuple)) or (isinstance(v, np.ndarray) and v.ndim == 1):
+        if len(v) == 0:
+            return "list"
+        inner = _common({_scalar_kind(e) for e in v}, v)
+        return f"list<{inner}>" if inner in ("bool", "int", "float", "str") else "other"
+    return _scalar_kind(v)
+
+
+def _exact_in_float64(values) -> bool:
+    return all(abs(int(e)) <= _FLOAT_INTS for e in values if _scalar_kind(e) == "int")
 
 
 def _common(kinds: set, values) -> str:
@@ -180,20 +189,16 @@ def _common(kinds: set, values) -> str:
     kinds = kinds - {None}
     if not kinds:
         return "null"
-    if len(kinds) == 1:
-        return next(iter(kinds))
-    if kinds == {"int", "float"}:      # ints exact in float64: the column is float64
-        ints = (e for e in values if _kind(e) == "int")
-        return "float" if all(abs(int(e)) <= _FLOAT_INTS for e in ints) else "other"
-    lists = {k for k in kinds if k.startswith("list")}
-    if lists == kinds:
-        inner = {k[5:-1] for k in lists if k != "list"}
+    if all(k.startswith("list") for k in kinds):
+        inner = {k[5:-1] for k in kinds if k != "list"}
         if len(inner) <= 1:
             return f"list<{inner.pop() if inner else 'float'}>"
-        if inner == {"int", "float"}:
-            elems = [e for v in values if v is not None for e in v]
-            return "list<float>" if _common({"int", "float"}, elems) == "float" else "other"
-    return "other"
+        elems = [e for v in values if v is not None for e in v]
+        return "list<float>" if inner == {"int", "float"} and _exact_in_float64(elems) else "other"
+    if len(kinds) == 1:
+        return next(iter(kinds))
+    # ints beside floats: a float64 column when every int is exact in it
+    return "float" if kinds == {"int", "float"} and _exact_in_float64(values) else "other"
 
 
 def _arrow_type(kind: str):
@@ -205,6 +210,17 @@ def _arrow_type(kind: str):
     return scalar[kind]
 
 
+def _cell_text(v) -> str:
+    """A value as JSON text (its repr inside when JSON has no form for it)."""
+    try:
+        return _json_text(v)
+    except (ValueError, TypeError, RecursionError):     # e.g. a list that contains itself
+        try:
+            return json.dumps(repr(v))
+        except Exception:  # noqa: BLE001 - a broken __repr__ must not fail the table
+            return json.dumps(f"<{type(v).__name__}>")
+
+
 def _column(values: list):
     """(Arrow array, exact) of one result key over the members (None where a member lacks it).
 
@@ -212,15 +228,17 @@ def _column(values: list):
     exact); otherwise JSON text per value (``exact`` False), the exact values staying in the
     ``result_pickle`` column."""
     import pyarrow as pa
-    kind = _common({_kind(v) for v in values}, values)
-    if kind == "other":
-        return pa.array([None if v is None else _json_text(v) for v in values], pa.string()), False
-    typ = _arrow_type(kind)
-    if kind == "float":
-        values = [None if v is None else float(v) for v in values]
-    elif kind == "list<float>":
-        values = [None if v is None else [float(e) for e in v] for v in values]
-    return pa.array([_plain(v) for v in values], typ), True
+    try:
+        kind = _common({_kind(v) for v in values}, values)
+        if kind != "other":
+            if kind == "float":
+                values = [None if v is None else float(v) for v in values]
+            elif kind == "list<float>":
+                values = [None if v is None else [float(e) for e in v] for v in values]
+            return pa.array([_plain(v) for v in values], _arrow_type(kind)), True
+    except (pa.ArrowException, TypeError, ValueError, OverflowError):
+        pass        # a subclass Arrow does not take: the column as text (the pickle is exact)
+    return pa.array([None if v is None else _cell_text(v) for v in values], pa.string()), False
 
 
 _PART_FIELDS = ("member", "param", "task", "status", "error", "wall_time_s", "result_pickle")

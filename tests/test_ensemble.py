@@ -1,6 +1,8 @@
 """run_ensemble on dask.distributed: records, failures, the store, bad arguments, a real cluster."""
 from __future__ import annotations
 
+import decimal
+import enum
 import functools
 import json
 import os
@@ -58,6 +60,24 @@ VARIED = [{"v": 1.5, "w": 1, "flag": True},
           {"v": True, "w": -3, "flag": False},
           {"v": 2**70, "w": 0.25, "flag": True, "nested": {"a": [1, "x"], "b": (2, 3.5), 7: None}},
           {"v": {"deep": [[1.0], "y"]}, "w": 4, "flag": False, "arr": np.arange(2, dtype=np.int32)}]
+
+
+class Half(float):
+    """A float subclass (Arrow takes no subclass as a float)."""
+
+
+class Colour(enum.IntEnum):
+    RED = 1
+
+
+LOOP = [1.0]
+LOOP.append(LOOP)           # a list that contains itself: no JSON, no Arrow type
+ODD = [{"v": np.longdouble(1) / 3}, {"v": Half(0.5)}, {"v": Colour.RED}, {"v": 1 + 2j},
+       {"v": decimal.Decimal("0.1")}, {"v": LOOP}, {"v": np.uint64(2**64 - 1)}]
+
+
+def odd(i):
+    return ODD[i]
 
 
 def varied(i, *, log: str):
@@ -188,6 +208,23 @@ def test_mixed_and_big_results_are_stored_exactly_and_reread(client, tmp_path):
     for i, row in enumerate(rows):
         got = {k[len("result."):]: v for k, v in row.items() if k.startswith("result.") and v is not None}
         assert same(got, {str(k): v for k, v in VARIED[i].items() if v is not None})
+
+
+def test_odd_results_never_fail_the_store(client, tmp_path):
+    store = tmp_path / "store"
+    recs = run_ensemble(odd, range(len(ODD)), client=client, store=store)
+    rows = load_store(store)
+    again = run_ensemble(odd, range(len(ODD)), client=client, store=store)     # read from the parts
+    for i, expected in enumerate(ODD):
+        for got in (recs[i]["result"]["v"], rows[i]["result.v"], again[i]["result"]["v"]):
+            assert type(got) is type(expected["v"])
+            if expected["v"] is LOOP:
+                assert got[0] == 1.0 and got[1] is got
+            else:
+                assert got == expected["v"]
+    import pyarrow.parquet as pq
+    column = pq.read_table(store / "ensemble.parquet").column("result.v").to_pylist()
+    assert column[5] == '"[1.0, [...]]"' and column[6] == "18446744073709551615"
 
 
 def test_corrupt_part_and_meta_are_named_and_their_members_rerun(client, tmp_path):
