@@ -582,18 +582,18 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
             i = index[f.key]
             try:
                 rec = f.result()
+                lost = rec.get("lost", False)
                 if "result_pickle" in rec:      # from a member's process: unpickled here only
                     blob = rec["result_pickle"]
                     rec = {"status": rec["status"], "error": rec["error"],
                            "result": pickle.loads(blob) if rec["status"] == "ok" else None,
                            "wall_time_s": rec["wall_time_s"]}
-                lost = False
             except Exception as exc:  # noqa: BLE001 - the worker died (KilledWorker) or similar
                 rec = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "result": None,
                        "wall_time_s": math.nan}
                 lost = True
             f.release()
-            if journal is not None and not lost:     # a lost member is retried by a rerun
+            if journal is not None and not lost:     # a lost member is tried again by a rerun
                 journal.save(i, rec)
             records[i] = {"param": params[i], **rec}
             bar.update(1)

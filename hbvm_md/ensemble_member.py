@@ -117,7 +117,7 @@ class MemberProcess:
 
     def _death(self) -> str:
         code = self.proc.wait()
-        how = (f"killed by signal {-code} ({_signal_name(-code)})" if code < 0
+        how = (f"was killed by signal {-code} ({_signal_name(-code)})" if code < 0
                else f"exited with code {code}")
         return f"MemberProcessDied: the member's process {how}"
 
@@ -157,22 +157,36 @@ def member_process() -> MemberProcess:
     return mp
 
 
+# A child SIGKILLed from outside (the out-of-memory killer picks the biggest process: the
+# member's, not its worker) is tried again, as dask retries a member whose worker died
+# (``distributed.scheduler.allowed-failures``, 3); a crash of the member's own (SIGSEGV, exit
+# code) is its result and is not.
+ATTEMPTS = 3
+
+
 def run_in_process(task_bytes: bytes, param_bytes: bytes, warmup_bytes: bytes | None,
                    timeout: float) -> dict:
     """A member run in the worker thread's child, stopped after ``timeout`` s (runs on a worker).
 
     Returns the record of :func:`call` with ``result_pickle`` (the result, pickled in the
-    child) instead of ``result``; ``status`` "ok", "failed" or "timeout".
+    child) instead of ``result``; ``status`` "ok", "failed" or "timeout"; ``lost`` True when
+    its child was SIGKILLed from outside in every one of ``ATTEMPTS`` tries (a store does not
+    keep such a member: a rerun tries it again, as after dask's ``KilledWorker``).
     """
-    mp = member_process()
-    failure = mp.prepare(task_bytes, warmup_bytes)
-    if failure is not None:
-        if not mp.alive():
-            _PER_THREAD.process = None
-        return {"status": "failed", "error": failure, "result_pickle": None, "wall_time_s": 0.0}
-    rec = mp.run(param_bytes, timeout)
-    if not mp.alive():
+    for attempt in range(1, ATTEMPTS + 1):
+        mp = member_process()
+        failure = mp.prepare(task_bytes, warmup_bytes)
+        if failure is not None:
+            rec = {"status": "failed", "error": failure, "result_pickle": None, "wall_time_s": 0.0}
+        else:
+            rec = mp.run(param_bytes, timeout)
+        if mp.alive():
+            return rec
         _PER_THREAD.process = None
+        if rec["status"] == "timeout" or mp.proc.returncode != -signal.SIGKILL:
+            return rec
+    rec["error"] += f" in each of {ATTEMPTS} attempts"
+    rec["lost"] = True
     return rec
 
 

@@ -26,6 +26,8 @@ from distributed import Client, LocalCluster  # noqa: E402
 from hbvm_md.ensemble import EnsembleStoreWarning, load_store, run_ensemble  # noqa: E402
 from hbvm_md.ensemble_tasks import md_replica, solar_clone, stability_member, stability_table  # noqa: E402
 
+from ensemble_misbehaving import misbehave, sleepy  # noqa: E402
+
 CLONE = functools.partial(solar_clone, t_end=5000.0, n_samples=4)
 
 
@@ -99,30 +101,6 @@ def same(a, b) -> bool:
     return a == b
 
 
-def misbehave(x, *, log: str = ""):
-    """Members that stop their process or hang; a number returns normally."""
-    if log:
-        with open(log, "a") as f:
-            f.write(f"{x}\n")
-    if x == "exit":
-        raise SystemExit(3)
-    if x == "interrupt":
-        raise KeyboardInterrupt("stop")
-    if x == "die":
-        os._exit(7)
-    if x == "hang" or (x == "hang-once" and not Path(log + ".hung").exists()):
-        Path(log + ".hung").touch()
-        while True:             # holds the GIL: no thread could stop this
-            pass
-    return {"x": x}
-
-
-def sleepy(x, *, log: str):
-    """Writes "worker-pid member-pid" then sleeps 1 s (a member long enough to be killed in)."""
-    with open(log, "a") as f:
-        f.write(f"{os.getppid()} {os.getpid()}\n")
-    time.sleep(1.0)
-    return {"x": x}
 
 
 def test_records_equal_serial_runs_bit_for_bit(client):
@@ -276,22 +254,28 @@ def test_timeout_stops_a_hung_member_and_keeps_the_others(client, tmp_path):
     log = str(tmp_path / "calls.txt")
     task = functools.partial(misbehave, log=log)
     store = tmp_path / "store"
-    params = [1, "hang-once", 2, "die", 3, 4]
+    params = [1, "hang-once", 2, "die", 3, "sigkill-once", "sigkill", 4]
     recs = run_ensemble(task, params, client=client, store=store, timeout=1.5)
-    assert [r["status"] for r in recs] == ["ok", "timeout", "ok", "failed", "ok", "ok"]
+    assert [r["status"] for r in recs] == ["ok", "timeout", "ok", "failed", "ok", "ok", "failed", "ok"]
     assert recs[1]["error"] == ("TimeoutError: the member ran longer than timeout=1.5 s; its "
                                 "process was stopped")
     assert recs[1]["result"] is None and recs[1]["wall_time_s"] >= 1.5
     assert recs[3]["error"] == "MemberProcessDied: the member's process exited with code 7"
-    assert [r["result"] for r in recs if r["status"] == "ok"] == [{"x": x} for x in (1, 2, 3, 4)]
-    assert load_store(store)[1]["status"] == "timeout"
-    # a rerun runs the timed-out member only (this time it finishes); the failed one stays
+    # SIGKILLed from outside: tried again in a new process, as dask does when a worker dies
+    assert recs[6]["error"] == ("MemberProcessDied: the member's process was killed by signal 9 "
+                                "(SIGKILL) in each of 3 attempts")
+    assert [r["result"] for r in recs if r["status"] == "ok"] == [
+        {"x": x} for x in (1, 2, 3, "sigkill-once", 4)]
+    calls = Path(log).read_text().split()
+    assert (calls.count("sigkill-once"), calls.count("sigkill")) == (2, 3)
+    assert [r["status"] for r in load_store(store)] == ["ok", "timeout", "ok", "failed", "ok", "ok", "ok"]
+    # a rerun runs the timed-out member and the lost one only (the first finishes this time)
     again = run_ensemble(task, params, client=client, store=store, timeout=1.5)
-    assert Path(log).read_text().split().count("hang-once") == 2
-    assert Path(log).read_text().split().count("die") == 1
+    calls = Path(log).read_text().split()
+    assert [calls.count(p) for p in ("hang-once", "die", "sigkill-once", "sigkill")] == [2, 1, 2, 6]
     assert again[1] == {"param": "hang-once", "status": "ok", "error": None,
                         "result": {"x": "hang-once"}, "wall_time_s": again[1]["wall_time_s"]}
-    assert again[3] == recs[3]
+    assert again[3] == recs[3] and again[5] == recs[5]
 
 
 def _running(pid: int) -> bool:
