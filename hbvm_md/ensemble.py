@@ -41,7 +41,11 @@ Stopping members
 when the member is late (see :mod:`hbvm_md.ensemble_member`); the member is recorded with
 ``status="timeout"``.  A member that raises ``SystemExit`` or ``KeyboardInterrupt`` is recorded
 as failed with that exception, and its worker lives on.  A worker that dies (SIGKILL, the
-out-of-memory killer) loses nothing: dask runs its member again on another worker.
+out-of-memory killer) loses nothing: dask runs its member again on another worker, up to
+three times, after which the member is recorded as failed (``KilledWorker``) but not stored,
+so that a rerun tries it again.  Under a timeout a member's process SIGKILLed from outside is
+treated alike (three attempts, then failed and not stored); one that crashes by itself (an
+exit code, SIGSEGV) is recorded as failed with the cause.
 """
 from __future__ import annotations
 
@@ -490,6 +494,8 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
         members in a child process of its own, killed (with whatever it started) when its
         member is late, and replaced for the next member; ``warmup`` then runs once per child,
         and the timeout counts the task call only (not the child's start or the warmup).
+        A child that dies is recorded as failed with the cause ("MemberProcessDied: ...");
+        one SIGKILLed from outside is first tried again (see the module docstring).
         Without one, members run in the worker threads and a hung member blocks its worker.
 
     Returns
