@@ -100,17 +100,17 @@ class MemberProcess:
             os.close(child_w)
         self.conn_in = Connection(parent_r, writable=False)
         self.conn_out = Connection(parent_w, readable=False)
-        self.task_bytes = None
 
     def alive(self) -> bool:
         return self.proc.poll() is None
 
     def stop(self) -> None:
-        """SIGKILL the child and everything it started; reap it."""
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+        """SIGKILL the child and everything it started; reap it; close the pipes."""
+        if self.proc.returncode is None:    # not reaped: its pid (its group's id) is still its own
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
         self.proc.wait()
         self.conn_in.close()
         self.conn_out.close()
@@ -173,7 +173,7 @@ def run_in_process(task_bytes: bytes, param_bytes: bytes, warmup_bytes: bytes | 
     its child was SIGKILLed from outside in every one of ``ATTEMPTS`` tries (a store does not
     keep such a member: a rerun tries it again, as after dask's ``KilledWorker``).
     """
-    for attempt in range(1, ATTEMPTS + 1):
+    for _ in range(ATTEMPTS):
         mp = member_process()
         failure = mp.prepare(task_bytes, warmup_bytes)
         if failure is not None:
@@ -182,6 +182,7 @@ def run_in_process(task_bytes: bytes, param_bytes: bytes, warmup_bytes: bytes | 
             rec = mp.run(param_bytes, timeout)
         if mp.alive():
             return rec
+        mp.stop()
         _PER_THREAD.process = None
         if rec["status"] == "timeout" or mp.proc.returncode != -signal.SIGKILL:
             return rec
