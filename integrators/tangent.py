@@ -253,10 +253,11 @@ def megno_step(mg, t, dy, wv):
 
 def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM,
                     max_iter, tol, etol, eref, counters, work, cwork, clock, V, DG, Vt, DGt,
-                    tw, tcw, tcount, y0, cy0, gsave, snap, mg, wv, nsteps, sample_every,
+                    tmax_iter, tw, tcw, tcount, y0, cy0, gsave, snap, mg, wv, nsteps, sample_every,
                     out_t, out_y, out_e, out_v, out_m):
     """``nsteps`` steps of :func:`advance` (arguments as for :func:`run`), each followed by the
-    tangent map (:func:`tangent_map`) of the tangent vectors V (nv, d) and, when mg has
+    tangent map (:func:`tangent_map`, at most tmax_iter iterations) of the tangent vectors
+    V (nv, d) and, when mg has
     entries, the MEGNO of V[0] (:func:`megno_step`, weights wv).  y0, cy0 (d), gsave (s, u),
     snap (>= len(counters)): scratch for the state before a step.  A step whose tangent map
     fails is taken back: state, clock, coefficients, counters and tangents as before it, its
@@ -277,7 +278,7 @@ def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, N
         if status != OK:
             return status
         status = tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
-                             max_iter, V, DG, Vt, DGt, tw, tcw, tcount)
+                             tmax_iter, V, DG, Vt, DGt, tw, tcw, tcount)
         if status != OK:
             copy1(y, y0)
             copy1(cy, cy0)

@@ -46,7 +46,7 @@ import numpy as np
 
 from . import tangent
 from .core import C_STATUS, DIVERGED, NOT_FINITE, OK
-from .engine import Stepper, check_count, check_step
+from .engine import MAX_ITER, Stepper, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
 from .jit import jit
 from .specialise import specialise
@@ -55,6 +55,9 @@ from .specialise import specialise
 #: did not (the step is then taken back)
 TANGENT_FAILED = 16
 MEGNO_STATE = 7          # length of the accumulator array (integrators.tangent.megno_step)
+#: the iteration cap of the tangent map, whatever the step's ``max_iter``: the linear iteration
+#: contracts as the step's did, but starts further (from the previous step's d gamma, or zero)
+TANGENT_MAX_ITER = {solver: 2 * n for solver, n in MAX_ITER.items()}
 
 _megno_step = jit(tangent.megno_step)
 
@@ -297,7 +300,8 @@ class VariationalStepper(Stepper):
                     self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2, *b.no_newton,
                     self._max_iter("fixed_point"), float(self.tol or 0.0),
                     float(self.energy_tol or 0.0), self._eref, self.counters, b.work, b.cwork,
-                    self._clock, self._V, self._DG, self._Vt, self._DGt, self._tw, self._tcw,
+                    self._clock, self._V, self._DG, self._Vt, self._DGt,
+                    TANGENT_MAX_ITER["fixed_point"], self._tw, self._tcw,
                     self._tcount, self._y0, self._cy0, self._gsave, self._snap,
                     self.megno.state, self._wv, steps, sample_every,
                     out_t[1:], out_y[1:], out_e[1:], out_v[1:], out_m[1:])
@@ -362,7 +366,7 @@ class VariationalStepper(Stepper):
                   else b.no_newton)
         status = b.step_code.tangent_map(
             b.full, y0, cy0, b.minv, self._gamma, h, self._extrapolation(h, h_prev), b.c1, b.c2,
-            b.params, *newton, self._max_iter(self._solver), self._V, self._DG, self._Vt,
+            b.params, *newton, TANGENT_MAX_ITER[self._solver], self._V, self._DG, self._Vt,
             self._DGt, self._tw, self._tcw, self._tcount)
         if status != OK:
             self._restore(before)
