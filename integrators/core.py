@@ -655,13 +655,30 @@ def fail(counters, status, work_iter, work_nfev, work_newton):
 
 
 @jit
+def monomial_weight(j):
+    """c_j = int_0^1 P_j(x) x^j dx = (j!)^2 sqrt(2j + 1) / (2j + 1)!, P_j the orthonormal shifted
+    Legendre polynomial: the Legendre coefficient of a polynomial's (t / h)^j term (its highest)."""
+    c = 1.0
+    for i in range(1, j + 1):
+        c *= i * i / ((2.0 * i) * (2.0 * i + 1.0))
+    return c * np.sqrt(2.0 * j + 1.0)
+
+
+@jit
 def step_error(gamma, w):
     """The local error estimate of a step from its own coefficients, at no extra evaluation:
-    max |w gamma_{s-1}| / max |w gamma_0|, the weight of the highest Legendre coefficient of
-    sigma' (about h^(s-1) times a derivative of f), as IAS15 weighs its last coefficient.  For
-    the separable form w = 1/m turns the forces into accelerations, so that light bodies count
-    as much as heavy ones (a planetesimal's encounter is invisible in its tiny forces); with w
-    empty (the full form) the coefficients are taken as they are.  0 when gamma_0 vanishes."""
+    max |w gamma_{s-1}| / (c_{s-1} max |w gamma_0|), the size of the highest term of the force
+    polynomial, a^(s-1) h^(s-1) / (s-1)!, relative to the force over the step: the quantity
+    IAS15 bounds by its ``epsilon`` (its last coefficient b6 against the acceleration, for a
+    polynomial of degree 7 where this one has degree s - 1).  gamma_j = int_0^1 P_j(x) f(y(xh))
+    dx starts with c_j a^(j) h^j / j! (:func:`monomial_weight`), so the estimate grows like
+    h^(s-1) (the exponent of :func:`next_step`); the step's own error, O(h^(2s+1)), is about
+    the estimate to the power 2s / (s-1) times the motion over the step.
+    For the separable form w = 1/m turns the forces into accelerations, so that light bodies
+    count as much as heavy ones (a planetesimal's encounter is invisible in its tiny forces),
+    and test particles (w = 1) are part of it; with w empty (the full form) the coefficients
+    are taken as they are.  Both maxima run over every coordinate of the state.  0 when gamma_0
+    vanishes."""
     s, u = gamma.shape
     weighted = w.shape[0] == u
     top = 0.0
@@ -674,7 +691,7 @@ def step_error(gamma, w):
             low = abs(c * gamma[0, j])
     if low == 0.0:
         return 0.0
-    return top / low
+    return top / (monomial_weight(s - 1) * low)
 
 
 @jit
@@ -709,8 +726,10 @@ def extrapolation_matrix(r, t, w, E):
 @jit
 def next_step(h, err, epsilon, s, safety=0.7, shrink=0.2, grow=2.0):
     """The step size a controller proposes after a step of size h with error estimate err:
-    h (epsilon / err)^(1 / (s - 1)) times ``safety``, limited to [shrink h, grow h]
-    (err ~ h^(s-1), see :func:`step_error`)."""
+    h (epsilon / err)^(1 / (s - 1)) times ``safety``, limited to [shrink h, grow h].  The
+    exponent is the estimate's own (err ~ h^(s-1), :func:`step_error`), as IAS15's 1/7 is its
+    b6's: the step whose estimate lands at epsilon; controlling the step's O(h^(2s+1)) error
+    instead (exponent 1/(2s) on err^(2s/(s-1))) gives the same steps for a rescaled epsilon."""
     if err <= 0.0:
         return h * grow
     f = safety * (epsilon / err) ** (1.0 / (s - 1))
