@@ -140,6 +140,76 @@ def test_rebound_adaptive_resolves_the_close_encounter():
     assert np.median(worst) <= 5e-13, worst
 
 
+def _comet_scene(d, inner=True, T=40.0):
+    """Sun, Jupiter (a = 5.2), an inner planet (a = 0.39, the largest acceleration of the scene)
+    and a massless comet that passes d AU from Jupiter at t = T / 2 (placed there and run back
+    to t = -T / 2 by IAS15); G = 1, AU, yr / 2 pi."""
+    import rebound
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=9.547919e-4, a=5.2)
+    j = sim.particles[1]
+    sim.add(m=0.0, x=j.x + d, y=j.y, z=j.z, vx=j.vx, vy=j.vy - 0.5, vz=j.vz + 0.1)
+    sim.N_active = 2
+    sim.move_to_com()
+    sim.dt = -1e-3
+    sim.integrate(-T / 2, exact_finish_time=1)
+    out = rebound.Simulation()
+    for i in (0, 1):
+        p = sim.particles[i]
+        out.add(m=p.m, x=p.x, y=p.y, z=p.z, vx=p.vx, vy=p.vy, vz=p.vz)
+    if inner:
+        out.add(m=1.66e-7, a=0.39, e=0.2, primary=out.particles[0])
+    c = sim.particles[2]
+    out.add(m=0.0, x=c.x, y=c.y, z=c.z, vx=c.vx, vy=c.vy, vz=c.vz)
+    out.N_active = out.N - 1
+    return out
+
+
+def _final(sim, T, ias15=False):
+    if ias15:
+        sim.integrator = "ias15"
+    for t in np.linspace(0, T, 21)[1:]:
+        sim.integrate(t)
+    return np.array([[p.x, p.y, p.z] for p in sim.particles])
+
+
+def test_rebound_adaptive_resolves_a_test_particles_encounter():
+    """A massless comet passing 0.03 AU from Jupiter, in a scene whose largest acceleration is
+    an inner planet's: its accelerations (weight 1) are part of the estimate, so the steps
+    shrink through the pass and the comet ends where IAS15 puts it (both 1e-13 from heyoka in
+    extended precision); on the steps the sources alone take (612 here, a fixed step of that
+    size) it ends 1e-2 AU away."""
+    from hbvm_md import HBVMIntegrator
+    sim = _comet_scene(0.03)
+    drv = HBVMIntegrator(sim)
+    x = _final(sim, 40.0)
+    xi = _final(_comet_scene(0.03), 40.0, ias15=True)
+    assert np.max(np.linalg.norm(x - xi, axis=1)) <= 1e-11
+    alone = _comet_scene(0.03)
+    alone.remove(alone.N - 1)
+    drv_alone = HBVMIntegrator(alone)
+    _final(alone, 40.0)
+    assert drv.nsteps > drv_alone.nsteps
+
+
+def test_a_distant_test_particle_leaves_the_steps_alone():
+    """A massless body at 80 AU, close to nothing: the sources take the steps they take without
+    it (the estimate's maxima run over every coordinate, the test particle's far below)."""
+    from hbvm_md import HBVMIntegrator
+    from systems import outer_solar_system
+    runs = []
+    for extra in (False, True):
+        sim = outer_solar_system().to_rebound()
+        if extra:
+            sim.add(m=0.0, a=80.0, primary=sim.particles[0])
+            sim.N_active = sim.N - 1
+        drv = HBVMIntegrator(sim)
+        runs.append((drv, _final(sim, 2e4)[:6]))
+    assert runs[0][0].nsteps == runs[1][0].nsteps
+    assert np.max(np.abs(runs[0][1] - runs[1][1])) <= 1e-12
+
+
 def test_rebound_adaptive_copy_and_restart_continue_bit_for_bit(tmp_path):
     from hbvm_md import HBVMIntegrator
     from hbvm_md.reports.hard_cases import encounter_scene
