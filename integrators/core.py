@@ -695,32 +695,38 @@ def step_error(gamma, w):
 
 
 @jit
-def shifted_legendre(x, s, out):
-    """out[j] = P_j(x), the orthonormal shifted Legendre polynomials on [0, 1] (Bonnet's
-    recurrence on L_j(2x - 1), times sqrt(2j + 1)), j < s."""
-    z = 2.0 * x - 1.0
-    lm, l0 = 0.0, 1.0
-    for j in range(s):
-        out[j] = np.sqrt(2.0 * j + 1.0) * l0
-        lm, l0 = l0, ((2.0 * j + 1.0) * z * l0 - j * lm) / (j + 1.0)
-
-
-@jit
 def extrapolation_matrix(r, t, w, E):
     """E_ij = int_0^1 P_i(x) P_j(1 + r x) dx by the s-point Gauss rule (t, w) on [0, 1], exact
-    for these degrees: the previous step's polynomial continued over a step r times as long."""
+    for these degrees: the previous step's polynomial continued over a step r times as long.
+    P_j = sqrt(2j + 1) L_j(2x - 1), the orthonormal shifted Legendre polynomials, by Bonnet's
+    recurrence on L_j; the factors sqrt(2j + 1) and the recurrence's divisions are taken once,
+    not at every node (an adaptive run computes E at every step: 1.2 -> 0.6 us for s = 6)."""
     s = E.shape[0]
-    a = np.empty(s)
-    b = np.empty(s)
+    c = np.empty((4, s))        # Bonnet's coefficients, then L_j at x and at 1 + r x
+    for j in range(s):
+        c[0, j] = (2.0 * j + 1.0) / (j + 1.0)
+        c[1, j] = j / (j + 1.0)
     for i in range(s):
         for j in range(s):
             E[i, j] = 0.0
     for q in range(t.shape[0]):
-        shifted_legendre(t[q], s, a)
-        shifted_legendre(1.0 + r * t[q], s, b)
+        z0 = 2.0 * t[q] - 1.0
+        z1 = 2.0 * (1.0 + r * t[q]) - 1.0
+        m0, l0, m1, l1 = 0.0, 1.0, 0.0, 1.0
+        for j in range(s):
+            c[2, j] = l0
+            c[3, j] = l1
+            m0, l0 = l0, c[0, j] * z0 * l0 - c[1, j] * m0
+            m1, l1 = l1, c[0, j] * z1 * l1 - c[1, j] * m1
         for i in range(s):
+            wa = w[q] * c[2, i]
             for j in range(s):
-                E[i, j] += w[q] * a[i] * b[j]
+                E[i, j] += wa * c[3, j]
+    for i in range(s):
+        c[2, i] = np.sqrt(2.0 * i + 1.0)
+    for i in range(s):
+        for j in range(s):
+            E[i, j] *= c[2, i] * c[2, j]
 
 
 @jit
