@@ -24,12 +24,19 @@ def test_compare_md_rows_series_and_table(capsys):
         t, err = res.series[f"HBVM(4, 2) dt={dt:g} fs"]
         assert t.shape == err.shape == (201,) and t[-1] == pytest.approx(200 * dt / 1000)
         assert err[0] == 0.0
+        # the angular momentum about the centre of mass: Verlet keeps it at round-off, HBVM
+        # with k > s (not symplectic) does not, and HBVM(3, 1) at order 2 loses it the most
+        assert vv["max_rel_dL"] < 1e-13
+        assert 1e-12 < h42["max_rel_dL"] < 1e-8 and h31["max_rel_dL"] > 1e2 * h42["max_rel_dL"]
+        t, dL = res.angular_momentum_series[f"HBVM(4, 2) dt={dt:g} fs"]
+        assert t.shape == dL.shape == (201,) and dL[0] == 0.0 and dL.max() == h42["max_rel_dL"]
     # the Verlet error grows like dt^2
     ratio = res.row("VelocityVerlet", 8.0)["max_rel_dE"] / res.row("VelocityVerlet", 4.0)["max_rel_dE"]
     assert 2.5 < ratio < 6.0
     out = capsys.readouterr().out
     assert out.strip() == res.table()
     assert res.table().count("\n") == 7 and "| HBVM(3, 1) | 8 | 200 |" in res.table()
+    assert "| max abs(L-L0)/abs(L0) |" in res.table()
 
 
 def test_compare_md_keeps_momenta_when_no_temperature_and_leaves_atoms_alone():
