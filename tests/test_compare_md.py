@@ -82,3 +82,29 @@ def test_default_cluster_neither_collapses_nor_explodes():
     d = np.linalg.norm(atoms.positions[:, None] - atoms.positions[None], axis=-1)
     np.fill_diagonal(d, np.inf)
     assert np.mean(d.min(axis=1)) > 1.0
+
+
+def test_wall_time_leaves_out_the_observer(monkeypatch):
+    """The wall time is the integration's, not the observer that records the energy and the
+    state after every step: with a clock that only the observer's energy read advances, every
+    run reports zero wall time (it reported one tick per step when the observer was timed)."""
+    from types import SimpleNamespace
+
+    from ase import Atoms
+
+    from hbvm_md.reports import md_comparison as mc
+
+    ticks = [0.0]
+    kinetic = Atoms.get_kinetic_energy
+
+    def ticking(self):
+        ticks[0] += 1.0
+        return kinetic(self)
+
+    monkeypatch.setattr(mc, "time", SimpleNamespace(perf_counter=lambda: ticks[0]))
+    monkeypatch.setattr(Atoms, "get_kinetic_energy", ticking)
+    atoms, calc = default_cluster(6)
+    res = compare_md(atoms, calc, timesteps_fs=(4.0,), methods=("VelocityVerlet", ("HBVM", 2)), steps=10,
+                     verbose=False)
+    assert ticks[0] >= 2 * 11
+    assert [r["wall_time_s"] for r in res.rows] == [0.0, 0.0]
