@@ -108,3 +108,19 @@ def test_wall_time_leaves_out_the_observer(monkeypatch):
                      verbose=False)
     assert ticks[0] >= 2 * 11
     assert [r["wall_time_s"] for r in res.rows] == [0.0, 0.0]
+
+
+def test_angular_momentum_column_is_empty_where_L_is_no_invariant_and_a_start_at_rest_works():
+    """A periodic cell exerts torques through its images: L is no invariant there, and the
+    column says so (nan, printed "-") instead of a figure; a cluster starting at rest (L0 = 0,
+    no scale at t = 0) gets a number, not an error."""
+    from ase.build import bulk
+    from ase.calculators.emt import EMT
+    cu = bulk("Cu", cubic=True)
+    res = compare_md(cu, EMT(), timesteps_fs=(5.0,), methods=("VelocityVerlet",), steps=5,
+                     temperature_K=300.0, verbose=False)
+    assert np.isnan(res.rows[0]["max_rel_dL"]) and "| - |" in res.table()
+    atoms, calc = default_cluster(6)
+    res = compare_md(atoms, calc, timesteps_fs=(5.0,), methods=("VelocityVerlet", ("HBVM", 2)), steps=20,
+                     temperature_K=0.0, verbose=False)
+    assert all(0.0 <= r["max_rel_dL"] < 1e-13 for r in res.rows)

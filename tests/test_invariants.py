@@ -43,6 +43,9 @@ def test_relative_change_divides_by_L0_and_by_the_scale_when_L0_is_tiny():
     # a cluster set not to rotate: L0 = 1e-17 of S, divide by S instead of by round-off
     Z = np.array([[0.0, 0.0, 1e-17], [0.0, 0.0, 2e-9]])
     assert TINY * 1.0 > 1e-17 and relative_change(Z, 1.0) == pytest.approx(2e-9, rel=1e-6)
+    # a start at rest (S(0) = 0): against the largest S the run reached; nothing moved: 0
+    assert relative_change(Z, np.array([0.0, 4.0])) == pytest.approx(5e-10, rel=1e-6)
+    assert relative_change(np.zeros((3, 3)), np.zeros(3)) == 0.0
     # a run that blew up is inf, not nan (a table must not hide it)
     assert change_series(np.array([1.0, np.nan]), 1.0)[1] == np.inf
 
@@ -51,7 +54,7 @@ def test_relative_change_divides_by_L0_and_by_the_scale_when_L0_is_tiny():
     (lambda: angular_momentum(np.zeros((2, 3)), np.zeros((3, 3))), "must both have shape"),
     (lambda: angular_momentum(np.zeros((2, 3)), np.zeros((2, 3)), about="middle"), "`about` must be"),
     (lambda: angular_momentum(np.zeros((2, 3)), np.zeros((2, 3)), about="com"), "`masses`"),
-    (lambda: change_series(np.ones(3), 0.0), "`scale0` must be a positive number"),
+    (lambda: change_series(np.ones(3), -1.0), "`scale` must be a number >= 0"),
 ])
 def test_bad_input_is_named(call, match):
     with pytest.raises(ValueError, match=match):

@@ -8,7 +8,9 @@ precision and the positions and momenta after every step (through an observer; M
 angular momentum is the cluster's about its centre of mass
 (:func:`hbvm_md.reports.invariants.atoms_angular_momentum`), its change measured as
 :mod:`hbvm_md.reports.invariants` defines: a free cluster conserves it, so does VelocityVerlet
-to round-off, and HBVM(k, s) with k > s, which is not symplectic, does not.
+to round-off, and HBVM(k, s) with k > s, which is not symplectic, does not.  In a periodic cell
+or with constraints L is no invariant (the cell's images and the fixed atoms exert torques): the
+column is then nan, printed "-".
 """
 from __future__ import annotations
 
@@ -41,7 +43,8 @@ class MDComparison:
         (max |E - E0| / N), ``max_rel_dE`` (max |E - E0| / |E0|), ``drift_slope`` (slope of a
         least-squares line through (E - E0) / N against time, eV per atom per ps),
         ``max_rel_dL`` (max |L - L0| / |L0| of the angular momentum about the centre of mass,
-        :mod:`hbvm_md.reports.invariants`), ``force_evals`` (configurations at which forces were
+        :mod:`hbvm_md.reports.invariants`; nan when the atoms have a periodic direction or
+        constraints, where L is not conserved), ``force_evals`` (configurations at which forces were
         computed, including the initial one), ``wall_time_s`` (the run without the observer
         that records the energy and the state: what the integration costs), ``E0_eV`` (initial
         total energy) and ``k``, ``s`` (None for VelocityVerlet).
@@ -63,7 +66,8 @@ class MDComparison:
         rule = "|" + "|".join("---" for _ in _COLUMNS) + "|"
         lines = [head, rule]
         for r in self.rows:
-            lines.append("| " + " | ".join(fmt.format(r[key]) for key, _, fmt in _COLUMNS) + " |")
+            lines.append("| " + " | ".join("-" if isinstance(r[key], float) and np.isnan(r[key]) else fmt.format(r[key])
+                                           for key, _, fmt in _COLUMNS) + " |")
         return "\n".join(lines)
 
     def row(self, method: str, dt_fs: float | None = None) -> dict:
@@ -181,6 +185,8 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
             raise ValueError(f"`temperature_K` must be >= 0 or None (got {temperature_K!r})")
         maxwell_boltzmann(start, temperature_K, seed)
 
+    # L is an invariant of a free cluster only: no periodic direction, no constraints
+    free = not np.any(start.pbc) and not start.constraints
     result = MDComparison(n_atoms=len(start))
     for dt in dts:
         for kind, s, k in specs:
@@ -215,9 +221,12 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
             t_ps = np.arange(len(E)) * dt / 1000.0
             dE = E - E[0]
             scale = abs(E[0]) if E[0] != 0 else 1.0
-            L, L_scale = atoms_angular_momentum(np.array([x for x, _ in states]),
-                                                np.array([p for _, p in states]), a.get_masses())
-            dL = change_series(L, L_scale[0])
+            if free:
+                L, L_scale = atoms_angular_momentum(np.array([x for x, _ in states]),
+                                                    np.array([p for _, p in states]), a.get_masses())
+                dL = change_series(L, L_scale)
+            else:
+                dL = np.full(len(states), np.nan)
             row = {"method": label, "dt_fs": dt, "steps": steps, "E0_eV": float(E[0]),
                    "max_abs_dE_per_atom_eV": float(np.max(np.abs(dE)) / len(a)),
                    "max_rel_dE": float(np.max(np.abs(dE)) / scale),

@@ -119,7 +119,7 @@ def angular_momentum_change(nb, xv) -> np.ndarray:
     xv = np.asarray(xv, dtype=float).reshape(len(xv), nb.N, 6)
     y = np.concatenate([xv[..., :3].reshape(len(xv), -1),
                         xv[..., 3:].reshape(len(xv), -1) * nb.masses], axis=1)
-    return change_series(nb.angular_momentum(y), nb.angular_momentum_scale(y[0]))
+    return change_series(nb.angular_momentum(y), nb.angular_momentum_scale(y))
 
 
 def _summary(label, steps, wall, ts, err, final_t, setup_time=0.0, compile_time=None, dL=None) -> dict:

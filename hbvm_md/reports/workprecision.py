@@ -68,7 +68,7 @@ def _dL(system, Y) -> float:
     if not hasattr(system, "angular_momentum"):
         return float("nan")
     Y = np.asarray(Y, dtype=float)
-    return relative_change(system.angular_momentum(Y), float(system.angular_momentum_scale(Y[0])))
+    return relative_change(system.angular_momentum(Y), system.angular_momentum_scale(Y))
 
 
 def _rel_energy(E) -> float:
@@ -328,7 +328,7 @@ def scene_md_cluster(quick=False, k_info=None, bar=None):
             xs.append(a.get_positions())
             ps.append(a.get_momenta())
         L, scale = atoms_angular_momentum(np.array(xs), np.array(ps), a.get_masses())
-        return a, n, wall, np.array(es), relative_change(L, scale[0])
+        return a, n, wall, np.array(es), relative_change(L, scale)
 
     ref_atoms, *_ = run(lambda a, dt: HBVMDynamics(a, dt, s=3), min(dts) / 4)
     q_ref = ref_atoms.get_positions().reshape(-1)
