@@ -150,3 +150,27 @@ def test_wall_time_leaves_out_the_energy_samples(monkeypatch):
     # the energy and the state (for the angular momentum) were read at every output
     assert ticks[0] >= 2 * 2 * 10
     assert [r["wall_time_s"] for r in cmp.rows] == [0.0, 0.0]
+
+
+def test_heyoka_rows_get_the_same_angular_momentum_column_without_heyoka():
+    """_run_heyoka measures L from the states the peer returns, as _run does: checked with a
+    stand-in solver that returns IAS15's states (heyoka itself is optional)."""
+    from types import SimpleNamespace
+
+    from hbvm_md.reports.rebound_comparison import _run_heyoka, _state
+
+    nb = outer_solar_system()
+
+    def propagate(xv0, ts):
+        sim = nb.to_rebound()
+        states = []
+        for t in ts:
+            sim.integrate(t)
+            states.append(_state(sim).copy())
+        return np.array(states), 0.0, int(sim.steps_done)
+
+    fake = SimpleNamespace(propagate=propagate, compile_time=0.0)
+    row, (t, err), x, (tl, dL) = _run_heyoka(lambda: nb.to_rebound(), "stand-in", fake, 2e4, 20)
+    assert t.shape == tl.shape == dL.shape == (20,) and np.array_equal(t, tl)
+    assert row["max_rel_angular_momentum_error"] == dL.max() and 0 < dL.max() < 1e-14
+    assert row["max_rel_energy_error"] < 1e-14
