@@ -38,8 +38,8 @@ from . import core, jit as _jitmod, loop, pointers as _pointersmod, tangent
 LOOP_FUNCTIONS = ("evaluate", "energy_parts", "run", "advance", "attempt")
 _LOOP_PATH = Path(loop.__file__)
 # the tangent map of the step (integrators.tangent), appended when a jvp kernel is bound
-TANGENT_FUNCTIONS = ("evaluate_jvp", "tangent_converged", "tangent_sizes", "tangent_carve", "tangent_map", "megno_step",
-                     "run_variational")
+TANGENT_FUNCTIONS = ("evaluate_jvp", "tangent_converged", "tangent_sizes", "stages", "tangent_map",
+                     "megno_step", "run_variational")
 _TANGENT_PATH = Path(tangent.__file__)
 _CACHE: dict = {}
 _LOCK = threading.Lock()

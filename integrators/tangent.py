@@ -34,12 +34,12 @@ the guess starts as close as the step's own.
 """
 import numpy as np
 
-from integrators.core import (BLOCK, C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK,
-                              ROUNDOFF_ULPS, STATE_ULPS, all_finite, commit_full, commit_separable,
-                              copy1, copy2, full_stages, full_stages_narrow, guess, guess_narrow,
-                              max_abs, max_abs2, newton_update, project, project_narrow,
-                              stage_positions, stage_positions_narrow, step_constants, symplectic)
-from integrators.pointers import view, view1
+from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, ROUNDOFF_ULPS,
+                              STATE_ULPS, all_finite, carve, commit_full, commit_separable, copy1,
+                              copy2, full_stages, full_stages_narrow, guess, guess_narrow, max_abs,
+                              max_abs2, newton_update, project, project_narrow, stage_positions,
+                              stage_positions_narrow, step_constants, symplectic, work_sizes)
+from integrators.pointers import view1
 
 _force_jvp = None    # bound by integrators.specialise
 # (run_variational calls the loop's advance and energy_parts: this text is appended to the
@@ -79,41 +79,26 @@ def tangent_converged(delta, scale, dF, hstate, previous):
 
 
 def tangent_sizes(n, s, u, m, d):
-    """(float, complex) lengths of the tangent map's work buffers (:func:`tangent_carve`)."""
-    return 2 * n + 2 * m + 3 * d + 3 * s * u + 4 * n * u + 5 * min(u, BLOCK), 2 * s * u
+    """(float, complex) lengths of the tangent map's work buffers: the step's own
+    (``core.work_sizes``, cut by ``core.carve``: its X holds the converged stages, Xp, F, G the
+    tangent's stages and derivatives, g its d gamma, yt, cyt the new tangent) and d zeros."""
+    nf, nc = work_sizes(n, s, u, m, d)
+    return nf + d, nc
 
 
-def tangent_carve(tw, tcw, n, s, u, m, d):
-    """The tangent map's work arrays as views of its two buffers: ht, ht_lo (n),
-    dq, dq_lo (m), zero, vt, cvt (d), a, pg, dg (s, u), X, dX, dF, dG (n, u),
-    R (5, min(u, BLOCK)), Rt, Z (s, u) complex."""
-    nf, nc = tangent_sizes(n, s, u, m, d)
-    if tw.shape[0] < nf or tcw.shape[0] < nc:
-        raise ValueError("internal error: the tangent map's work buffers are shorter than "
-                         "tangent_sizes says")
-    ht = view1(tw, 0, n)
-    ht_lo = view1(tw, n, n)
-    o = 2 * n
-    dq = view1(tw, o, m)
-    dq_lo = view1(tw, o + m, m)
-    o += 2 * m
-    zero = view1(tw, o, d)
-    vt = view1(tw, o + d, d)
-    cvt = view1(tw, o + 2 * d, d)
-    o += 3 * d
-    a = view(tw, o, s, u)
-    pg = view(tw, o + s * u, s, u)
-    dg = view(tw, o + 2 * s * u, s, u)
-    o += 3 * s * u
-    X = view(tw, o, n, u)
-    dX = view(tw, o + n * u, n, u)
-    dF = view(tw, o + 2 * n * u, n, u)
-    dG = view(tw, o + 3 * n * u, n, u)
-    o += 4 * n * u
-    R = view(tw, o, 5, min(u, BLOCK))
-    Rt = view(tcw, 0, s, u)
-    Z = view(tcw, s * u, s, u)
-    return ht, ht_lo, dq, dq_lo, zero, vt, cvt, a, pg, dg, X, dX, dF, dG, R, Rt, Z
+def stages(full, narrow, y, cy, minv, g, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2, h2_lo, a, X, R,
+           exact):
+    """X <- the stages of the coefficients g from the double-double state (y, cy): the stage
+    positions (separable) or stage values (full), by the core's pieces as the step picks them."""
+    if full:
+        if narrow:
+            full_stages_narrow(y, cy, g, I, I_lo, h, X, exact)
+        else:
+            full_stages(y, cy, g, I, I_lo, h, X, R, exact)
+    elif narrow:
+        stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, exact)
+    else:
+        stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, exact)
 
 
 def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM, max_iter,
@@ -137,22 +122,15 @@ def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
     d = y0.shape[0]
     narrow = u < NARROW
     newton = NM.shape[0] > 0
-    ht, ht_lo, dq, dq_lo, zero, vt, cvt, a, pg, dg, X, dX, dF, dG, R, Rt, Z = tangent_carve(
+    ht, ht_lo, _, dq, dq_lo, a, pg, dg, X, dF, dG, dX, _, vt, cvt, R, Rt, Z = carve(
         tw, tcw, n, s, u, m, d)
+    zero = view1(tw, work_sizes(n, s, u, m, d)[0], d)
     for j in range(d):
         zero[j] = 0.0
     h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
     # the stages at the converged coefficients (as the step's last, compensated evaluation)
-    if full:
-        if narrow:
-            full_stages_narrow(y0, cy0, gamma, I, I_lo, h, X, True)
-        else:
-            full_stages(y0, cy0, gamma, I, I_lo, h, X, R, True)
-    else:
-        if narrow:
-            stage_positions_narrow(y0, cy0, minv, gamma, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, True)
-        else:
-            stage_positions(y0, cy0, minv, gamma, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, True)
+    stages(full, narrow, y0, cy0, minv, gamma, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2, h2_lo, a,
+           X, R, True)
     for v in range(V.shape[0]):
         dy = V[v]
         if narrow:
@@ -166,18 +144,8 @@ def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
         while it < max_iter:
             it += 1
             # the tangent's stages: the step's affine stage map with (dy0, 0) for (y0, cy0)
-            if full:
-                if narrow:
-                    full_stages_narrow(dy, zero, dg, I, I_lo, h, dX, False)
-                else:
-                    full_stages(dy, zero, dg, I, I_lo, h, dX, R, False)
-            else:
-                if narrow:
-                    stage_positions_narrow(dy, zero, minv, dg, C2, C2_lo, ht, ht_lo, h2, h2_lo,
-                                           a, dX, False)
-                else:
-                    stage_positions(dy, zero, minv, dg, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, dX,
-                                    R, False)
+            stages(full, narrow, dy, zero, minv, dg, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2,
+                   h2_lo, a, dX, R, False)
             evaluate_jvp(full, X, dX, params, dF, dG)
             tcount[1] += n
             if newton:
