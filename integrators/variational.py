@@ -263,6 +263,8 @@ class VariationalStepper(Stepper):
     def step_adaptive(self, h: float, epsilon: float, min_dt: float) -> tuple[float, float]:
         """:meth:`integrators.Stepper.step_adaptive`, then the tangent map of the accepted step
         (rejected attempts never touch the tangents)."""
+        if self._record is not None:
+            self._flush()
         before = self._save()
         self._deferred = True
         try:
@@ -271,7 +273,12 @@ class VariationalStepper(Stepper):
             self._deferred = False
         self._map(before, taken)
         if self._record is not None:
-            self._record.append((self.t, self._V.copy(), self.megno.mean))
+            self._accepted += 1
+            entry = (self._V.copy(), self.megno.mean)
+            if self._accepted % self._every == 0:
+                self._record.append(entry)
+            else:
+                self._pending = entry
         return taken, proposed
 
     def run(self, h: float, steps: int, sample_every: int = 1):
@@ -334,17 +341,24 @@ class VariationalStepper(Stepper):
                      sample_every: int = 1, sample_times=None):
         """:meth:`integrators.Stepper.run_adaptive` with the tangents at the samples in the
         result's ``extra`` (as :meth:`run`)."""
-        self._record = [(self.t, self._V.copy(), self.megno.mean)]
+        # the run samples after every sample_every-th accepted step and after a step that lands on
+        # one of the marks (sample_times, t_end): the tangents are kept after those steps only
+        self._record = [(self._V.copy(), self.megno.mean)]
+        self._every, self._accepted, self._pending = check_count("sample_every", sample_every, 1), 0, None
+        self._marks = {float(x) for x in (sample_times if sample_times is not None else ())}
+        self._marks.add(float(t_end))
         try:
             try:
                 res = super().run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
             except StepError as err:
                 if err.result is not None:
+                    self._flush()
                     self._pick(err.result)
                 raise
+            self._flush()
             return self._pick(res)
         finally:
-            self._record = None
+            self._record = self._pending = None
 
     # -- private -----------------------------------------------------------------------
     def _save(self) -> tuple:
@@ -392,13 +406,20 @@ class VariationalStepper(Stepper):
                          jvp_evaluations=self.jvp_evaluations)
         return res
 
+    def _flush(self) -> None:
+        """Keep the last step's tangents when the run has set its clock onto a mark (a sample)."""
+        if self._pending is not None and self.t in self._marks:
+            self._record.append(self._pending)
+        self._pending = None
+
     def _pick(self, res):
-        """The recorded tangents at the adaptive run's sample times (the accepted step nearest
-        each: a step landing on a sample time has its clock set to it afterwards)."""
-        times = np.array([r[0] for r in self._record])
-        rec = [self._record[int(np.argmin(np.abs(times - t)))] for t in res.t]
-        return self._with_tangents(res, np.array([r[1] for r in rec]),
-                                   np.array([r[2] for r in rec]))
+        """The kept tangents, one per sample of the adaptive run (checked)."""
+        if len(self._record) != len(res.t):
+            raise RuntimeError(f"internal error: {len(self._record)} tangents kept for "
+                               f"{len(res.t)} samples of the adaptive run (its sampling rule "
+                               "changed: see VariationalStepper.run_adaptive)")
+        return self._with_tangents(res, np.array([r[0] for r in self._record]),
+                                   np.array([r[1] for r in self._record]))
 
 
 def variational_stepper(variational):
