@@ -18,6 +18,7 @@ from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
 from integrators import HBVM, ConvergenceError, Stepper
+from integrators.engine import check_step
 from systems.base import SeparableSystem
 
 _log = logging.getLogger(__name__)
@@ -196,8 +197,7 @@ class HBVMDynamics(MolecularDynamics):
             raise ValueError("`atoms` has no calculator; set atoms.calc before creating "
                              "HBVMDynamics")
         self._check_atoms(atoms)
-        if not np.isfinite(timestep) or timestep == 0:
-            raise ValueError(f"`timestep` must be a nonzero finite number (got timestep={timestep!r})")
+        timestep = check_step(timestep, "timestep")
         if solver not in ("auto", "fixed_point", "newton"):
             raise ValueError(f"`solver` must be 'auto', 'fixed_point' or 'newton' (got solver={solver!r})")
         if k is None:
