@@ -19,7 +19,7 @@ from .core import next_step, select_extrapolation
 from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
-from .protocol import adapt_system
+from .protocol import _Adapted, adapt_system
 from .tableau import gauss_rule01
 from .specialise import specialise
 
@@ -203,10 +203,26 @@ def _checked_result(method: str, system: str, r, given: tuple, expected: tuple) 
     if a.shape != expected:
         raise ValueError(f"`{method}` of {system} must return shape {expected} for a stack of shape "
                          f"{given} (the k stages of a step, one row each) (got shape {a.shape}); "
-                         f"index the last axis (q[..., i], not q[i]) and keep the stack axis")
+                         f"index the last axis (x[..., i], not x[i]) and keep the stack axis")
     if a.dtype.kind not in "iuf":
-        raise ValueError(f"`{method}` of {system} must return real numbers (got dtype {a.dtype})")
+        raise ValueError(f"`{method}` of {system} must return shape {expected} for a stack of shape "
+                         f"{given}, real numbers (got dtype {a.dtype})")
     return a
+
+
+def _checked_rows(method: str, system: str, fn, X: np.ndarray, r: np.ndarray) -> None:
+    """Once, on the first stack of several rows: the first and the last row of ``r`` =
+    ``fn(X)`` must equal ``fn`` of that row alone (to round-off), else a ValueError naming the
+    method: a result of the right shape can still mix the rows (transposed when the stack is
+    square, x[i] where x[..., i] was meant)."""
+    for i in (0, X.shape[0] - 1):
+        alone = np.asarray(fn(X[i:i + 1]), dtype=float).reshape(-1)
+        if alone.shape != r[i].shape or not np.all(np.abs(r[i] - alone)
+                                                   <= 1e-9 * (np.max(np.abs(alone)) + 1e-300)):
+            raise ValueError(f"`{method}` of {system} on a stack of shape {X.shape} returned a row "
+                             f"{i} that differs from `{method}` of that row alone: it mixes the rows "
+                             f"of the stack (a transposed result, or x[i] where x[..., i] was "
+                             f"meant); return one row per row of the stack")
 
 
 def _checked_number(method: str, system: str, v, given: tuple) -> float:
@@ -296,7 +312,8 @@ class Binding:
         only (a tuple comparison), so that a method whose result changes shape mid-run is
         refused at that call.  The kernels also keep the counters of the last committed step
         (:meth:`watch`)."""
-        mark, name = self._mark, type(system).__name__
+        mark = self._mark
+        name = type(system._system if isinstance(system, _Adapted) else system).__name__
         if self.full:
             rhs, rhs_name, one, one_name = system.gradient, "gradient", system.energy, "energy"
         else:
@@ -307,14 +324,17 @@ class Binding:
                 mark()
                 into(X, out)
         else:
-            first = [True]
+            unchecked = [True, True]     # the first call, the first stack of several rows
 
             def force(X, params, out):
                 mark()
                 r = rhs(X)
-                if first[0] or getattr(r, "shape", None) != out.shape:
+                if unchecked[0] or getattr(r, "shape", None) != out.shape:
                     r = _checked_result(rhs_name, name, r, X.shape, out.shape)
-                    first[0] = False
+                    unchecked[0] = False
+                if unchecked[1] and X.shape[0] > 1:
+                    _checked_rows(rhs_name, name, rhs, X, r)
+                    unchecked[1] = False
                 out[...] = r
 
         def potential(x, params):
@@ -394,7 +414,7 @@ def _attach(err: BaseException, result) -> None:
     except AttributeError:       # (an exception class with __slots__ and no __dict__)
         return
     if hasattr(err, "add_note"):             # Python >= 3.11
-        end = f" (t = {result.t[-1]!r})" if len(result.t) else ""
+        end = f" (t = {float(result.t[-1])!r})" if len(result.t) else ""
         err.add_note(f"hbvm-md: the run stopped after {result.steps} committed steps{end}; "
                      f"their samples are in this exception's `.result`")
 
@@ -620,12 +640,15 @@ class Stepper(Counted):
                  if x != self.t and x != t_end]     # (the run samples its start and its end)
         marks.append(t_end)
         t_start = time.perf_counter()
-        ts, ys, es = [self.t], [self._y.copy()], [self.binding.energy(self._y)]
+        ts, ys, es = [], [], []
         hs = []
         n = 0
         sign = 1.0 if t_end >= self.t else -1.0
         h = abs(h) * sign
         try:
+            ts.append(self.t)
+            ys.append(self._y.copy())
+            es.append(self.binding.energy(self._y))
             for mark in marks:
                 while (mark - self.t) * sign > 0:
                     remaining = (mark - self._clock[0]) + self._clock[1]
