@@ -450,7 +450,9 @@ class Stepper(Counted):
     ----------
     t, y : current time and state (copies; the state is kept as a double-double number).
     nsteps, nfev, niter, newton_steps, solver_switches : counters.
-    status : "running", or "failed" after a step raised.
+    status : "running" after a step succeeded; "failed" after a step raised (a StepError or
+        an exception from the system's own function), "interrupted" after KeyboardInterrupt or
+        SystemExit; the state and time are those of the last committed step.
     """
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
@@ -599,7 +601,8 @@ class Stepper(Counted):
         coefficients above ``epsilon``, a failed iteration or energy check) retry smaller.
         Returns (the step taken, the next step proposed).  A rejected attempt leaves no trace
         in the state, the time or the counters.  Raises :class:`integrators.StepSizeError`
-        when no step down to ``min_dt`` is accepted."""
+        when no step down to ``min_dt``, or down to the smallest step that still changes t, is
+        accepted."""
         s = self.method.s
         while True:
             snap = (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
@@ -631,8 +634,11 @@ class Stepper(Counted):
     def run_adaptive(self, h: float, t_end: float, epsilon: float, min_dt: float,
                      sample_every: int = 1, sample_times=None) -> "IntegrationResult":
         """Adaptive steps from t to t_end, h the first step tried: samples every
-        ``sample_every`` accepted steps, and at each of ``sample_times`` (the steps are
-        shortened to land on them exactly, and on t_end)."""
+        ``sample_every`` accepted steps, and at each of ``sample_times`` (times between t and
+        t_end; the steps are shortened to land on them exactly, and on t_end).  Raises
+        :class:`integrators.StepSizeError` when the step proposed no longer changes t (steps
+        shrinking into a collision).  Whatever stops the run, the exception carries the
+        samples so far in ``result``."""
         sample_every = check_count("sample_every", sample_every, 1)
         t_end = check_real("t_end", t_end, f"a finite time other than t={self.t!r}",
                            lambda x: x != self.t)
@@ -818,8 +824,9 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         Step-size control from each step's own coefficients (:meth:`Stepper.step_adaptive`):
         the error estimate max|gamma_(s-1)| / max|gamma_0| is kept below ``epsilon`` (a
         dimensionless precision parameter, like IAS15's); a step that fails its iteration or
-        energy check is retried smaller, down to ``min_dt`` (default 0).  The energy stays at
-        round-off whatever the steps: HBVM conserves H at any step size.
+        energy check is retried smaller, down to ``min_dt`` (default 0) and while t + h != t
+        (else :class:`integrators.StepSizeError`).  The energy stays at round-off whatever
+        the steps: HBVM conserves H at any step size.
     t_end, sample_times
         Adaptive runs end exactly at t_end and also land exactly on each of sample_times.
     Other parameters as for :class:`Stepper`.
