@@ -85,9 +85,9 @@ def check_real(name: str, value, accepted: str, ok=None, none: bool = False):
 
 
 def check_times(name: str, times, t0: float, t_end: float) -> list:
-    """The sorted floats of ``times`` (None: none), or a ValueError naming ``name`` when it is
-    not a sequence of finite real numbers between t0 and t_end (a single number, a nan, a
-    time the run never reaches)."""
+    """The floats of ``times`` (None: none) in the order the run from t0 to t_end meets them,
+    or a ValueError naming ``name`` when it is not a sequence of finite real numbers between
+    t0 and t_end (a single number, a nan, a time the run never reaches)."""
     if times is None:
         return []
     if is_real(times) or isinstance(times, (str, bytes)):
@@ -104,7 +104,7 @@ def check_times(name: str, times, t0: float, t_end: float) -> list:
             raise ValueError(f"`{name}` must hold finite times between t0={t0!r} and "
                              f"t_end={t_end!r} (got {name}[{i}]={x!r}): a sample the run never "
                              f"reaches would be missing from the result without a word")
-    return sorted(float(x) for x in values)
+    return sorted((float(x) for x in values), reverse=t_end < t0)
 
 
 def check_count(name: str, value, minimum: int) -> int:
@@ -534,7 +534,6 @@ class Stepper(Counted):
         h = check_step(h)
         steps = check_count("steps", steps, 0)
         sample_every = check_count("sample_every", sample_every, 1)
-        b = self.binding
         nsamp = steps // sample_every + 1
         # t and H start as nan: a run stopped by an exception keeps the samples written
         out_t, out_y, out_e = np.full(nsamp, np.nan), np.empty((nsamp, self._y.size)), np.full(nsamp, np.nan)
