@@ -225,6 +225,12 @@ def _checked_rows(method: str, system: str, fn, X: np.ndarray, r: np.ndarray) ->
                              f"meant); return one row per row of the stack")
 
 
+def _commit_seen(watch: list) -> None:
+    """The Python kernels' note of a new committed step (see :meth:`Binding.watch`)."""
+    watch[1] = watch[0][0]
+    watch[2][:] = watch[3]
+
+
 def _checked_number(method: str, system: str, v, given: tuple) -> float:
     """``v``, the result of ``method`` (energy or potential) for one state of shape ``given``,
     as a float, or a ValueError naming the method and the shape received."""
@@ -260,7 +266,7 @@ class Binding:
                              "`potential`; use form='full'")
         self.full = not (form == "separable" or (form == "auto" and _is_separable(system)))
         self.method, self.system = method, system
-        self._watched = None
+        self._watch = None
         d = 2 * int(system.dim)
         m = d // 2
         kernels_attr = "full_kernels" if self.full else "separable_kernels"
@@ -312,33 +318,40 @@ class Binding:
         only (a tuple comparison), so that a method whose result changes shape mid-run is
         refused at that call.  The kernels also keep the counters of the last committed step
         (:meth:`watch`)."""
-        mark = self._mark
         name = type(system._system if isinstance(system, _Adapted) else system).__name__
         if self.full:
             rhs, rhs_name, one, one_name = system.gradient, "gradient", system.energy, "energy"
         else:
             rhs, rhs_name, one, one_name = system.forces, "forces", system.potential, "potential"
+        # watch: [the counters' C_STEPS as a memoryview (None: not watched), the value seen,
+        # a copy of the counters at the first kernel call after a commit, the counters]
+        self._watch = watch = [None, -1.0, None, None]
         into = None if self.full else getattr(system, "forces_into", None)
         if callable(into):
             def force(X, params, out):        # writes out itself (no copy of the result)
-                mark()
+                w = watch[0]
+                if w is not None and w[0] != watch[1]:
+                    _commit_seen(watch)
                 into(X, out)
         else:
-            unchecked = [True, True]     # the first call, the first stack of several rows
+            unchecked = [True]     # until the first call and the first stack of several rows
 
             def force(X, params, out):
-                mark()
+                w = watch[0]
+                if w is not None and w[0] != watch[1]:
+                    _commit_seen(watch)
                 r = rhs(X)
                 if unchecked[0] or getattr(r, "shape", None) != out.shape:
                     r = _checked_result(rhs_name, name, r, X.shape, out.shape)
-                    unchecked[0] = False
-                if unchecked[1] and X.shape[0] > 1:
-                    _checked_rows(rhs_name, name, rhs, X, r)
-                    unchecked[1] = False
+                    if X.shape[0] > 1:
+                        _checked_rows(rhs_name, name, rhs, X, r)
+                        unchecked[0] = False
                 out[...] = r
 
         def potential(x, params):
-            mark()
+            w = watch[0]
+            if w is not None and w[0] != watch[1]:
+                _commit_seen(watch)
             v = one(x)
             return float(v) if isinstance(v, float) else _checked_number(one_name, name, v, x.shape)
         return force, potential, np.zeros(1)
@@ -347,20 +360,19 @@ class Binding:
         """Let the Python kernels keep a copy of ``counters`` as of the last committed step:
         taken at their first call after a commit (a step calls them before it changes
         anything), so that :meth:`restore` can undo the work counted by a step that the
-        system's own function (or Ctrl-C) stopped midway.  Compiled kernels never raise."""
-        self._watched, self._committed, self._seen = counters, counters.copy(), -1.0
-
-    def _mark(self) -> None:
-        c = self._watched
-        if c is not None and c[C_STEPS] != self._seen:
-            self._seen = c[C_STEPS]
-            self._committed[:] = c
+        system's own function (or Ctrl-C) stopped midway.  Compiled kernels never raise.
+        (A memoryview reads the step counter as a Python float: half the cost of numpy's
+        scalar, on every kernel call of the Python path.)"""
+        if getattr(self, "_watch", None) is not None:
+            self._watch[:] = [memoryview(counters)[C_STEPS:C_STEPS + 1], -1.0, counters.copy(),
+                              counters]
 
     def restore(self, counters: np.ndarray) -> None:
         """``counters`` back to the last committed step's (see :meth:`watch`), when the copy
         is of that step (no step committed since the kernels were last called)."""
-        if self._watched is counters and self._committed[C_STEPS] == counters[C_STEPS]:
-            counters[:] = self._committed
+        w = getattr(self, "_watch", None)
+        if w is not None and w[3] is counters and w[2][C_STEPS] == counters[C_STEPS]:
+            counters[:] = w[2]
 
     def energy(self, y: np.ndarray) -> float:
         t, v = self.step_code.energy_parts(self.full, y, self.kin_w, self.params)
