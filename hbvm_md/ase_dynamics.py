@@ -48,6 +48,7 @@ class _AtomsSystem(SeparableSystem):
     """The atoms as a separable system (q, p flattened to (3N,)); fixed atoms feel no force."""
 
     polynomial_degree = None
+    rows_independent = True     # forces keeps the stage rows apart: no probe (2 calculator calls)
 
     def __init__(self, atoms, fixed: np.ndarray, batched: bool):
         self.atoms = atoms

@@ -334,7 +334,10 @@ class Binding:
                     _commit_seen(watch)
                 into(X, out)
         else:
-            unchecked = [True]     # until the first call and the first stack of several rows
+            # until the first call and the first stack of several rows (a system declaring
+            # rows_independent = True, the ASE adapter's, is not probed row by row)
+            unchecked = [True]
+            rows = not getattr(system, "rows_independent", False)
 
             def force(X, params, out):
                 w = watch[0]
@@ -344,7 +347,8 @@ class Binding:
                 if unchecked[0] or getattr(r, "shape", None) != out.shape:
                     r = _checked_result(rhs_name, name, r, X.shape, out.shape)
                     if X.shape[0] > 1:
-                        _checked_rows(rhs_name, name, rhs, X, r)
+                        if rows:
+                            _checked_rows(rhs_name, name, rhs, X, r)
                         unchecked[0] = False
                 out[...] = r
 

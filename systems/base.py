@@ -12,7 +12,9 @@ A system is any object with
     a stack of 3 states; a mistake is a ``ValueError`` naming ``gradient`` and the shapes.
     Whatever the class, a model run as Python code has every result of ``forces``,
     ``gradient``, ``potential`` and ``energy`` checked against the shape the step needs
-    (:class:`integrators.engine.Binding`), also when it changes mid-run.
+    (:class:`integrators.engine.Binding`), also when it changes mid-run, and its first stack
+    of several rows row by row (two extra calls, once; ``rows_independent = True`` declares
+    that the rows are kept apart and skips them).
 
 and optionally
 
