@@ -710,13 +710,19 @@ class Stepper(Counted):
 
     def _advance(self, h: float, solver: str) -> int:
         b = self.binding
-        newton = (b.newton_matrices(self._y, h, self.counters) if solver == "newton"
-                  else b.no_newton)
-        return b.step_code.advance(b.full, self._y, self._cy, b.minv,
-                                   b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
-                                   *newton, self._max_iter(solver), float(self.tol or 0.0),
-                                   float(self.energy_tol or 0.0), self._eref,
-                                   self.counters, b.work, b.cwork, self._clock)
+        if solver == "newton":
+            nfev = self.counters[C_NFEV]
+            newton = b.newton_matrices(self._y, h, self.counters)
+        else:
+            newton = b.no_newton
+        status = b.step_code.advance(b.full, self._y, self._cy, b.minv,
+                                     b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
+                                     *newton, self._max_iter(solver), float(self.tol or 0.0),
+                                     float(self.energy_tol or 0.0), self._eref,
+                                     self.counters, b.work, b.cwork, self._clock)
+        if status != OK and solver == "newton":
+            self.counters[C_NFEV] = nfev     # the Jacobian's evaluations were the failed step's too
+        return status
 
     def _after_step(self, h: float) -> None:
         self._h_prev = h          # the step itself advanced the compensated clock

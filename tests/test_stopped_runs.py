@@ -10,8 +10,8 @@ import re
 import numpy as np
 import pytest
 
-from integrators import (HBVM, ConvergenceError, StepError, Stepper, StepSizeError,
-                         UnresolvedStepError, integrate)
+from integrators import (HBVM, ConvergenceError, NonFiniteError, StepError, Stepper,
+                         StepSizeError, UnresolvedStepError, integrate)
 from systems import Kepler, NBody
 from systems.base import HamiltonianSystem, SeparableSystem
 
@@ -219,6 +219,10 @@ def _divide_by_zero(value):
         return value / np.zeros_like(value)
 
 
+def _nan(value):
+    return value * np.nan
+
+
 def _singular(value):
     return np.linalg.solve(np.zeros((2, 2)), np.ones(2)) * value
 
@@ -247,6 +251,10 @@ STOPS = [
      {}, SystemExit, "interrupted", ALL, 1),
     ("user error in energy", lambda: HamModel({"energy": (9, _raises(ArithmeticError, "no"))}),
      {}, ArithmeticError, "failed", ALL, 1),
+    ("nan in forces", lambda: SepModel({"forces": (40, _nan)}), {}, NonFiniteError, "failed",
+     ("fixed", "newton"), 0),
+    ("nan in forces", lambda: SepModel({"forces": (40, _nan)}), {}, StepSizeError, "failed",
+     ("adaptive",), 0),          # (retried smaller until the step no longer changes t)
     ("no convergence", SepModel, dict(max_iter=2, solver="fixed_point"), ConvergenceError,
      "failed", ("fixed",), 0),
     ("energy check", SepModel, dict(energy_tol=1e-300), UnresolvedStepError, "failed",
