@@ -59,6 +59,8 @@ class _AtomsSystem(SeparableSystem):
         self.fixed = np.asarray(fixed, dtype=int)
         self.batched = batched
         self.stage_evaluations = 0
+        # a polynomial calculator's degree: the engine's default energy check is then strict
+        self.polynomial_degree = getattr(self.calc, "polynomial_degree", None)
         # the engine writes the stage forces straight into its array when the calculator's
         # forces_batch takes out= (PolynomialPairPotential's does) and no atom is fixed
         try:
@@ -97,6 +99,12 @@ class _AtomsSystem(SeparableSystem):
 
     def potential(self, q: np.ndarray):
         q = np.asarray(q, dtype=float)
+        if q.ndim == 1:
+            # one state (the step's energy check, at the new positions): on the atoms
+            # themselves, so that the forces the step then asks there come from the cache (a
+            # failed step puts the atoms and the calculator's results back, HBVMDynamics.step)
+            self.atoms.set_positions(q.reshape(self.n_atoms, 3), apply_constraint=False)
+            return float(self.calc.get_property("energy", self.atoms))
         flat = q.reshape((-1, self.dim))
         work = self.atoms.copy()
         work.calc = self.calc
@@ -341,7 +349,7 @@ class HBVMDynamics(MolecularDynamics):
             saved_calc = (None if calc.atoms is None else calc.atoms.copy(),
                           {key: (v.copy() if isinstance(v, np.ndarray) else v)
                            for key, v in calc.results.items()})
-        saved_stepper = dict(st.__dict__)
+        saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
         try:
             y = st.step(self.dt)
@@ -354,8 +362,9 @@ class HBVMDynamics(MolecularDynamics):
                                        hint="the forces at the new positions are not finite; "
                                             "try a smaller timestep")
         except BaseException as err:
-            st.__dict__.clear()
-            st.__dict__.update(saved_stepper)
+            # the engine as before the step (its arrays are changed in place by a step that
+            # succeeded before the forces at the new positions failed), then the atoms
+            st.restore_state(saved_stepper)
             self._system.stage_evaluations = saved_count
             atoms.set_positions(pos0, apply_constraint=False)
             atoms.set_momenta(mom0, apply_constraint=False)
