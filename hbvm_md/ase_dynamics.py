@@ -30,17 +30,19 @@ def default_k(s: int, polynomial_degree: int | None) -> int:
     """The k that ``HBVMDynamics(k=None)`` uses.
 
     Polynomial H of degree nu: the smallest k with nu s <= 2 k, which conserves H exactly
-    (BIT, eq. (knu)).  Otherwise k = s + 4.  The energy error of HBVM(k, s) on a smooth
-    non-polynomial H is the quadrature error of the line integral, O(h^(2k)); measured on the
-    Morse oscillator and the pendulum (``systems.Morse``, ``systems.Pendulum``, 2000 steps) at
-    step sizes where the midpoint rule's relative energy error is 2e-3 .. 1e-2 (larger than in
-    usual MD), HBVM(s + 4, s) reached the round-off plateau (relative error <= 6e-15) for s = 1, 2, 3.
-    Potentials with a cutoff (EMT, Lennard-Jones, cutoff polynomials) have an error floor
-    set by their smoothness at the cutoff that no k removes; there k = s + 1 often reaches it.
+    (BIT, eq. (knu)).  Otherwise k = s + 1, chosen by cost: the energy error of HBVM(k, s) on
+    a non-polynomial H is the quadrature error of the line integral, O(h^(2k+1)) a step, so
+    k = s + 1 already puts it two orders of h below the trajectory's own error, and each
+    further node costs one more force evaluation a stage sweep.  Measured on ASE's MD tutorial
+    (EMT copper, 108 atoms, 300 K, 5 fs; ``benchmarks/bench_md_cost.py``): HBVM(3, 2) and
+    HBVM(6, 2) reach the same energy error, 2.8e-10 eV per atom (a floor set by EMT's cutoff,
+    which no k removes), with 30 and 62 force evaluations a step.  On smooth potentials at
+    large steps (Morse, the pendulum) a larger k (s + 4) brings the energy error down to
+    round-off: pass ``k`` for that.
     """
     if polynomial_degree is not None:
         return HBVM.for_polynomial_degree(max(int(polynomial_degree), 2), s).k
-    return s + 4
+    return s + 1
 
 
 class _AtomsSystem(SeparableSystem):
@@ -150,8 +152,8 @@ class HBVMDynamics(MolecularDynamics):
     k : int, optional
         Number of quadrature nodes (k >= s).  None: the smallest k that conserves H exactly
         when the calculator has a ``polynomial_degree`` (e.g. :class:`systems.PolynomialPairPotential`
-        without cutoff), otherwise :func:`default_k` = s + 4, which brings the quadrature
-        error below round-off for smooth potentials at usual step sizes.
+        without cutoff), otherwise :func:`default_k` = s + 1, the cheapest k whose quadrature
+        error is below the trajectory's own error (measured on EMT copper).
     solver : {"auto", "fixed_point", "newton"}
         Nonlinear solver of the engine (see :class:`integrators.Stepper`).  "newton" (and
         "auto" once fixed point has failed) needs d^2V/dq^2 at the start of each step: a
@@ -213,7 +215,7 @@ class HBVMDynamics(MolecularDynamics):
             nu = getattr(atoms.calc, "polynomial_degree", None)
             k = default_k(s, nu)
             why = (f"chosen: exact for the calculator's polynomial degree {nu}" if nu is not None
-                   else "chosen: s + 4, round-off quadrature error for smooth potentials")
+                   else "chosen: s + 1, the cheapest k for a non-polynomial calculator")
         else:
             why = "given"
         self.method = HBVM(k, s, nodes)
