@@ -206,18 +206,19 @@ def weighted_kinetic(p, w):
 
 
 @jit
-def energy_flow(full, y, minv, h, g, W, I, F, G):
-    """The energy the step moves between the terms of H, |h| sum_i b_i sum_j |dH/dy_j
-    sigma'_j| / 2 at its stages: the quadrature of the line integral of H along the step's
-    polynomial path sigma (Brugnano-Iavernaro-Trigiante, eq. (line integral)), taken term by term
-    in absolute value (halved: each unit of energy leaves one term and enters another).
+def energy_flow(full, y, minv, h, g, W, I, G):
+    """The energy the step moves into and out of a term of H along its polynomial path sigma,
+    |h| sum_i |b_i dH/dy sigma'(c_i)| taken coordinate by coordinate in absolute value.
 
-    Separable form: |h| sum_i b_i sum_j |F_ij v_ij|, the work of the stage forces F (k, m)
-    taken absolutely, with v = (p0 + h I_s gamma) M^{-1} the stage velocities.  Full form:
-    with G (k, 2m) = grad H at the stages and b_i sigma'(c_i) = sum_l W[l, i] gamma_l.  The
-    step's energy error is the quadrature error of that line integral; a step whose error is
-    larger than this flow has not resolved its own path (:func:`integrators.loop.run`).  b is
-    row 0 of W = P_s^T Omega (P_0 = 1)."""
+    Separable form: the kinetic term, |h| sum_i sum_j |v_ij b_i sigma_p'(c_i)_j| with v =
+    (p0 + h I_s gamma) M^{-1} the stage velocities and b_i sigma_p'(c_i) = sum_l W[l, i]
+    gamma_l (W = P_s^T Omega); the k-point rule integrates v . sigma_p' (degree 2s - 1)
+    exactly, so this is at least |T(p1) - T(p0)|.  Full form: half of |h| sum_i sum_j |G_ij
+    b_i sigma'(c_i)_j| with G (k, 2m) = grad H at the stages (each unit of energy leaves one
+    term and enters another).  A resolved step's energy error, the quadrature error of the
+    line integral of grad H along sigma (Brugnano-Iavernaro-Trigiante), is far smaller than
+    this flow; a converged state whose error exceeds it is not a solution of the step
+    (:func:`integrators.loop.run`)."""
     s, u = g.shape
     n = W.shape[1]
     flow = 0.0
@@ -231,13 +232,13 @@ def energy_flow(full, y, minv, h, g, W, I, F, G):
         return 0.5 * abs(h) * flow
     m = minv.shape[0]
     for i in range(n):
-        part = 0.0
         for j in range(m):
+            vel = 0.0
             acc = 0.0
             for l in range(s):
-                acc += I[i, l] * g[l, j]
-            part += abs(F[i, j] * (y[m + j] + h * acc) * minv[j])
-        flow += W[0, i] * part
+                vel += I[i, l] * g[l, j]
+                acc += W[l, i] * g[l, j]
+            flow += abs((y[m + j] + h * vel) * minv[j] * acc)
     return abs(h) * flow
 
 

@@ -214,9 +214,15 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             if scale > 0.0:
                 change = change / scale
             # etol < 0 (a method not exact for H): a change above |etol| is the method's own
-            # quadrature error unless it exceeds the energy the step moved (core.energy_flow)
-            if not change <= abs(etol) and (etol > 0.0 or not abs(t1 + v1 - eref[0]) <= energy_flow(
-                    full, y, minv, h, g, W, I, F, G)):
+            # quadrature error unless it exceeds the energy the step moved (core.energy_flow,
+            # at least the kinetic change |T1 - T0| in the separable form: checked first, as
+            # it costs O(m) where the flow costs O(k s m))
+            refuse = not change <= abs(etol)
+            if refuse and etol < 0.0:
+                moved = abs(t1 + v1 - eref[0])
+                refuse = not ((not full and moved <= abs(t1 - weighted_kinetic(y[m:], kin_w)))
+                              or moved <= energy_flow(full, y, minv, h, g, W, I, G))
+            if refuse:
                 counters[C_CHANGE] = change
                 return fail(counters, UNRESOLVED, work_iter, work_nfev, work_newton)
             eref[0] = t1 + v1
