@@ -155,6 +155,13 @@ def plot(results: dict, path: pathlib.Path) -> None:
         vv = sorted((r for r in rows if r["k"] == 0), key=lambda r: r["dt_fs"])
         ax.loglog([r["max_dE_per_atom"] for r in vv], [r["s_per_ps"] for r in vv], "k-o",
                   label="VelocityVerlet")
+        if len(vv) >= 2:      # Verlet's power law (error ~ dt^2) carried to HBVM's errors
+            a, b = np.polyfit(np.log([r["max_dE_per_atom"] for r in vv]),
+                              np.log([r["s_per_ps"] for r in vv]), 1)
+            lo = min(max(r["max_dE_per_atom"], 1e-17) for r in rows)
+            x = np.geomspace(lo, vv[-1]["max_dE_per_atom"], 50)
+            ax.loglog(x, np.exp(a * np.log(x) + b), color="k", linestyle="--", linewidth=0.8,
+                      label="VelocityVerlet, extrapolated (error ~ dt^2)")
         for r in vv:
             ax.annotate(f"{r['dt_fs']:g} fs", (r["max_dE_per_atom"], r["s_per_ps"]),
                         textcoords="offset points", xytext=(4, 4), fontsize=7)
