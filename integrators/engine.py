@@ -72,12 +72,14 @@ def check_step(h) -> float:
     return hf
 
 
-def energy_check(method, system, energy_tol="auto", tol=None) -> float:
+def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool = False) -> float:
     """The step's energy check ``etol`` (:func:`integrators.loop.run`) for ``energy_tol``.
 
     ``"auto"`` (the default of every host): when the method conserves H exactly (``system.
     polynomial_degree`` nu known, k >= nu s / 2, the iteration to round-off: ``tol`` None),
-    +DEFAULT_ENERGY_TOL, a step changing H by more than round-off is refused; otherwise
+    or when the host chose k for a round-off quadrature error (``round_off_k``: the REBOUND
+    host's ``choose_k`` / ``adaptive_k``), +DEFAULT_ENERGY_TOL, a step changing H by more than
+    round-off is refused (an unresolved close encounter, a spurious root); otherwise
     -DEFAULT_ENERGY_TOL, a change above it is refused only when it also exceeds the energy
     the step moved between the terms of H (:func:`integrators.core.energy_flow`), more than any
     step that resolves its own path can lose (the Kepler problem at h = 1e6 converges to a
@@ -89,7 +91,7 @@ def energy_check(method, system, energy_tol="auto", tol=None) -> float:
         exact = (nu is not None and tol is None
                  and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
                                                                      method.nodes).k)
-        return DEFAULT_ENERGY_TOL if exact else -DEFAULT_ENERGY_TOL
+        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -DEFAULT_ENERGY_TOL
     if (isinstance(energy_tol, (bool, str)) or not isinstance(energy_tol, (int, float, np.number))
             or not (np.isfinite(energy_tol) and energy_tol > 0)):
         raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
@@ -363,7 +365,6 @@ class Stepper(Counted):
         self.solver_option = solver
         self._solver = "newton" if solver == "newton" else "fixed_point"
         self.tol, self.max_iter = tol, max_iter
-        self._etol = energy_check(method, system, energy_tol, tol)    # what the step checks
         self.energy_tol = energy_tol
         self.solver_switches = 0
         self.rejected = 0
@@ -381,6 +382,17 @@ class Stepper(Counted):
     @property
     def nsteps(self) -> int:
         return int(self.counters[C_STEPS])
+
+    @property
+    def energy_tol(self):
+        """The energy check as given ("auto", a number or None); setting it re-derives what
+        the step checks (:func:`energy_check`)."""
+        return self._energy_tol
+
+    @energy_tol.setter
+    def energy_tol(self, value) -> None:
+        self._etol = energy_check(self.method, self.system, value, self.tol)
+        self._energy_tol = value
 
     @property
     def solver(self) -> str:

@@ -76,9 +76,9 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     or |H| for the full form) is refused as UNRESOLVED, its change in counters[C_CHANGE]
     (the check of a method exact for H: its energy error is round-off).  With etol < 0 such a
     step is refused only when its change also exceeds the energy the step moved between the
-    terms of H (:func:`integrators.core.energy_flow`): the check of a method whose quadrature
-    leaves an error, which is then larger than the line integral it approximates.  etol = 0: no
-    check.  eref[0] carries the energy between steps (nan: not known yet).
+    terms of H (:func:`integrators.core.energy_flow`): the check of a method not exact for H,
+    whose own quadrature error stays far below that flow on any step that resolves its path.
+    etol = 0: no check.  eref[0] carries the energy between steps (nan: not known yet).
 
     The step is written inside the loop, not called: a call with this many arrays costs about
     half a microsecond a step (measured on Kepler, where a step costs one)."""

@@ -116,8 +116,13 @@ def test_energy_check_defaults():
     assert energy_check(HBVM(3, 2), quartic) == -DEFAULT_ENERGY_TOL      # k < nu s / 2
     assert energy_check(HBVM(4, 2), quartic, tol=1e-8) == -DEFAULT_ENERGY_TOL
     assert energy_check(HBVM(6, 3), Kepler(0.6)) == -DEFAULT_ENERGY_TOL
+    assert energy_check(HBVM(6, 3), Kepler(0.6), round_off_k=True) == DEFAULT_ENERGY_TOL
     assert energy_check(HBVM(6, 3), Kepler(0.6), 1e-12) == 1e-12
     assert energy_check(HBVM(6, 3), Kepler(0.6), None) == 0.0
+    st = Stepper(HBVM(4, 2), quartic, [1.0, 0.0])
+    assert (st.energy_tol, st._etol) == ("auto", DEFAULT_ENERGY_TOL)
+    st.energy_tol = None                     # setting it re-derives what the step checks
+    assert st._etol == 0.0
     for bad in (0.0, -1.0, float("nan"), "strict", True):
         with pytest.raises(ValueError, match=r"`energy_tol` must be 'auto', a positive number"):
             Stepper(HBVM(2, 2), quartic, [1.0, 0.0], energy_tol=bad)
