@@ -28,6 +28,13 @@ SOLVERS = ("auto", "fixed_point", "newton")
 #: relative to |T| + |V|, is refused (:class:`integrators.UnresolvedStepError`).  HBVM at such
 #: k changes it by about 1e-16 a step; 1e-10 leaves room for the rounding of H itself.
 DEFAULT_ENERGY_TOL = 1e-10
+#: ... and of a method not exact for H, whose own energy error has no computable bound: a step
+#: that changes H by more than this fraction of |T| + |V| and more than the energy it moved
+#: between the terms of H (:func:`integrators.core.energy_flow`) is refused.  A coarse step's
+#: own error stays below it (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3; on Kepler
+#: e = 0.6 at 50 steps a period: 2e-2); a spurious root lands far beyond it (HBVM(6, 3) on
+#: Kepler at h = 1e6: an escaping state 1.25 (|T| + |V|) off).
+NOT_A_SOLUTION = 0.1
 FORMS = ("auto", "full", "separable")
 MAX_ITER = {"fixed_point": 60, "newton": 30}
 
@@ -80,10 +87,11 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
     or when the host chose k for a round-off quadrature error (``round_off_k``: the REBOUND
     host's ``choose_k`` / ``adaptive_k``), +DEFAULT_ENERGY_TOL, a step changing H by more than
     round-off is refused (an unresolved close encounter, a spurious root); otherwise
-    -DEFAULT_ENERGY_TOL, a change above it is refused only when it also exceeds the energy
-    the step moved between the terms of H (:func:`integrators.core.energy_flow`), more than any
-    step that resolves its own path can lose (the Kepler problem at h = 1e6 converges to a
-    state 1.25 (|T| + |V|) off).  A number: that tolerance, strictly.  None: 0, no check."""
+    -NOT_A_SOLUTION, a change above that fraction of |T| + |V| is refused when it also exceeds
+    the energy the step moved between the terms of H (:func:`integrators.core.energy_flow`):
+    a state that is not a solution (the Kepler problem at h = 1e6 converges to a state 1.25
+    (|T| + |V|) off), where the method's own error passes.  A number: that tolerance,
+    strictly.  None: 0, no check."""
     if energy_tol is None:
         return 0.0
     if isinstance(energy_tol, str) and energy_tol == "auto":
@@ -91,7 +99,7 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
         exact = (nu is not None and tol is None
                  and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
                                                                      method.nodes).k)
-        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -DEFAULT_ENERGY_TOL
+        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -NOT_A_SOLUTION
     if (isinstance(energy_tol, (bool, str)) or not isinstance(energy_tol, (int, float, np.number))
             or not (np.isfinite(energy_tol) and energy_tol > 0)):
         raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
@@ -335,9 +343,9 @@ class Stepper(Counted):
         Refuse a converged step whose energy change, relative to |T| + |V|, exceeds this
         (:class:`integrators.UnresolvedStepError`, nothing committed); None: no check.
         "auto" (default, :func:`energy_check`): DEFAULT_ENERGY_TOL (1e-10) for a method exact
-        for the system's polynomial H; for any other, a change above it is refused when it also
-        exceeds the energy the step moved between the terms of H (a state that is not a
-        solution), and passes otherwise (the method's own quadrature error).
+        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (0.1) that
+        also exceeds the energy the step moved between the terms of H is refused (a state that
+        is not a solution), and the method's own quadrature error passes.
 
     Attributes
     ----------
