@@ -25,6 +25,18 @@ from .tableau import gauss_rule01
 from .specialise import specialise
 
 SOLVERS = ("auto", "fixed_point", "newton")
+#: The default energy check of every host (engine, ASE, REBOUND): a step of a method exact for H
+#: (a polynomial H with k >= nu s / 2, iterated to round-off) that changes H by more than this,
+#: relative to |T| + |V|, is refused (:class:`integrators.UnresolvedStepError`).  HBVM at such
+#: k changes it by about 1e-16 a step; 1e-10 leaves room for the rounding of H itself.
+DEFAULT_ENERGY_TOL = 1e-10
+#: ... and of a method not exact for H, whose own energy error has no computable bound: a step
+#: that changes H by more than this fraction of |T| + |V| and more than the energy it moved
+#: between the terms of H (:func:`integrators.core.energy_flow`) is refused.  A coarse step's
+#: own error stays below it (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3; on Kepler
+#: e = 0.6 at 50 steps a period: 2e-2); a spurious root lands far beyond it (HBVM(6, 3) on
+#: Kepler at h = 1e6: an escaping state 1.25 (|T| + |V|) off).
+NOT_A_SOLUTION = 0.1
 FORMS = ("auto", "full", "separable")
 MAX_ITER = {"fixed_point": 60, "newton": 30}
 
@@ -130,6 +142,34 @@ def check_step(h, name: str = "h") -> float:
     if type(h) is float and h != 0.0 and math.isfinite(h):    # (every Stepper.step: 60 ns)
         return h
     return check_real(name, h, "a nonzero finite number", lambda x: x != 0.0)
+
+
+def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool = False) -> float:
+    """The step's energy check ``etol`` (:func:`integrators.loop.run`) for ``energy_tol``.
+
+    ``"auto"`` (the default of every host): when the method conserves H exactly (``system.
+    polynomial_degree`` nu known, k >= nu s / 2, the iteration to round-off: ``tol`` None),
+    or when the host chose k for a round-off quadrature error (``round_off_k``: the REBOUND
+    host's ``choose_k`` / ``adaptive_k``), +DEFAULT_ENERGY_TOL, a step changing H by more than
+    round-off is refused (an unresolved close encounter, a spurious root); otherwise
+    -NOT_A_SOLUTION, a change above that fraction of |T| + |V| is refused when it also exceeds
+    the energy the step moved between the terms of H (:func:`integrators.core.energy_flow`):
+    a state that is not a solution (the Kepler problem at h = 1e6 converges to a state 1.25
+    (|T| + |V|) off), where the method's own error passes.  A number: that tolerance,
+    strictly.  None: 0, no check."""
+    if energy_tol is None:
+        return 0.0
+    if isinstance(energy_tol, str) and energy_tol == "auto":
+        nu = getattr(system, "polynomial_degree", None)
+        exact = (nu is not None and tol is None
+                 and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
+                                                                     method.nodes).k)
+        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -NOT_A_SOLUTION
+    if (isinstance(energy_tol, (bool, str)) or not isinstance(energy_tol, (int, float, np.number))
+            or not (np.isfinite(energy_tol) and energy_tol > 0)):
+        raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
+                         f"energy_tol={energy_tol!r}); None switches the energy check off")
+    return float(energy_tol)
 
 
 def check_options(solver, form, tol, max_iter, t0) -> float:
@@ -469,9 +509,13 @@ class Stepper(Counted):
         ``forces``, ``potential``); ``"auto"`` uses it when the system offers them.
     fast : bool or None
         Compiled kernels: required (True), never (False), when the system has them (None).
-    energy_tol : float, optional
-        Refuse a converged step whose energy change exceeds this, relative to |T| + |V|
-        (:class:`integrators.UnresolvedStepError`); None: no check.
+    energy_tol : "auto", float or None
+        Refuse a converged step whose energy change, relative to |T| + |V|, exceeds this
+        (:class:`integrators.UnresolvedStepError`, nothing committed); None: no check.
+        "auto" (default, :func:`energy_check`): DEFAULT_ENERGY_TOL (1e-10) for a method exact
+        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (0.1) that
+        also exceeds the energy the step moved between the terms of H is refused (a state that
+        is not a solution), and the method's own quadrature error passes.
 
     Attributes
     ----------
@@ -484,10 +528,9 @@ class Stepper(Counted):
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-                 fast: bool | None = None, energy_tol: float | None = None):
+                 fast: bool | None = None, energy_tol: float | str | None = "auto"):
         t0 = check_options(solver, form, tol, max_iter, t0)
-        energy_tol = check_real("energy_tol", energy_tol, "a positive number, or None for no "
-                                "energy check", lambda x: x > 0, none=True)
+        energy_check(method, None, energy_tol, tol)        # checks the argument first
         system, self._y = check_state(system, y0)
         self.method, self.system = method, system
         self.binding = Binding(method, system, form, fast)
@@ -502,7 +545,8 @@ class Stepper(Counted):
         self.binding.watch(self.counters)
         self.solver_option = solver
         self._solver = "newton" if solver == "newton" else "fixed_point"
-        self.tol, self.max_iter, self.energy_tol = tol, max_iter, energy_tol
+        self.tol, self.max_iter = tol, max_iter
+        self.energy_tol = energy_tol
         self.solver_switches = 0
         self.rejected = 0
         self.status = "running"
@@ -519,6 +563,17 @@ class Stepper(Counted):
     @property
     def nsteps(self) -> int:
         return int(self.counters[C_STEPS])
+
+    @property
+    def energy_tol(self):
+        """The energy check as given ("auto", a number or None); setting it re-derives what
+        the step checks (:func:`energy_check`)."""
+        return self._energy_tol
+
+    @energy_tol.setter
+    def energy_tol(self, value) -> None:
+        self._etol = energy_check(self.method, self.system, value, self.tol)
+        self._energy_tol = value
 
     @property
     def solver(self) -> str:
@@ -551,6 +606,22 @@ class Stepper(Counted):
         self._after_step(h)
         self.status = "running"
         return self._y.copy()
+
+    def save_state(self) -> tuple:
+        """Everything a step changes (state, coefficients, energy reference, clock, counters,
+        solver, status), copied: :meth:`restore_state` puts it back, for a host whose own part
+        of a step failed after the engine's succeeded (ASE's forces at the new positions)."""
+        return (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
+                self._clock.copy(), self.counters.copy(), self._h_prev, self._solver,
+                self.solver_switches, self.rejected, self.status)
+
+    def restore_state(self, saved: tuple) -> None:
+        """Back to a :meth:`save_state` exactly (in place: the arrays keep their identity)."""
+        for mine, kept in zip((self._y, self._cy, self._gamma, self._eref, self._clock,
+                               self.counters), saved[:6]):
+            mine[...] = kept
+        (self._h_prev, self._solver, self.solver_switches, self.rejected,
+         self.status) = saved[6:]
 
     def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
         """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
@@ -586,7 +657,7 @@ class Stepper(Counted):
             b.step_code.run(b.full, self._y, self._cy, b.minv, b.kin_w,
                             b.params, h, E, self._gamma, b.c1, b.c2, *b.no_newton,
                             self._max_iter("fixed_point"), float(self.tol or 0.0),
-                            float(self.energy_tol or 0.0), self._eref,
+                            self._etol, self._eref,
                             self.counters, b.work, b.cwork, steps, sample_every, self._clock, out_t, out_y, out_e)
             done = self.nsteps - start
             if done > 0:
@@ -729,7 +800,7 @@ class Stepper(Counted):
         status = b.step_code.advance(b.full, self._y, self._cy, b.minv,
                                      b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
                                      *newton, self._max_iter(solver), float(self.tol or 0.0),
-                                     float(self.energy_tol or 0.0), self._eref,
+                                     self._etol, self._eref,
                                      self.counters, b.work, b.cwork, self._clock)
         if status != OK and solver == "newton":
             self.counters[C_NFEV] = nfev     # the Jacobian's evaluations were the failed step's too
@@ -749,7 +820,7 @@ class Stepper(Counted):
     def _fail(self, status: int, h: float, solver: str) -> None:
         self.counters[C_STATUS] = status
         self.status = "failed"
-        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self.energy_tol)
+        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self._etol)
 
     def _result(self, t, y, e, h, t_start, status, message) -> "IntegrationResult":
         self.status = "running" if status == "finished" else status
@@ -844,7 +915,7 @@ def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
 def integrate(method, system, y0, h: float, steps: int | None = None, t0: float = 0.0,
               solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
               tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-              energy_tol: float | None = None, *, adaptive: bool = False,
+              energy_tol: float | str | None = "auto", *, adaptive: bool = False,
               t_end: float | None = None, epsilon: float = DEFAULT_EPSILON,
               min_dt: float | None = None, sample_times=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with

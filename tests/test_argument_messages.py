@@ -36,7 +36,7 @@ def _dynamics(timestep):
     return make
 
 
-ENERGY_TOL = r"`energy_tol` must be a positive number, or None for no energy check \(got energy_tol="
+ENERGY_TOL = r"`energy_tol` must be 'auto', a positive number or None \(got energy_tol="
 TIMES = r"`sample_times` must (be a sequence of|hold finite) times between t0=0\.0 and t_end=1\.0"
 CASES = [   # id, the call, exception, message
     ("energy_tol='a'", _run(energy_tol="a"), ValueError, ENERGY_TOL + r"'a'\)"),
