@@ -191,7 +191,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         Length of each run, in the scene's time unit.
     hbvm : sequence of (s, k) or (s, k, dt)
         HBVM variants; k None chooses k on the scene when HBVM attaches
-        (:func:`hbvm_md.rebound_driver.choose_k`, timed as part of the run); dt None (the
+        (:func:`integrators.kchoice.choose_k`, timed as part of the run); dt None (the
         default) uses HBVMIntegrator's adaptive steps, as a user who gives no step gets.
     peers : sequence of str or (str, dt)
         REBOUND integrators ("whfast", "saba(10,6,4)", "leapfrog", "ias15", ...); a fixed step
@@ -219,7 +219,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         and ``compile_time_s`` (heyoka's one-off compile, outside the wall time; None for the
         others).
     """
-    from ..rebound_driver import HBVMIntegrator, shortest_period
+    from ..rebound import HBVMIntegrator, shortest_period
 
     if not (np.isfinite(t_end) and t_end > 0):
         raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")
