@@ -24,6 +24,7 @@ from hbvm_md.rebound.layout import (
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     D_K, D_M, D_N, D_NODES, D_NC, D_NF, D_P, D_PTR, D_S, N_HEADER, N_HOST, N_RES, N_SLOTS, R_DT, R_DTL,
     R_G, R_HEAD, R_M, R_N, R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, RESYNC, SL_ADAPTIVE,
+    BAD_DT, C_VALUES, C_WORDS, N_CFG,
     SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_COUNTERS, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL,
     SL_GAMMA, SL_H_FAIL, SL_H_PREV, SL_K, SL_MAX_ITER, SL_MIN_DT, SL_NODES, SL_S, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_T_FAIL, SL_TOL, SL_Y)
@@ -60,6 +61,9 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     if not particles_match(view, written, ix, ivx, ctx[R_M]):
         return RESYNC
     h = simd[ctx[R_DT]]
+    if not (abs(h) < np.inf and h != 0.0):
+        sd[SL_H_FAIL] = h
+        return BAD_DT
     t_start = simd[ctx[R_T]]
     adaptive = st[SL_ADAPTIVE] != 0
     epsilon = sd[SL_EPSILON] if adaptive else 0.0
@@ -117,6 +121,9 @@ def core_step(r, p):
         return RESYNC
     if st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]:
         return RESYNC                              # the method was changed between runs
+    for i in range(N_CFG):
+        if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
+            return RESYNC                          # a setting HBVM checks was changed
     s, k, m = ctx[D_S], ctx[D_K], ctx[D_M]
 
     def f(slot, n):

@@ -125,6 +125,7 @@ def register() -> None:
                python_core=ctypes.cast(python_core, ctypes.c_void_p).value,
                free=ctypes.cast(_LIBC.free, ctypes.c_void_p).value,
                step_at=step_at, state_at=state_at, offsets=L.rebound_offsets(rebound),
+               config_words=L.config_words(rebound),
                eft_at=sim_.exact_finish_time.offset, status_at=sim_._status.offset,
                messages_at=sim_.messages.offset)
     lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
@@ -288,6 +289,10 @@ def _message(err: BaseException) -> str:
 def _step_failure(st: np.ndarray, sd: np.ndarray):
     """The exception of a failed step, from what the compiled step recorded."""
     status = int(st[L.SL_STATUS])
+    if status == L.BAD_DT:
+        return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
+                          f"{sd[L.SL_H_FAIL]!r}); set it to the step you want, e.g. a fraction "
+                          "of the shortest period")
     if status == L.RESYNC:
         raise RuntimeError("HBVM: the step refused the state its host had just prepared (an "
                            "internal inconsistency; please report it)")
@@ -381,7 +386,7 @@ def _prepare(sim, p: int) -> None:
                       "energy_tol checks nothing here; test particles' steps are not checked",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
-    _context(st, binding, method, nb, view, ptr, sim.G, na, ix, ivx, im)
+    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)
     code = binding.step_code
     if code.kind == "compiled":
         st[L.SL_CORE] = code.core_step.address
@@ -401,7 +406,7 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
     return _doubles(int(st[slot]), n)
 
 
-def _context(st, binding, method, nb, view, ptr, G, na, ix, ivx, im) -> None:
+def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
     allocated with the C library (the state's ``free`` releases it with the state)."""
     ex = Extrapolation(method)
@@ -410,7 +415,7 @@ def _context(st, binding, method, nb, view, ptr, G, na, ix, ivx, im) -> None:
     s, m, N = method.s, binding.minv.shape[0], view.shape[0]
     written = np.empty((N, 7))
     written[:, :3], written[:, 3:6], written[:, 6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3], view[:, im]
-    host = np.array([G, float(np.uint64(na).astype(np.int64))])   # as the step reads it
+    host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
     arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, m)),
               L.A_EREFT: np.zeros(1), L.A_WRITTEN: written, L.A_MINV: binding.minv,
               L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
@@ -438,6 +443,11 @@ def _context(st, binding, method, nb, view, ptr, G, na, ix, ivx, im) -> None:
         s, method.n_stages, L.NODES.index(method.nodes), m, N, binding.params.shape[0], binding.work.shape[0],
         binding.cwork.shape[0], ptr)
     header[L.R_T:L.R_M + 1] = _REG["offsets"]
+    words = _REG["config_words"]
+    header[L.C_WORDS:L.C_VALUES] = words
+    sim_words = np.frombuffer((ctypes.c_int64 * (max(words) + 1)).from_address(ctypes.addressof(sim)),
+                              np.int64)
+    header[L.C_VALUES:L.N_HEADER] = sim_words[words]
     st[L.SL_CTX] = base
 
 

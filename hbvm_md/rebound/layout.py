@@ -37,6 +37,7 @@ SUPPORTED = "REBOUND >= 5.2, < 6 (tested with 5.2.2)"
 OK = 0
 RESYNC = -1           # the particles are not what the last step wrote: the host prepares again
 PREPARE_FAILED = -2   # the host refused the simulation (its exception is pending)
+BAD_DT = -3           # sim.dt is zero or not finite
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
@@ -85,7 +86,15 @@ INT_SLOTS = frozenset(slot for _, slot, dtype, _, _ in SAVED if dtype == _INT64)
  # REBOUND's offsets in doubles: reb_simulation's fields, then reb_particle's size and fields
  R_T, R_G, R_DT, R_DTL, R_N, R_PARTICLES, R_NACTIVE, R_HEAD, R_STRIDE, R_X, R_VX, R_M,
  ) = range(45)
-N_HEADER = 45
+#: settings HBVM checks (host.check_simulation): the 8-byte words of reb_simulation holding
+#: them, and their values when the step was prepared, follow; a changed word makes the step
+#: answer RESYNC, and the host checks the settings again (a neighbour's change costs only that)
+CONFIG_FIELDS = ("softening", "N_var", "testparticle_type", "_gravity", "_boundary",
+                 "_N_odes", "_additional_forces")
+N_CFG = len(CONFIG_FIELDS)
+C_WORDS = 45
+C_VALUES = C_WORDS + N_CFG
+N_HEADER = C_VALUES + N_CFG
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")
@@ -103,18 +112,25 @@ def _offset8(structure, name: str) -> int:
 
 def rebound_offsets(rebound) -> list[int]:
     """REBOUND's offsets for the header slots R_T .. R_M (in doubles), from its ctypes
-    structures: the simulation's fields, the number of doubles viewed from its start, the
-    particle's size in doubles and its x, vx and m."""
+    structures: the simulation's fields, the number of doubles viewed from its start (up to
+    the last of them or of the settings' words), the particle's size in doubles and its x, vx
+    and m."""
     sim = [_offset8(rebound.Simulation, f) for f in SIM_FIELDS]
     P = rebound.Particle
     if ctypes.sizeof(P) % 8:
         raise RuntimeError(f"sizeof(reb_particle) = {ctypes.sizeof(P)} is not a multiple of 8; "
                            f"HBVM's REBOUND host supports {SUPPORTED}")
+    words = [getattr(rebound.Simulation, f).offset // 8 for f in CONFIG_FIELDS]
     x, vx, m = (_offset8(P, f) for f in PARTICLE_FIELDS)
     if [_offset8(P, f) for f in ("y", "z", "vy", "vz")] != [x + 1, x + 2, vx + 1, vx + 2]:
         raise RuntimeError(f"reb_particle's x, y, z and vx, vy, vz are not consecutive; HBVM's "
                            f"REBOUND host supports {SUPPORTED}")
-    return sim + [max(sim) + 1, ctypes.sizeof(P) // 8, x, vx, m]
+    return sim + [max(sim + words) + 1, ctypes.sizeof(P) // 8, x, vx, m]
+
+
+def config_words(rebound) -> list[int]:
+    """The 8-byte words of ``struct reb_simulation`` that hold :data:`CONFIG_FIELDS`."""
+    return [getattr(rebound.Simulation, f).offset // 8 for f in CONFIG_FIELDS]
 
 
 def check_version(rebound) -> None:
