@@ -291,7 +291,7 @@ def _step_failure(st: np.ndarray, sd: np.ndarray):
     status = int(st[L.SL_STATUS])
     if status == L.BAD_DT:
         return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
-                          f"{sd[L.SL_H_FAIL]!r}); set it to the step you want, e.g. a fraction "
+                          f"{float(sd[L.SL_H_FAIL])!r}); set it to the step you want, e.g. a fraction "
                           "of the shortest period")
     if status == L.RESYNC:
         raise RuntimeError("HBVM: the step refused the state its host had just prepared (an "
