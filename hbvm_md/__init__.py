@@ -40,7 +40,12 @@ def _register_with_rebound() -> None:
     except ImportError:          # REBOUND is optional
         return
     from hbvm_md.rebound import register
-    register()
+    try:
+        register()
+    except RuntimeError as exc:  # an unsupported REBOUND: the ASE host and the engine still work
+        import warnings
+        warnings.warn(f"hbvm_md: HBVM is not registered with REBOUND ({exc})", RuntimeWarning,
+                      stacklevel=3)
 
 
 _register_with_rebound()

@@ -630,6 +630,7 @@ class HBVMIntegrator(Counted):
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
             raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
+        L.check_version(rebound)
         register()
         method = HBVM(s if k is None else k, s, nodes=nodes)    # checks s, k and nodes
         if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:

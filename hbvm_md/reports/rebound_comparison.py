@@ -128,8 +128,6 @@ def _run(make, label, setup, t_end, n_samples):
         wall += clock() - start
         err[i] = abs(sim.energy() - E0) / abs(E0)
     x = _positions(sim)
-    if drv is not None:
-        drv.detach()
     return _summary(label, sim.steps_done - steps0, wall, ts, err, sim.t, setup_time), (ts, err), x, drv
 
 
