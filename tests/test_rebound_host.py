@@ -268,3 +268,20 @@ def test_no_hard_coded_rebound_offset_outside_the_layout_module():
     assert bad == []
     text = layout.read_text()
     assert "offset" in text and not re.search(r"offset\s*[=!]=\s*\d", text)
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("epsilon", 2.0, r"`epsilon` must be a number in \(0, 1\)"),
+    ("max_iter", 0, r"`sim.integrator.max_iter` must be a positive integer \(got 0\)"),
+    ("energy_tol", -1.0, r"`sim.integrator.energy_tol` must be a finite number >= 0"),
+    ("k", 3, r"`k` must be >= `s`"),
+])
+def test_settings_changed_in_sim_integrator_are_checked(field, value, match):
+    sim = outer_solar_system().to_rebound()
+    sim.integrator = "hbvm"
+    sim.integrate(1000.0)
+    before, t = _xv(sim), sim.t
+    setattr(sim.integrator, field, value)
+    with pytest.raises(ValueError, match=match):
+        sim.integrate(2000.0)
+    assert sim.t == t and np.array_equal(_xv(sim), before)

@@ -24,12 +24,12 @@ from hbvm_md.rebound.layout import (
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     D_K, D_M, D_N, D_NODES, D_NC, D_NF, D_P, D_PTR, D_S, N_HEADER, N_HOST, N_RES, N_SLOTS, R_DT, R_DTL,
     R_G, R_HEAD, R_M, R_N, R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, RESYNC, SL_ADAPTIVE,
-    BAD_DT, C_VALUES, C_WORDS, N_CFG,
+    BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, N_CFG,
     SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_COUNTERS, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL,
     SL_GAMMA, SL_H_FAIL, SL_H_PREV, SL_K, SL_MAX_ITER, SL_MIN_DT, SL_NODES, SL_S, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_T_FAIL, SL_TOL, SL_Y)
 
-GLUE_FUNCTIONS = ("particles_match", "step_arrays")
+GLUE_FUNCTIONS = ("particles_match", "settings_ok", "step_arrays")
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout")
 
@@ -49,6 +49,14 @@ def particles_match(view, written, ix, ivx, im):
     return True
 
 
+def settings_ok(st, sd):
+    """The ranges :func:`hbvm_md.rebound.host.check_settings` checks (and names), for the
+    settings a user may change in ``sim.integrator`` between runs."""
+    if st[SL_MAX_ITER] < 1 or not 0.0 <= sd[SL_TOL] < 1.0 or not 0.0 <= sd[SL_ETOL] < np.inf:
+        return False
+    return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
+
+
 def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters, yt, cyt,
                 gammat, ereft, written, minv, kin_w, params, host, tn, ts, Wp, Cp, NV, NVinv, NM,
                 work, cwork, clock, E1, Et, Ew, Ebuf, Ezero):
@@ -60,6 +68,8 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     ix, ivx = ctx[R_X], ctx[R_VX]
     if not particles_match(view, written, ix, ivx, ctx[R_M]):
         return RESYNC
+    if not settings_ok(st, sd):
+        return BAD_SETTINGS
     h = simd[ctx[R_DT]]
     if not (abs(h) < np.inf and h != 0.0):
         sd[SL_H_FAIL] = h

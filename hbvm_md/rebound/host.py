@@ -293,7 +293,9 @@ def _step_failure(st: np.ndarray, sd: np.ndarray):
         return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
                           f"{float(sd[L.SL_H_FAIL])!r}); set it to the step you want, e.g. a fraction "
                           "of the shortest period")
-    if status == L.RESYNC:
+    if status == L.BAD_SETTINGS:
+        check_settings(st, sd)
+    if status in (L.RESYNC, L.BAD_SETTINGS):
         raise RuntimeError("HBVM: the step refused the state its host had just prepared (an "
                            "internal inconsistency; please report it)")
     counters = _doubles(int(st[L.SL_COUNTERS]), N_COUNTERS)
@@ -323,15 +325,29 @@ _PYTHON_STEPS: dict = {}
 
 
 # -- prepare: the model, the compiled step and the context block from the particles ----------------
-def method_of(st: np.ndarray, where: str = "sim.integrator") -> HBVM:
-    """The HBVM(k, s) a state's settings name, checked (ValueError naming the field)."""
+def method_of(st: np.ndarray) -> HBVM:
+    """The HBVM(k, s) a state's settings name (ValueError naming a bad one)."""
     nodes = int(st[L.SL_NODES])
     if not 0 <= nodes < len(L.NODES):
-        raise ValueError(f"`{where}.nodes` must be 'gauss' or 'lobatto' (got {nodes})")
-    if int(st[L.SL_MAX_ITER]) < 1:
-        raise ValueError(f"`{where}.max_iter` must be a positive integer (got "
-                         f"{int(st[L.SL_MAX_ITER])})")
+        raise ValueError(f"`sim.integrator.nodes` must be 'gauss' or 'lobatto' (got {nodes})")
     return HBVM(int(st[L.SL_K]), int(st[L.SL_S]), nodes=L.NODES[nodes])
+
+
+def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM:
+    """Check the settings in ``sim.integrator`` (a user may change them between runs; the
+    compiled step checks the same ranges, ``glue.settings_ok``); returns the method."""
+    method = method_of(st)
+    bad = [(n, v, want) for n, v, want in (
+        ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
+        ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
+        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check)"))
+        if not (v >= 1 if n == "max_iter" else 0 <= v < (1 if n == "tol" else math.inf))]
+    if bad:
+        n, v, want = bad[0]
+        raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
+    if st[L.SL_ADAPTIVE]:
+        check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
+    return method
 
 
 def _prepare(sim, p: int) -> None:
@@ -340,13 +356,11 @@ def _prepare(sim, p: int) -> None:
     (compensations, gamma) when it is the particles' (a loaded or copied run), else start it
     afresh from the particles."""
     st, sd = _slots(p)
-    method = method_of(st)
+    method = check_settings(st, sd)
     check_simulation(sim)
     h = sim.dt
     if not (math.isfinite(h) and h != 0.0):
         _step_size("sim.dt", h)
-    if st[L.SL_ADAPTIVE]:
-        check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
     N = sim.N
     offsets = _REG["offsets"]
     stride = offsets[L.R_STRIDE - L.R_T]

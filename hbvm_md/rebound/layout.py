@@ -38,6 +38,7 @@ OK = 0
 RESYNC = -1           # the particles are not what the last step wrote: the host prepares again
 PREPARE_FAILED = -2   # the host refused the simulation (its exception is pending)
 BAD_DT = -3           # sim.dt is zero or not finite
+BAD_SETTINGS = -4     # a setting in sim.integrator is out of its range (host.check_settings)
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
