@@ -186,13 +186,14 @@ def test_test_particles_may_share_a_position():
 
 
 # -- 5. attaching ----------------------------------------------------------------------------
-def test_k_probe_survives_an_encounter_ahead(caplog):
+def test_k_probe_survives_an_encounter_ahead(caplog, capsys):
     from hbvm_md.reports.hard_cases import encounter_scene
     nb = encounter_scene()
     sim = nb.to_rebound(nb.initial_state())
     with caplog.at_level(logging.WARNING, logger="integrators.kchoice"):
         drv = HBVMIntegrator(sim, s=6, dt=2 * math.pi / 200)
     assert re.search(r"k probe: HBVM\(14, 6\) failed after \d+ steps", caplog.text)
+    assert capsys.readouterr().out == ""          # logged, never printed
     # on the steps before the encounter HBVM(14, 6) still shows 7.9e-15 (HBVM(17, 6) 7e-16):
     # the reference grows onto the plateau, at most to 3 s + 12
     assert 6 <= drv.method.k <= 3 * 6 + 12 and sim.dt == 2 * math.pi / 200
