@@ -12,8 +12,10 @@ resolve functions run after each step), SIGINT, simulation archives, ``save_to_f
 Modules: :mod:`~hbvm_md.rebound.layout` (every memory layout: HBVM's state, the step's context
 block, REBOUND's offsets read from its ctypes structures), :mod:`~hbvm_md.rebound.cabi` (the
 step REBOUND calls and the state's ``free``, compiled at registration),
-:mod:`~hbvm_md.rebound.glue` (compiled with the step: one REBOUND step), and
-:mod:`~hbvm_md.rebound.host` (registration, callbacks, :class:`HBVMIntegrator`, checks).
+:mod:`~hbvm_md.rebound.glue` (compiled with the step: one REBOUND step),
+:mod:`~hbvm_md.rebound.host` (registration, the callbacks, the run's exceptions),
+:mod:`~hbvm_md.rebound.checks` (what is refused) and :mod:`~hbvm_md.rebound.integrator`
+(:class:`HBVMIntegrator`, the options and their checks).
 
 How the design answers REBOUND's questions
 ------------------------------------------
@@ -67,7 +69,8 @@ What HBVM cannot honour
     :class:`HBVMIntegrator`, or at the first step after ``sim.integrator = "hbvm"`` (REBOUND's
     ``create`` is not given the simulation).
 """
-from hbvm_md.rebound.host import (HBVMIntegrator, check_particles, check_simulation, register,
-                                  shortest_period)
+from hbvm_md.rebound.checks import check_particles, check_simulation, shortest_period
+from hbvm_md.rebound.host import register
+from hbvm_md.rebound.integrator import HBVMIntegrator
 
 __all__ = ["HBVMIntegrator", "check_particles", "check_simulation", "register", "shortest_period"]
