@@ -285,3 +285,35 @@ def test_settings_changed_in_sim_integrator_are_checked(field, value, match):
     with pytest.raises(ValueError, match=match):
         sim.integrate(2000.0)
     assert sim.t == t and np.array_equal(_xv(sim), before)
+
+
+def test_particles_changed_inside_a_run_by_callbacks_are_honoured():
+    """A heartbeat that adds a planet and a pre-timestep kick change the particles between two
+    steps of one sim.integrate: HBVM reads them afresh, and the run is the one where the same
+    changes are made between two integrate calls, bit for bit."""
+    def planet(s):
+        s.add(m=3e-6, x=0.0, y=40.0, z=0.0, vx=-0.00272, vy=0.0, vz=0.0)
+
+    def beat(simp):
+        s = simp.contents
+        if s.t >= 5000.0 and s.N == 6:
+            planet(s)
+
+    def kick(simp):
+        s = simp.contents
+        if s.t >= 1000.0 and not kicked:
+            kicked.append(s.t)
+            s.particles[1].vx *= 1.0001
+    kicked = []
+    a, b = (outer_solar_system().to_rebound() for _ in range(2))
+    for s in (a, b):
+        HBVMIntegrator(s, s=6, k=8, dt=100.0)
+    a.heartbeat, a.pre_timestep_modifications = beat, kick
+    a.integrate(8000.0)
+    b.integrate(1000.0)
+    b.particles[1].vx *= 1.0001
+    b.integrate(5000.0)
+    planet(b)
+    b.integrate(8000.0)
+    assert kicked == [1000.0] and a.N == b.N == 7 and np.array_equal(_xv(a), _xv(b))
+    assert HBVMIntegrator.of(a).resyncs == HBVMIntegrator.of(b).resyncs == 3
