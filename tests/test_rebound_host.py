@@ -163,7 +163,7 @@ def test_file_opened_without_hbvm_md_is_refused_not_frozen(tmp_path):
     assert "corrupted" in out.stdout and "ERROR Integrator not found." in out.stdout
 
 
-# -- collisions (REBOUND's collisions notebook) ------------------------------------------------------
+# -- collisions (REBOUND's collisions notebook) ---------------------------------------------------
 def _colliding(resolve):
     sim = rebound.Simulation()
     sim.add(m=1.0)

@@ -130,7 +130,8 @@ def test_signal_interrupts_leave_whole_committed_steps():
             signal.signal(signal.SIGALRM, handler)
             sim, drv = _driven(dt=dt)
             try:
-                signal.setitimer(signal.ITIMER_REAL, float(rng.uniform(1e-4, max(2e-4, 0.8 * wall))))
+                delay = float(rng.uniform(1e-4, max(2e-4, 0.8 * wall)))
+                signal.setitimer(signal.ITIMER_REAL, delay)
                 sim.integrate(end)
                 signal.setitimer(signal.ITIMER_REAL, 0.0)
             except (_Alarm, SystemExit):

@@ -118,16 +118,13 @@ def register() -> None:
     integ.free = cabi.release.address
     integ.field_descriptor_list = ctypes.cast(fds, type(integ.field_descriptor_list))
     step_at, state_at = L.state_offset(rebound)
-    sim_ = rebound.Simulation
     reg = dict(keep=(enums, fds, docs, create, prepare, fail, python_core, doc, integ),
                dispatch=cabi.dispatch.address, prepare=ctypes.cast(prepare, ctypes.c_void_p).value,
                fail=ctypes.cast(fail, ctypes.c_void_p).value,
                python_core=ctypes.cast(python_core, ctypes.c_void_p).value,
                free=ctypes.cast(_LIBC.free, ctypes.c_void_p).value,
                step_at=step_at, state_at=state_at, offsets=L.rebound_offsets(rebound),
-               config_words=L.config_words(rebound),
-               eft_at=sim_.exact_finish_time.offset, status_at=sim_._status.offset,
-               messages_at=sim_.messages.offset)
+               config_words=L.config_words(rebound), **L.run_offsets(rebound))
     lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
     _REG = reg                    # (create reads it)
     lib.reb_integrator_register(integ, NAME.encode())
@@ -291,7 +288,8 @@ def _step_failure(st: np.ndarray, sd: np.ndarray):
     status = int(st[L.SL_STATUS])
     if status == L.BAD_DT:
         return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
-                          f"{float(sd[L.SL_H_FAIL])!r}); set it to the step you want, e.g. a fraction "
+                          f"{float(sd[L.SL_H_FAIL])!r}); set it to the step you want, e.g. a "
+                          "fraction "
                           "of the shortest period")
     if status == L.BAD_SETTINGS:
         check_settings(st, sd)
@@ -428,7 +426,8 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     NV, NVinv, NM = binding.no_newton
     s, m, N = method.s, binding.minv.shape[0], view.shape[0]
     written = np.empty((N, 7))
-    written[:, :3], written[:, 3:6], written[:, 6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3], view[:, im]
+    written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
+    written[:, 6] = view[:, im]
     host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
     arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, m)),
               L.A_EREFT: np.zeros(1), L.A_WRITTEN: written, L.A_MINV: binding.minv,
@@ -449,18 +448,19 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     at = base + head
     for k, a in arrays.items():
         header[k] = at
-        dst = np.frombuffer((ctypes.c_char * a.nbytes).from_address(at), a.dtype) if a.nbytes else None
-        if dst is not None:
+        if a.nbytes:
+            dst = np.frombuffer((ctypes.c_char * a.nbytes).from_address(at), a.dtype)
             dst[:] = np.ascontiguousarray(a).reshape(-1)
         at += sizes[k]
     header[[L.D_S, L.D_K, L.D_NODES, L.D_M, L.D_N, L.D_P, L.D_NF, L.D_NC, L.D_PTR]] = (
-        s, method.n_stages, L.NODES.index(method.nodes), m, N, binding.params.shape[0], binding.work.shape[0],
+        s, method.n_stages, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
+        binding.work.shape[0],
         binding.cwork.shape[0], ptr)
     header[L.R_T:L.R_M + 1] = _REG["offsets"]
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
-    sim_words = np.frombuffer((ctypes.c_int64 * (max(words) + 1)).from_address(ctypes.addressof(sim)),
-                              np.int64)
+    sim_words = np.frombuffer(
+        (ctypes.c_int64 * (max(words) + 1)).from_address(ctypes.addressof(sim)), np.int64)
     header[L.C_VALUES:L.N_HEADER] = sim_words[words]
     st[L.SL_CTX] = base
 

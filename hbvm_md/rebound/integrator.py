@@ -7,7 +7,8 @@ import math
 import numpy as np
 
 from hbvm_md.rebound import layout as L
-from hbvm_md.rebound.checks import _real, _step_size, check_particles, check_simulation, shortest_period
+from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
+                                    shortest_period)
 from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
 from integrators import HBVM
 from integrators.core import N_COUNTERS
@@ -85,7 +86,8 @@ class HBVMIntegrator(Counted):
         L.check_version(rebound)
         register()
         method = HBVM(s if k is None else k, s, nodes=nodes)    # checks s, k and nodes
-        if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        if (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
+                or max_iter < 1):
             raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
         if tol is not None and not 0 < _real("tol", tol) < 1:
             raise ValueError(f"`tol` must be None (round-off) or in (0, 1) (got tol={tol!r})")
@@ -96,7 +98,8 @@ class HBVMIntegrator(Counted):
             adaptive = dt is None      # like IAS15: no step to choose unless one is given
         if not isinstance(adaptive, (bool, np.bool_)):
             raise TypeError(f"`adaptive` must be True, False or None (got adaptive={adaptive!r})")
-        epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s) if adaptive else (epsilon, min_dt)
+        if adaptive:
+            epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
         check_simulation(sim)
         if dt is not None:
             h = _step_size("dt", dt)

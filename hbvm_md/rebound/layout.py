@@ -146,6 +146,14 @@ def check_version(rebound) -> None:
                            "pip install 'rebound>=5.2,<6'")
 
 
+def run_offsets(rebound) -> dict:
+    """Byte offsets in ``struct reb_simulation`` of the fields the host's ``integrate`` and
+    ``fail`` touch: exact_finish_time, status, messages."""
+    S = rebound.Simulation
+    return dict(eft_at=S.exact_finish_time.offset, status_at=S._status.offset,
+                messages_at=S.messages.offset)
+
+
 def state_offset(rebound) -> tuple[int, int]:
     """Byte offsets in ``struct reb_simulation`` of the integrator's step function pointer and
     of its state pointer (``r->integrator.callbacks.step``, ``r->integrator.state``)."""
