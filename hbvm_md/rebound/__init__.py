@@ -2,9 +2,9 @@
 
 ``import hbvm_md`` registers HBVM with REBOUND (``reb_integrator_register``) under the name
 ``"hbvm"``, once per process.  Then ``sim.integrator = "hbvm"`` works as for a built-in
-integrator, with HBVM's defaults (adaptive steps, HBVM(9, 6), epsilon = 1e-5), and
-:class:`HBVMIntegrator` ``(sim, s=..., k=..., dt=..., ...)`` selects it with checked settings
-(and k measured on the scene for a fixed step).  REBOUND owns the run: time, exact finish
+integrator, with HBVM's defaults (adaptive steps, s = 6, the default epsilon of
+:mod:`integrators.engine` and k for it), and :class:`HBVMIntegrator` ``(sim, s=..., k=...,
+dt=..., ...)`` selects it with checked settings (and k measured on the scene for a fixed step).  REBOUND owns the run: time, exact finish
 times, ``steps_done``, heartbeats, pre- and post-timestep callbacks, collisions (its search and
 resolve functions run after each step), SIGINT, simulation archives, ``save_to_file``,
 ``copy`` and pickling.  This package holds the glue only; the step is :mod:`integrators.loop`.

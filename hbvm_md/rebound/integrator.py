@@ -32,7 +32,7 @@ class HBVMIntegrator(Counted):
     k : int, optional
         Quadrature nodes (k >= s).  None: measured on the scene at attach time for ``sim.dt``
         (:func:`integrators.kchoice.choose_k` over one shortest orbital period) with a fixed
-        step, :func:`integrators.kchoice.adaptive_k` (9 for the defaults) with adaptive steps.
+        step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive steps.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
     max_iter : int
