@@ -16,6 +16,7 @@ import rebound
 
 import hbvm_md
 from hbvm_md import HBVMIntegrator
+from integrators import StepSizeError
 from integrators.engine import DEFAULT_EPSILON
 from integrators.kchoice import adaptive_k
 from systems import outer_solar_system
@@ -319,3 +320,34 @@ def test_particles_changed_inside_a_run_by_callbacks_are_honoured():
     b.integrate(8000.0)
     assert kicked == [1000.0] and a.N == b.N == 7 and np.array_equal(_xv(a), _xv(b))
     assert HBVMIntegrator.of(a).resyncs == HBVMIntegrator.of(b).resyncs == 3
+
+
+def test_adaptive_step_size_error_leaves_the_state():
+    """An adaptive step that cannot be resolved above min_dt raises StepSizeError naming it,
+    with the particles, t and dt as before (the first step, 87 d, is refused)."""
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, epsilon=1e-15, min_dt=80.0)
+    before, dt = _xv(sim), sim.dt
+    with pytest.raises(StepSizeError, match="min_dt=80"):
+        sim.integrate(1e4)
+    assert sim.t == 0.0 and sim.dt == dt and np.array_equal(_xv(sim), before)
+
+
+def test_a_stop_from_a_heartbeat_and_arguments_are_rebounds():
+    """sim.stop() in a heartbeat ends the run without an exception, at a whole step, as with
+    IAS15; integrate's arguments are converted and refused as REBOUND's own method does."""
+    sim = _outer("fixed")
+    stop_at = [1000.0]
+    sim.heartbeat = lambda p: p.contents.t >= stop_at[0] and sim.stop()
+    sim.integrate(5000.0)
+    assert sim.t == 1000.0
+    ref = _outer("fixed")
+    ref.integrate(1000.0)
+    assert np.array_equal(_xv(sim), _xv(ref))
+    stop_at[0] = math.inf
+    sim.integrate(2000)                                # an int tmax, as REBOUND takes it
+    with pytest.raises(TypeError):
+        sim.integrate(3000.0, exact_finish_time="yes")
+    with pytest.raises(TypeError):
+        sim.integrate("4000")
+    assert sim.t == 2000.0

@@ -190,6 +190,7 @@ def _install_runs(rebound) -> None:
     step_at, dispatch, eft_at = _REG["step_at"], _REG["dispatch"], _REG["eft_at"]
     messages_at = _REG["messages_at"]
     c_int, c_void_p, addressof = ctypes.c_int, ctypes.c_void_p, ctypes.addressof
+    c_double, c_size_t = ctypes.c_double, ctypes.c_size_t
 
     def integrate(self, tmax, exact_finish_time=1):
         addr = addressof(self)
@@ -197,14 +198,14 @@ def _install_runs(rebound) -> None:
             return reb_integrate(self, tmax, exact_finish_time)
         _PENDING.pop(addr, None)
         c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
-        _after_run(self, addr, c_integrate(addr, tmax), messages_at)
+        _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
 
     def steps(self, N_steps):
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_steps(self, N_steps)
         _PENDING.pop(addr, None)
-        _after_run(self, addr, c_steps(addr, N_steps), messages_at)
+        _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
