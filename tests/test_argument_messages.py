@@ -121,10 +121,7 @@ def test_hbvm_integrate_takes_every_argument_of_integrate():
     assert np.array_equal(a.y, b.y) and len(a.t) == 5
 
 
-# REBOUND host (issue 28, item 5).  The REBOUND host is being rewritten by issue 25 and this
-# branch does not edit it: the lead checks this test after that merge (and removes the xfail).
-@pytest.mark.xfail(reason="REBOUND host: fixed with issue 25's rewrite (lead to check after the "
-                          "merge)", strict=False)
+# REBOUND host (issue 28, item 5): REBOUND's own NoParticles since issue 25's registered host.
 def test_rebound_simulation_without_particles_is_refused_by_name():
     """IAS15 raises REBOUND's NoParticles; HBVMIntegrator gave AttributeError: '_cstep'."""
     rebound = pytest.importorskip("rebound")
