@@ -46,7 +46,7 @@ import numpy as np
 
 from . import tangent
 from .core import C_STATUS, DIVERGED, NOT_FINITE, OK
-from .engine import MAX_ITER, Stepper, check_count, check_step
+from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
 from .jit import jit
 from .specialise import specialise
@@ -255,7 +255,7 @@ class VariationalStepper(Stepper):
         """One step (:meth:`integrators.Stepper.step`) and the tangent map of it."""
         if self._deferred:                 # an attempt of step_adaptive: mapped once accepted
             return super().step(h)
-        before = self._save()
+        before = self.save_state()
         super().step(h)
         self._map(before, float(h))
         return self._y.copy()
@@ -265,7 +265,7 @@ class VariationalStepper(Stepper):
         (rejected attempts never touch the tangents)."""
         if self._record is not None:
             self._flush()
-        before = self._save()
+        before = self.save_state()
         self._deferred = True
         try:
             taken, proposed = super().step_adaptive(h, epsilon, min_dt)
@@ -306,7 +306,7 @@ class VariationalStepper(Stepper):
                     b.full, self._y, self._cy, b.minv, b.kin_w, b.params, h,
                     self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2, *b.no_newton,
                     self._max_iter("fixed_point"), float(self.tol or 0.0),
-                    float(self.energy_tol or 0.0), self._eref, self.counters, b.work, b.cwork,
+                    self._etol, self._eref, self.counters, b.work, b.cwork,
                     self._clock, self._V, self._DG, self._Vt, self._DGt,
                     TANGENT_MAX_ITER["fixed_point"], self._tw, self._tcw,
                     self._tcount, self._y0, self._cy0, self._gsave, self._snap,
@@ -333,6 +333,13 @@ class VariationalStepper(Stepper):
         except StepError as err:
             err.result = self._with_tangents(self._result(out_t[:k], out_y[:k], out_e[:k], h, t_start,
                                                           "failed", str(err)), out_v[:k], out_m[:k])
+            raise
+        except BaseException as err:        # the system's own function, numpy, Ctrl-C
+            self._stopped(err)
+            _attach(err, self._with_tangents(self._result(out_t[:k], out_y[:k], out_e[:k], h,
+                                                          t_start, self.status,
+                                                          f"{type(err).__name__}: {err}"),
+                                             out_v[:k], out_m[:k]))
             raise
         return self._with_tangents(self._result(out_t, out_y, out_e, h, t_start, "finished", ""),
                                    out_v, out_m)
@@ -361,29 +368,24 @@ class VariationalStepper(Stepper):
             self._record = self._pending = None
 
     # -- private -----------------------------------------------------------------------
-    def _save(self) -> tuple:
-        return (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
-                self._clock.copy(), self.counters.copy(), self._h_prev, self._solver,
-                self.solver_switches)
-
-    def _restore(self, before: tuple) -> None:
-        (self._y[:], self._cy[:], self._gamma[:], self._eref[:], self._clock[:],
-         self.counters[:]) = before[:6]
-        self._h_prev, self._solver, self.solver_switches = before[6:]
-
     def _map(self, before: tuple, h: float) -> None:
-        """The tangent map of the step just committed from the state ``before`` (its size h),
-        and the MEGNO update; on failure the step is taken back and the error raised."""
+        """The tangent map of the step just committed from the state ``before``
+        (:meth:`save_state`; the step's size h), and the MEGNO update; when it fails or raises
+        (a Python jvp's own error, Ctrl-C) the step is taken back and the error raised."""
         b = self.binding
         y0, cy0, h_prev = before[0], before[1], before[6]
-        newton = (b.newton_matrices(y0, h, self.counters) if self._solver == "newton"
-                  else b.no_newton)
-        status = b.step_code.tangent_map(
-            b.full, y0, cy0, b.minv, self._gamma, h, self._extrapolation(h, h_prev), b.c1, b.c2,
-            b.params, *newton, TANGENT_MAX_ITER[self._solver], self._V, self._DG, self._Vt,
-            self._DGt, self._tw, self._tcw, self._tcount)
+        try:
+            newton = (b.newton_matrices(y0, h, self.counters) if self._solver == "newton"
+                      else b.no_newton)
+            status = b.step_code.tangent_map(
+                b.full, y0, cy0, b.minv, self._gamma, h, self._extrapolation(h, h_prev), b.c1,
+                b.c2, b.params, *newton, TANGENT_MAX_ITER[self._solver], self._V, self._DG,
+                self._Vt, self._DGt, self._tw, self._tcw, self._tcount)
+        except BaseException:
+            self.restore_state(before)
+            raise
         if status != OK:
-            self._restore(before)
+            self.restore_state(before)
             self._tangent_fail(status, h, self._solver)
         b.step_code.megno_step(self.megno.state, self._clock[0], self._V[0], self._wv)
 
