@@ -51,12 +51,13 @@ WP_PATH, WP_PATH_LO = 2, 3   # Wp (4, s, K): W, W_lo (Gauss), P_k^T Omega_k (the
 # the state carried between steps in eref (length EREF_EQUIP): [energy, alpha, dE/dalpha]
 EREF_EQUIP = 3
 # the per-step scratch es (ES entries): alpha, alpha and residual of the last measurement,
-# the slope dE/dalpha, updates made
-ES = 5
+# the slope dE/dalpha, updates made, whether the slope was measured in this step
+ES = 6
 ENERGY_ULPS = 16.0    # a residual that stops decreasing within this many ulps of its terms'
                       # size is round-off (two ulps: converged at once)
 MAX_UPDATES = 12      # alpha updates a step at most (two or three are typical)
 ALPHA_MAX = 0.25      # |alpha| beyond this: the step is far too long for the energy condition
+FRESH_ULPS = 32.0     # the step past the root that measures this step's slope, in ulps of E
 ALPHA_PROBE = 1e-6    # the first secant step when no slope is known (the first step)
 # update_alpha's answers
 CONVERGED, UPDATED, FAILED = 0, 1, 2
@@ -99,6 +100,7 @@ def start(es, eref):
     es[2] = np.nan
     es[3] = eref[2]
     es[4] = 0.0
+    es[5] = 0.0
 
 
 @jit
@@ -206,8 +208,8 @@ def update_alpha(es, E, scale):
     their rounding (four ulps of the terms' size; a stale slope left a residual of ten ulps
     that the last correction did not remove), else it is the last step's (E(alpha) is smooth in time), else a probe."""
     tol = ENERGY_ULPS * EPS * scale
-    if es[4] >= 1.0 and (abs(E) <= 2.0 * EPS * scale or (abs(E) <= tol and np.isfinite(es[2])
-                                                         and abs(E) >= 0.5 * abs(es[2]))):
+    if es[5] > 0.0 and (abs(E) <= 2.0 * EPS * scale or (abs(E) <= tol and np.isfinite(es[2])
+                                                        and abs(E) >= 0.5 * abs(es[2]))):
         # converged (or stopped decreasing at its round-off level); one last correction
         # without measuring again, taken by the polish's stages: the secant approaches the
         # root from one side, so the residual left would have the same sign step after step
@@ -220,11 +222,17 @@ def update_alpha(es, E, scale):
         return FAILED
     if np.isfinite(es[2]) and es[0] != es[1] and abs(E - es[2]) > 4.0 * EPS * scale:
         es[3] = (E - es[2]) / (es[0] - es[1])
+        es[5] = 1.0
     es[1] = es[0]
     es[2] = E
     D = es[3]
     if np.isfinite(D) and D != 0.0:
         a = es[0] - E / D
+        if es[5] == 0.0 and abs(E) <= tol:
+            # a residual already small with the last step's slope, which may have changed
+            # sign since (it does near apocentre): step past the root by a resolvable amount,
+            # so that the next residual gives this step's slope for the last correction
+            a += FRESH_ULPS * EPS * scale / abs(D)
     else:
         a = es[0] + ALPHA_PROBE
     if not (abs(a) <= ALPHA_MAX):
