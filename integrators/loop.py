@@ -146,7 +146,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         polish = False
         status = DIVERGED      # unless the loop ends otherwise: max_iter reached
         it = 0
-        while polish or it < max_iter:
+        it0 = 0                # EQUIP: the iterations before the last change of alpha
+        while polish or it - it0 < max_iter:
             it += 1
             if full:
                 if narrow:
@@ -211,8 +212,9 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 answer = eq.update_alpha(es, e_res, e_scale)
                 if answer == eq.CONVERGED:      # polish once more with alpha's last correction
                     energy_ok = True
-                elif answer == eq.UPDATED:      # iterate gamma again for the new alpha
-                    polish = False
+                elif answer == eq.UPDATED:      # iterate gamma again for the new alpha, with
+                    polish = False              # max_iter iterations again
+                    it0 = it
                     hist[0] = np.inf
                     hist[1] = 0.0
                     hist[2] = np.inf
