@@ -60,7 +60,7 @@ ALPHA_MAX = 0.25      # |alpha| beyond this: the step is far too long for the en
 FRESH_ULPS = 32.0     # the step past the root that measures this step's slope, in ulps of E
 ALPHA_PROBE = 1e-6    # the first secant step when no slope is known (the first step)
 # update_alpha's answers
-CONVERGED, UPDATED, FAILED = 0, 1, 2
+CONVERGED, UPDATED, FAILED, REITERATE = 0, 1, 2, 3
 
 
 @jit
@@ -199,7 +199,9 @@ def energy_residual(full, y, minv, g, rho, h, alpha, X, X_lo, S0):
 def update_alpha(es, E, scale):
     """One step of the secant iteration on alpha for E(alpha) = 0 (es: the step's scratch).
 
-    Returns CONVERGED, UPDATED (a new alpha in es[0]) or FAILED (MAX_UPDATES reached, or an
+    Returns CONVERGED, REITERATE (converged, with alpha's last correction in es[0]: gamma is
+    iterated to convergence for it, without measuring again), UPDATED (a new alpha in es[0])
+    or FAILED (MAX_UPDATES reached, or an
     alpha beyond ALPHA_MAX or not finite: the energy condition has no small solution at this
     step size).
 
@@ -212,7 +214,9 @@ def update_alpha(es, E, scale):
     above its round-off fails the step instead (ConvergenceError).  Converged: |E| at its round-off (two ulps
     of the terms' size, or within ENERGY_ULPS ulps and no longer halved by the last update,
     the stop rule of the gamma iteration applied to alpha) with a slope measured in this step;
-    then one last correction alpha -= E / slope, taken by the polish's stages without
+    then one last correction alpha -= E / slope, for which gamma is iterated again to
+    convergence (one polish only left gamma partly at the previous alpha, which can be a probe
+    far from the root: the outer solar system drifted to 1.5e-12 over 1e6 days), without
     measuring again: the secant approaches the root from one side, and a residual left with
     the same sign step after step makes the energy drift (measured: 2.4e-13 over 1e4 steps of
     Kepler with EQUIP(12, 4) without it, and 2.5e-14 over 5000 steps with the last step's
@@ -235,8 +239,9 @@ def update_alpha(es, E, scale):
     at_round_off = abs(E) <= 2.0 * EPS * scale or (
         abs(E) <= tol and np.isfinite(E_prev) and abs(E) >= 0.5 * abs(E_prev))
     if at_round_off and (es[5] > 0.0 or not slope or (measured and abs(E - E_prev) <= 4.0 * EPS * scale)):
-        if es[5] > 0.0 and abs(E / D) <= ALPHA_MAX:
+        if es[5] > 0.0 and abs(E / D) <= ALPHA_MAX and E != 0.0:
             es[0] -= E / D
+            return REITERATE
         return CONVERGED
     if es[4] >= MAX_UPDATES:
         return FAILED

@@ -210,10 +210,13 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 e_res, e_scale = eq.energy_residual(full, y, minv, g, rho, h, es[0], Cp[eq.CP_X],
                                                     Cp[eq.CP_X_LO], ts[eq.TS_S0])
                 answer = eq.update_alpha(es, e_res, e_scale)
-                if answer == eq.CONVERGED:      # polish once more with alpha's last correction
+                if answer == eq.CONVERGED:      # polish once more (gamma as it is)
                     energy_ok = True
-                elif answer == eq.UPDATED:      # iterate gamma again for the new alpha, with
-                    polish = False              # max_iter iterations again
+                elif answer == eq.UPDATED or answer == eq.REITERATE:
+                    # iterate gamma again for the new alpha, with max_iter iterations again
+                    # (REITERATE: alpha's last correction, no more measuring)
+                    energy_ok = answer == eq.REITERATE
+                    polish = False
                     it0 = it
                     hist[0] = np.inf
                     hist[1] = 0.0
