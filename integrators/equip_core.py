@@ -155,8 +155,10 @@ def path_correction(g, minv, h2, alpha, IkS, Xk):
 
 @jit
 def energy_residual(full, y, minv, g, rho, h, alpha, X, X_lo, S0):
-    """(E, scale): E = (H(y1) - H(y0)) / h by the discrete line integral (module docstring),
-    scale the sum of the magnitudes of its terms (E's rounding is a few ulps of it).  X, X_lo:
+    """(E, scale, weight): E = (H(y1) - H(y0)) / h by the discrete line integral (module
+    docstring), scale the sum of the magnitudes of its terms (E's own rounding is a few ulps
+    of it), weight the sum of the magnitudes of what multiplies the projected forces rho (the
+    forces' rounding through the stage values, L eps |q|, enters E through it).  X, X_lo:
     X_s (s, s) and its rounding remainders (the path's positions carry X_s to twice the
     working precision; X_s rounded once here would bias E by an ulp of its terms step after
     step: measured, a drift of 1.8e-13 over 5000 steps of Kepler with s = 4); S0: S's row 0 (the rows of S below are its transpose's: S = xi_1 (e_2 e_1^T -
@@ -164,13 +166,15 @@ def energy_residual(full, y, minv, g, rho, h, alpha, X, X_lo, S0):
     s, u = g.shape
     E = 0.0
     scale = 0.0
+    weight = 0.0
     if full:
         for i in range(s):
             for j in range(u):
                 t = g[i, j] * rho[i, j]
                 E += t
                 scale += abs(t)
-        return E, scale
+                weight += abs(g[i, j])
+        return E, scale, weight
     m = u
     xi1 = -S0[1]
     for j in range(m):
@@ -178,6 +182,7 @@ def energy_residual(full, y, minv, g, rho, h, alpha, X, X_lo, S0):
         t = v * (g[0, j] - rho[0, j])
         E += t
         scale += abs(v) * (abs(g[0, j]) + abs(rho[0, j]))
+        weight += abs(v)
         t = 0.5 * h * g[0, j] * g[0, j] * minv[j]
         E += t
         scale += abs(t)
@@ -192,11 +197,12 @@ def energy_residual(full, y, minv, g, rho, h, alpha, X, X_lo, S0):
             t = h * xg * minv[j] * rho[i, j]
             E -= t
             scale += abs(t)
-    return E, scale
+            weight += abs(h * xg * minv[j])
+    return E, scale, weight
 
 
 @jit
-def update_alpha(es, E, scale):
+def update_alpha(es, E, scale, floor):
     """One step of the secant iteration on alpha for E(alpha) = 0 (es: the step's scratch).
 
     Returns CONVERGED, REITERATE (converged, with alpha's last correction in es[0]: gamma is
@@ -208,11 +214,8 @@ def update_alpha(es, E, scale):
     The slope is the secant of the last two measurements when their residuals differ by more
     than their rounding (four ulps of the terms' size), else the last step's (E(alpha) is
     smooth in time; divided by 8 after an update that moved E by its rounding only), else
-    (the first step) a probe.  No floor through the forces' Lipschitz constant, unlike the
-    stop rule of gamma (:func:`integrators.core.stop_action`): accepting residuals at that
-    floor lost 5e-8 of the energy of FPU (omega = 50) over 2000 steps; a residual that stays
-    above its round-off fails the step instead (ConvergenceError).  Converged: |E| at its round-off (two ulps
-    of the terms' size, or within ENERGY_ULPS ulps and no longer halved by the last update,
+    (the first step) a probe.  Converged: |E| at its round-off (two ulps of the terms' size,
+    or within ENERGY_ULPS ulps (or ``floor``) and no longer halved by the last update,
     the stop rule of the gamma iteration applied to alpha) with a slope measured in this step;
     then one last correction alpha -= E / slope, for which gamma is iterated again to
     convergence (one polish only left gamma partly at the previous alpha, which can be a probe
@@ -221,7 +224,12 @@ def update_alpha(es, E, scale):
     the same sign step after step makes the energy drift (measured: 2.4e-13 over 1e4 steps of
     Kepler with EQUIP(12, 4) without it, and 2.5e-14 over 5000 steps with the last step's
     slope, which changes sign near apocentre).  A residual at round-off that no change of
-    alpha moves (a quadratic H, which every alpha conserves) is converged as it is."""
+    alpha moves (a quadratic H, which every alpha conserves) is converged as it is.
+    ``floor``: E's rounding through the forces (the stop rule's floor,
+    :func:`integrators.core.stop_action`, times the residual's weight of the forces): a
+    residual that stops decreasing below it is converged (two bodies far from the origin, FPU's
+    stiff springs: residuals of 100 ulps of the terms, which no alpha reduces, failed the
+    step without it)."""
     tol = ENERGY_ULPS * EPS * scale
     if not np.isfinite(E):
         return FAILED
@@ -237,8 +245,8 @@ def update_alpha(es, E, scale):
     D = es[3]
     slope = np.isfinite(D) and D != 0.0
     at_round_off = abs(E) <= 2.0 * EPS * scale or (
-        abs(E) <= tol and np.isfinite(E_prev) and abs(E) >= 0.5 * abs(E_prev))
-    if at_round_off and (es[5] > 0.0 or not slope or (measured and abs(E - E_prev) <= 4.0 * EPS * scale)):
+        abs(E) <= max(tol, floor) and np.isfinite(E_prev) and abs(E) >= 0.5 * abs(E_prev))
+    if at_round_off and (es[5] > 0.0 or not slope or (measured and abs(E - E_prev) <= max(4.0 * EPS * scale, floor))):
         if es[5] > 0.0 and abs(E / D) <= ALPHA_MAX and E != 0.0:
             es[0] -= E / D
             return REITERATE
