@@ -27,6 +27,12 @@ E = v0^T (gamma_0 - rho_0) + h/2 gamma_0^T M^{-1} gamma_0 - h sum_j (X_s(alpha) 
 M^{-1} rho_j (the kinetic part of the line integral is exact: P_k^T Omega_k I_k = X_s).
 Full form: E = sum_j gamma_j^T rho_j with rho = P_k^T Omega_k grad H(sigma).
 
+What a host provides for EQUIP (besides what :mod:`integrators.loop` asks of every caller):
+the packed arrays of :attr:`integrators.equip.EQUIP.step_arrays` (``engine.method_arrays``
+returns them), work buffers sized for ``EQUIP.work_rows`` stage rows, and ``eref`` of length
+EREF_EQUIP, carried whole between steps (alpha and the slope ride in eref[1:3]; ``loop.attempt``
+copies all of it into the trial and a host commits all of it back).
+
 Every function here runs as plain Python under ``NUMBA_DISABLE_JIT=1``.
 """
 from __future__ import annotations
