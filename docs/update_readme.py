@@ -40,6 +40,10 @@ def main() -> None:
         parts["adaptive"] = "\n\n".join(
             f"**{title}**\n\n" + body.strip()
             for title, body in re.findall(r"^## (.*?)$\n(.*?)(?=^## |\Z)", ada.read_text(), re.S | re.M))
+    dfl = ROOT / "benchmarks/results/defaults.md"
+    if dfl.exists():
+        text = dfl.read_text()
+        parts["defaults"] = text[text.index("**"):].strip()
     kep = (ROOT / "benchmarks/results/kepler.md").read_text()
     parts["kepler"] = tables(kep)[0]
     md = (ROOT / "benchmarks/results/md.md").read_text()
