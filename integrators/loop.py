@@ -29,6 +29,12 @@ iteration; the float64 ``counters`` (layout in :mod:`integrators.core`); and two
 the step's work arrays: a host that calls one step at a time (REBOUND, ASE) pays about 0.1
 microsecond for each array argument it passes or array the step allocates.  :func:`advance` returns a status
 code; it changes y, cy, gamma and eref only when the step succeeded.
+
+EQUIP(k, s) (:mod:`integrators.equip`) runs in the same step: its packed arrays hold Gauss's
+in the places above and its own in more planes (Cp.shape[0] > 4 tells the step), its work
+buffers are sized for ``EQUIP.work_rows`` stage rows and eref has 3 entries (alpha and the
+slope of its energy condition ride in eref[1:3]); the pieces it adds are in
+:mod:`integrators.equip_core`.  For HBVM every EQUIP branch is skipped.
 """
 import numpy as np
 
