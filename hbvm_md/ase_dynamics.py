@@ -18,6 +18,7 @@ from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
 from integrators import EQUIP, HBVM, ConvergenceError, Stepper
+from integrators.engine import check_step
 from systems.base import SeparableSystem
 
 _log = logging.getLogger(__name__)
@@ -48,6 +49,7 @@ class _AtomsSystem(SeparableSystem):
     """The atoms as a separable system (q, p flattened to (3N,)); fixed atoms feel no force."""
 
     polynomial_degree = None
+    rows_independent = True     # forces keeps the stage rows apart: no probe (2 calculator calls)
 
     def __init__(self, atoms, fixed: np.ndarray, batched: bool):
         self.atoms = atoms
@@ -203,8 +205,7 @@ class HBVMDynamics(MolecularDynamics):
             raise ValueError("`atoms` has no calculator; set atoms.calc before creating "
                              "HBVMDynamics")
         self._check_atoms(atoms)
-        if not np.isfinite(timestep) or timestep == 0:
-            raise ValueError(f"`timestep` must be a nonzero finite number (got timestep={timestep!r})")
+        timestep = check_step(timestep, "timestep")
         if solver not in ("auto", "fixed_point", "newton"):
             raise ValueError(f"`solver` must be 'auto', 'fixed_point' or 'newton' (got solver={solver!r})")
         if not isinstance(method, str) or method not in METHODS:

@@ -241,9 +241,10 @@ class EQUIP:
         st.step(h)
         return st.y.copy()
 
-    def integrate(self, system, y0, h: float, steps: int | None = None, **options):
-        """Integrate ``steps`` steps of size h (or adaptively, ``adaptive=True``); see
-        :func:`integrators.engine.integrate`."""
+    def integrate(self, system, y0, h: float, steps: int | None = None, *args, **options):
+        """Integrate ``steps`` steps of size h, or with ``adaptive=True`` up to ``t_end``: the
+        module-level :func:`integrators.engine.integrate` with this method (the same
+        arguments)."""
         from .engine import integrate
-        return integrate(self, system, y0, h, steps, **options)
+        return integrate(self, system, y0, h, steps, *args, **options)
 

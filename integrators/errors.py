@@ -100,14 +100,17 @@ class UnresolvedStepError(StepError):
 
 
 class StepSizeError(StepError):
-    """An adaptive step could not be resolved even at the smallest step allowed (``min_dt``):
-    its error estimate stayed above ``epsilon``, or its iteration or energy check failed."""
+    """An adaptive step could not be resolved even at the smallest step allowed (``min_dt``, or
+    the smallest step that still changes t): its error estimate stayed above ``epsilon``, or
+    its iteration or energy check failed (steps shrinking into a collision)."""
 
     def __init__(self, h: float, min_dt: float, t: float | None, cause: str):
         self.h, self.t, self.iterations, self.solver, self.min_dt = h, t, 0, "fixed_point", min_dt
         self.hint = ("lower min_dt, raise epsilon, or check the state (two bodies on top of each "
                      "other, a singular force)")
-        super().__init__(f"{self._where()}: the adaptive step fell below min_dt={min_dt:.6g} "
+        # (with min_dt = 0 the floor is the smallest step that still changes t)
+        floor = f"min_dt={min_dt:.6g}" if min_dt > 0 else "the smallest step that changes t"
+        super().__init__(f"{self._where()}: the adaptive step fell below {floor} "
                          f"without being resolved ({cause}); {self.hint}")
 
 
