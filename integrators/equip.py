@@ -124,6 +124,14 @@ class EQUIP:
     # -- data ---------------------------------------------------------------------------
     nodes = "gauss"
 
+    @classmethod
+    def for_polynomial_degree(cls, nu: int, s: int, nodes: str = "gauss") -> "EQUIP":
+        """The smallest EQUIP(k, s) whose energy condition is exact for every polynomial
+        Hamiltonian of degree nu: k >= nu s / 2, HBVM's rule (the same k-point line integral)."""
+        if nodes != "gauss":
+            raise ValueError(f"`nodes` must be 'gauss' for EQUIP (got nodes={nodes!r})")
+        return cls(HBVM.for_polynomial_degree(nu, s).k, s)
+
     def __getattr__(self, name):
         # Gauss's arrays (the stages): tau, tau_lo, omega, P, I, I_lo, W, W_lo, X, X_lo, C2,
         # C2_lo, E

@@ -250,3 +250,12 @@ def test_outer_solar_system_energy_and_angular_momentum():
     L = np.array([S.angular_momentum(y) for y in r.y])
     assert r.max_energy_error <= 1e-14
     assert np.max(np.linalg.norm(L - L[0], axis=1)) / np.linalg.norm(L[0]) <= 1e-14
+
+
+def test_for_polynomial_degree_uses_hbvms_rule():
+    # the energy condition's k-point rule is HBVM(k, s)'s: exact for degree nu when k >= nu s / 2
+    assert EQUIP.for_polynomial_degree(4, 4).k == 8
+    assert EQUIP.for_polynomial_degree(3, 3).k == 5
+    assert EQUIP.for_polynomial_degree(1, 2).k == 2
+    with pytest.raises(ValueError, match="`nodes` must be 'gauss' for EQUIP"):
+        EQUIP.for_polynomial_degree(4, 2, nodes="lobatto")
