@@ -50,6 +50,7 @@ from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
 from .jit import jit
 from .specialise import specialise
+from .tableau import HBVM
 
 #: run_variational returns status + TANGENT_FAILED when the step converged but its tangent map
 #: did not (the step is then taken back)
@@ -215,6 +216,10 @@ class VariationalStepper(Stepper):
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto",
                  fast: bool | None = None, energy_tol: float | None = None, *, variational):
+        if not isinstance(method, HBVM):
+            raise TypeError(f"tangent vectors need an HBVM(k, s) method (got {method!r}): the "
+                            "tangent map is the derivative of the HBVM step, and EQUIP's step "
+                            "adds a correction whose derivative it does not take")
         super().__init__(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
         b = self.binding
         d = self._y.size

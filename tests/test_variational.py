@@ -305,3 +305,6 @@ def test_refusals():
         integrate(HBVM(2, 2), system, y0, 0.1, 3, variational=np.zeros((2, 4)))
     with pytest.raises(ValueError, match="must be finite"):
         integrate(HBVM(2, 2), system, y0, 0.1, 3, variational=[1.0, np.nan, 0, 0])
+    from integrators.equip import EQUIP
+    with pytest.raises(TypeError, match=r"need an HBVM\(k, s\) method .*EQUIP"):
+        integrate(EQUIP(4, 2), system, y0, 0.1, 3, variational=np.ones(4))
