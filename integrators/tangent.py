@@ -42,6 +42,7 @@ from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, R
 from integrators.pointers import view1
 
 _force_jvp = None    # bound by integrators.specialise
+TANGENT_FAILED = 16  # run_variational's return for a step whose tangent map failed: + status
 # (run_variational calls the loop's advance and energy_parts: this text is appended to the
 # loop's, see integrators.specialise)
 
@@ -229,7 +230,8 @@ def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, N
     entries, the MEGNO of V[0] (:func:`megno_step`, weights wv).  y0, cy0 (d), gsave (s, u),
     snap (>= len(counters)): scratch for the state before a step.  A step whose tangent map
     fails is taken back: state, clock, coefficients, counters and tangents as before it, its
-    status in counters[C_STATUS] and returned.  Samples (none when sample_every is 0) at steps
+    status in counters[C_STATUS], and status + TANGENT_FAILED returned (a failed step: its
+    status).  Samples (none when sample_every is 0) at steps
     sample_every, 2 sample_every, ... (the caller records step 0): t, y, H, V and the MEGNO
     <Y> into out_t, out_y, out_e, out_v (n, nv, d) and out_m."""
     isample = 0
@@ -257,7 +259,7 @@ def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, N
             for i in range(counters.shape[0]):
                 counters[i] = snap[i]
             counters[C_STATUS] = status
-            return status
+            return status + TANGENT_FAILED
         if mg.shape[0] > 0:
             megno_step(mg, clock[0], V[0], wv)
         if sample_every > 0 and (istep + 1) % sample_every == 0:

@@ -45,6 +45,7 @@ from functools import partial
 import numpy as np
 
 from . import tangent
+from .tangent import TANGENT_FAILED
 from .core import C_STATUS, DIVERGED, NOT_FINITE, OK
 from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
@@ -52,9 +53,6 @@ from .jit import jit
 from .specialise import specialise
 from .tableau import HBVM
 
-#: run_variational returns status + TANGENT_FAILED when the step converged but its tangent map
-#: did not (the step is then taken back)
-TANGENT_FAILED = 16
 MEGNO_STATE = 7          # length of the accumulator array (integrators.tangent.megno_step)
 #: the iteration cap of the tangent map, whatever the step's ``max_iter``: the linear iteration
 #: contracts as the step's did, but starts further (from the previous step's d gamma, or zero)

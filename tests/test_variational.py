@@ -280,6 +280,14 @@ def test_failed_tangent_map_takes_the_step_back():
     for a, b in zip(before, after):
         assert np.array_equal(a, b)
     assert info.value.h == 0.01
+    # the same inside a run's loop (run_variational): the error names the tangent map and
+    # carries the samples up to the last step whose tangents were mapped
+    with pytest.raises(NonFiniteError, match="tangent vectors") as info:
+        integrate(HBVM(4, 2), BrokenJvp(), system.initial_state(), 0.01, 20,
+                  variational=np.eye(4))
+    res = info.value.result
+    assert res.status == "failed" and 0 < res.steps < 20 and res.solver_switches == 0
+    assert len(res.t) == res.steps + 1 and res.extra["variational"].shape == (res.steps + 1, 4, 4)
 
 
 class NoDerivative(SeparableSystem):
