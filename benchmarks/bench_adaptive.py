@@ -13,8 +13,12 @@ random walk, and medians of 5 draws still differ by 30 % from run to run):
   AU, e < 0.02, inc < 0.01, random angles from numpy ``default_rng(12345)``), 25 years.
 
 Every method has the same ``--samples`` output times (``sim.integrate(t_i)``, exact finish); the
-energy error is the max over them of |E - E0| / |E0|.  HBVM's time includes attaching.  Methods
-run once per start in turn, so that load on the machine hits all of them alike.
+energy error is the max over them of |E - E0| / |E0|, the angular-momentum error the max of
+|L - L0| / |L0| with L the bodies' total angular momentum about the origin
+(``systems.NBody.angular_momentum``, REBOUND's ``sim.angular_momentum()`` here), both read
+between the timed ``sim.integrate`` calls (until 2026-11-24 the energy read was inside the
+timed region).  HBVM's time includes attaching.  Methods run once per start in turn, so that
+load on the machine hits all of them alike.
 
 Run:  python benchmarks/bench_adaptive.py [--starts 21] [--disk-n 300] [--quick]
 """
@@ -30,8 +34,9 @@ import rebound
 
 from hbvm_md import HBVMIntegrator
 from hbvm_md.reports.hard_cases import encounter_scene
+from hbvm_md.reports.rebound_comparison import _state, angular_momentum_change
 from integrators import StepError
-from systems import outer_solar_system
+from systems import NBody, outer_solar_system
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -62,6 +67,9 @@ def disk(n: int):
 def run(make, t_end: float, samples: int, method: str, r: int):
     sim = make()
     sim.particles[1].x *= 1 + r * 1e-13
+    nb = NBody.from_rebound(sim)
+    xv = [_state(sim)]
+    e0 = sim.energy()
     t0 = time.perf_counter()
     drv = None
     if method == "ias15":
@@ -72,19 +80,23 @@ def run(make, t_end: float, samples: int, method: str, r: int):
         drv = HBVMIntegrator(sim, epsilon=float(method.split("=")[1]))
     else:                                   # "hbvm dt=X"
         drv = HBVMIntegrator(sim, s=6, dt=float(method.split("=")[1]))
-    e0 = sim.energy()
+    wall = time.perf_counter() - t0
     worst, ok = 0.0, "yes"
     try:
         for t in np.linspace(0, t_end, samples + 1)[1:]:
-            sim.integrate(t)
+            t0 = time.perf_counter()
+            try:
+                sim.integrate(t)
+            finally:
+                wall += time.perf_counter() - t0
             worst = max(worst, abs((sim.energy() - e0) / e0))
+            xv.append(_state(sim))
     except StepError as err:
         ok = f"stopped: {type(err).__name__} at t={err.t:.4g}"
-    wall = time.perf_counter() - t0
     steps = drv.nsteps if drv is not None else sim.steps_done
     label = (f"HBVM({drv.method.k},{drv.method.s})" if drv is not None else "IAS15")
     return dict(worst=worst, wall=wall, steps=steps, ok=ok, label=label,
-                rejected=getattr(drv, "rejected", 0))
+                rejected=getattr(drv, "rejected", 0), dL=float(np.max(angular_momentum_change(nb, np.array(xv)))))
 
 
 def scene(name, make, t_end, methods, starts, samples, lines):
@@ -94,13 +106,15 @@ def scene(name, make, t_end, methods, starts, samples, lines):
             rows[m].append(run(make, t_end, samples, m, r))
     ref = np.median([x["wall"] for x in rows["ias15"]])
     lines += [f"## {name}", "",
-              "| method | steps | rejected | max rel. energy error, median | wall (s), median | / IAS15 | finished |",
-              "|---|---|---|---|---|---|---|"]
+              "| method | steps | rejected | max rel. energy error, median | max rel. angular momentum error, "
+              "median | wall (s), median | / IAS15 | finished |",
+              "|---|---|---|---|---|---|---|---|"]
     for m in methods:
         xs = rows[m]
         wall = float(np.median([x["wall"] for x in xs]))
         lines.append(f"| {xs[0]['label']} {m if m != 'ias15' else ''} | {xs[0]['steps']} | "
-                     f"{xs[0]['rejected']} | {np.median([x['worst'] for x in xs]):.2e} | {wall:.4f} | "
+                     f"{xs[0]['rejected']} | {np.median([x['worst'] for x in xs]):.2e} | "
+                     f"{np.median([x['dL'] for x in xs]):.2e} | {wall:.4f} | "
                      f"{wall / ref:.2f} | {xs[0]['ok']} |")
     lines.append("")
     print("\n".join(lines[-len(methods) - 4:]), flush=True)

@@ -19,6 +19,10 @@ the steps column counts every step taken, and dt is the step requested), ``propa
 heyoka.  The energy error is the max over the output times of |E - E0| / |E0|
 (``sim.energy()`` for every method, read outside the timed region: heyoka's wall time never
 contained it, and for the REBOUND-driven methods it did until 2026-11-23, 1-1.5 us an output);
+the angular-momentum error is the max over the same output times of |L - L0| / |L0|, L the
+total angular momentum of the bodies about the origin (``systems.NBody.angular_momentum``, what
+``sim.angular_momentum()`` gives on these scenes), computed from the states every method reached,
+also outside the timed region;
 the position error is the largest |x - x_ref| at t_end
 over the bodies, x_ref from heyoka in 80-bit extended precision at tol 1e-18 (IAS15 when heyoka
 is not installed: then the position errors are only differences from a double-precision peer).
@@ -111,10 +115,12 @@ def run_scene(title, scene, t_end, variants, peers, repeat, heyoka) -> list[str]
     rows = []
     for i, r0 in enumerate(runs[0].rows):
         col = {key: [c.rows[i][key] for c in runs]
-               for key in ("max_rel_energy_error", "final_position_diff", "wall_time_s", "setup_time_s", "steps")}
+               for key in ("max_rel_energy_error", "max_rel_angular_momentum_error", "final_position_diff",
+                           "wall_time_s", "setup_time_s", "steps")}
         rows.append(dict(method=r0["method"], dt=r0["dt"], default=i == 0,
                          err=float(np.median(col["max_rel_energy_error"])),
                          lo=min(col["max_rel_energy_error"]), hi=max(col["max_rel_energy_error"]),
+                         dL=float(np.median(col["max_rel_angular_momentum_error"])),
                          pos=float(np.median(col["final_position_diff"])),
                          wall=float(np.median(col["wall_time_s"])), setup=float(np.median(col["setup_time_s"])),
                          steps=int(np.median(col["steps"])), compile=r0.get("compile_time_s"), tol=r0.get("tol"),
@@ -133,9 +139,9 @@ def run_scene(title, scene, t_end, variants, peers, repeat, heyoka) -> list[str]
            else "IAS15 (heyoka not installed: a double-precision peer, not a high-accuracy reference)")
     lines = [f"## {title}", "",
              f"Position error: max over bodies of |x - x_ref| at t_end (AU), x_ref from {ref}.", "",
-             "| method | settings | steps | max rel. energy error, median (range) | position error (AU, median) "
-             "| wall (s, median) | of which attach | / IAS15 | / heyoka |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| method | settings | steps | max rel. energy error, median (range) | max rel. angular momentum "
+             "error, median | position error (AU, median) | wall (s, median) | of which attach | / IAS15 | / heyoka |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r["method"].startswith("HBVM"):
             settings = f"s={r['method'].split(',')[1].split(')')[0]}, dt={_fmt_dt(r['dt'])}" + (" (defaults)" if r["default"] else "")
@@ -146,7 +152,7 @@ def run_scene(title, scene, t_end, variants, peers, repeat, heyoka) -> list[str]
         name = r["method"].split(" dt=")[0]
         attach = f"{r['setup'] * 1e3:.1f} ms" if r["method"].startswith("HBVM") else ""
         lines.append(f"| {name} | {settings} | {r['steps']} | {r['err']:.2e} ({r['lo']:.2e} .. {r['hi']:.2e}) | "
-                     f"{r['pos']:.1e} | {r['wall']:.4f} | {attach} | {r['wall'] / ias['wall']:.2f} | "
+                     f"{r['dL']:.2e} | {r['pos']:.1e} | {r['wall']:.4f} | {attach} | {r['wall'] / ias['wall']:.2f} | "
                      + (f"{r['wall'] / hy['wall']:.2f} |" if hy else "- |"))
     lines.append("")
     verdict = "equal or better" if ok else "NOT equal (no HBVM setting reached IAS15's; the most accurate is shown)"

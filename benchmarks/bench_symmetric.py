@@ -63,9 +63,7 @@ def rel(nb, y):
 
 def invariants(nb, y):
     """(energy, angular momentum vector) of the state."""
-    x = y[:6].reshape(2, 3)
-    p = y[6:].reshape(2, 3)
-    return nb.kinetic(y[6:]) + nb.potential(y[:6]), np.cross(x, p).sum(axis=0)
+    return nb.kinetic(y[6:]) + nb.potential(y[:6]), nb.angular_momentum(y)
 
 
 def mean_anomaly(r, v, mu=1.0 + MU_M):

@@ -17,7 +17,7 @@ from systems import outer_solar_system, solar_system
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--t-end", type=float, default=1e5, help="days")
-    ap.add_argument("--plot", default=None, help="save the energy-error plot to this file")
+    ap.add_argument("--plot", default=None, help="save the energy and angular-momentum error plot to this file")
     args = ap.parse_args(argv)
 
     # 1. HBVM as a REBOUND integrator: attach, then use REBOUND as usual
@@ -40,7 +40,8 @@ def main(argv=None):
     compare_rebound(scene, args.t_end, hbvm=((6, None, 100.0),), verbose=True)
 
     if args.plot:
-        path = energy_error_plot(c1.series, args.plot, "Outer solar system", "t [days]")
+        path = energy_error_plot(c1.series, args.plot, "Outer solar system", "t [days]",
+                                 angular_momentum=c1.angular_momentum_series)
         print(f"saved {path}")
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 ``hbvm-md demo`` is the quick start: the outer solar system through REBOUND and a
 polynomial-pair cluster through ASE, each with HBVM and with the host's own integrators; it
-prints comparison tables and writes energy-error plots into an output folder.
+prints comparison tables (energy and angular momentum) and writes plots of both errors against
+time into an output folder.
 
 Bad arguments print one line to stderr and exit with status 2.
 """
@@ -66,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "HBVM against the hosts' integrators, table and energy plots",
                        description="Integrate the outer solar system through REBOUND and a "
                        "polynomial-pair cluster through ASE with HBVM and the hosts' own integrators; "
-                       "print comparison tables and write PNG plots of the relative energy error.")
+                       "print comparison tables and write PNG plots of the relative energy and angular-momentum errors.")
     d.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default ./{DEFAULT_OUT})")
     d.add_argument("--quick", action="store_true", help="shorter runs (for CI)")
     d.add_argument("--t-end", type=_positive_float, default=None,
@@ -131,7 +132,8 @@ def cmd_demo(args) -> int:
              f"({time.perf_counter() - t0:.1f} s)\n")
         _say(cmp.table())
         written.append(energy_error_plot(cmp.series, out / "energy_outer_solar_system.png",
-                                         f"Outer solar system, {t_end:g} days", "t [days]"))
+                                         f"Outer solar system, {t_end:g} days", "t [days]",
+                                         angular_momentum=cmp.angular_momentum_series))
     except ImportError as err:
         missing.append(f"REBOUND comparison not available ({err})")
     bar.update(1)
@@ -147,7 +149,8 @@ def cmd_demo(args) -> int:
              f"({time.perf_counter() - t0:.1f} s)\n")
         _say(mdc.table())
         written.append(energy_error_plot(mdc.series, out / "energy_md_cluster.png",
-                                         f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]"))
+                                         f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]",
+                                         angular_momentum=mdc.angular_momentum_series))
     except ImportError as err:
         missing.append(f"ASE comparison not available ({err})")
     bar.update(1)

@@ -13,49 +13,64 @@ The store
 ---------
 ``store=DIR`` journals each finished member as ``DIR/parts/member-<index>.parquet``, written to
 a temporary name and renamed, so that a crash or Ctrl-C loses only the unfinished members; a
-rerun with the same ``DIR`` loads the finished ones instead of running them again.  At the end
-of every run (also an interrupted one) the parts are joined into ``DIR/ensemble.parquet``: one
-row per finished member with the columns ``member`` (index into params), ``param`` (JSON text),
-``status``, ``error``, ``wall_time_s`` and ``result.<key>`` per key of the task's dict.  Open it
-with ``pandas.read_parquet`` (or polars, DuckDB, R's arrow).  Parquet through pyarrow: one wheel
-with no dependencies of its own, float64 stored bit for bit, and read by every data-frame tool.
-``DIR/meta.json`` names the task and its bound arguments; a rerun with a different task, or
-a different parameter at a stored index, is refused rather than mixed in.
+rerun with the same ``DIR`` loads the finished ones instead of running them again (a member
+that timed out runs again).  A part holds the member's index, its param (JSON text), the task,
+status, error, wall time and the result pickled (cloudpickle), so that any picklable result is
+kept exactly: mixed types across members, big integers, nested dicts, arrays and objects.  A
+part or ``meta.json`` that cannot be read (truncated, corrupt, of another format) is named in
+an :class:`EnsembleStoreWarning`; the part is renamed ``*.corrupt`` and its member runs again
+(``meta.json`` is rewritten: each part names its task, so no member is lost with it).
+
+At the end of every run (also an interrupted one) the records are joined into
+``DIR/ensemble.parquet``: one row per finished member with the columns ``member`` (index into
+params), ``param`` (JSON text), ``status``, ``error``, ``wall_time_s``, ``result.<key>`` per key
+of the task's dicts and ``result_pickle``.  A ``result.<key>`` column is typed when every
+member's value fits one Arrow type without loss (bool, int64, float64, string, or a list of
+one of them; ints beside floats as float64 when exact); otherwise (mixed types, integers
+beyond int64, nested values) it holds each value as JSON text and is listed in the schema
+metadata ``hbvm_md.json_columns``.  Open it with ``pandas.read_parquet`` (or polars, DuckDB,
+R's arrow); :func:`load_store` gives the rows with the exact values.  Parquet through
+pyarrow: one wheel with no dependencies of its own, float64 bit for bit, page checksums that
+catch a corrupt file, read by every data-frame tool.  ``DIR/meta.json`` names the task and its
+bound arguments; a rerun with a different task, or a different parameter at a stored index,
+is refused rather than mixed in.
+
+Stopping members
+----------------
+``timeout=seconds`` runs each member in a child process of its worker thread that is killed
+when the member is late (see :mod:`hbvm_md.ensemble_member`); the member is recorded with
+``status="timeout"``.  A member that raises ``SystemExit`` or ``KeyboardInterrupt`` is recorded
+as failed with that exception, and its worker lives on.  A worker that dies (SIGKILL, the
+out-of-memory killer) loses nothing: dask runs its member again on another worker, up to
+three times, after which the member is recorded as failed (``KilledWorker``) but not stored,
+so that a rerun tries it again.  Under a timeout a member's process SIGKILLed from outside is
+treated alike (three attempts, then failed and not stored); one that crashes by itself (an
+exit code, SIGSEGV) is recorded as failed with the cause.
 """
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import logging
 import math
 import os
-import time
+import pickle
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 import numpy as np
 from distributed.diagnostics.plugin import WorkerPlugin
 
-__all__ = ["run_ensemble", "load_store"]
+__all__ = ["run_ensemble", "load_store", "EnsembleStoreWarning"]
 
 _STORE_TABLE = "ensemble.parquet"
-_FIXED = ("member", "param", "status", "error", "wall_time_s")
 
 
 # -- on the worker -------------------------------------------------------------------------
-def _run_member(task: Callable, param: Any) -> dict:
-    """``task(param)`` timed, with any exception turned into a failed record (runs on a worker)."""
-    start = time.perf_counter()
-    try:
-        result = task(param)
-        if not isinstance(result, dict):
-            raise TypeError(f"the task must return a dict (got {type(result).__name__} for "
-                            f"param={param!r})")
-        status, error = "ok", None
-    except Exception as exc:  # noqa: BLE001 - a failed member must not stop the others
-        result, status, error = None, "failed", f"{type(exc).__name__}: {exc}"
-    return {"status": status, "error": error, "result": result,
-            "wall_time_s": time.perf_counter() - start}
+# In the worker thread (no timeout): ensemble_member.call.  Under a timeout: a child process
+# per worker thread (ensemble_member.run_in_process), which can be killed.
 
 
 class _Warmup(WorkerPlugin):
@@ -90,10 +105,10 @@ def _name(fn) -> str:
 
 
 # -- checks ----------------------------------------------------------------------------------
-def _check_picklable(obj, what: str, fix: str) -> None:
+def _check_picklable(obj, what: str, fix: str) -> bytes:
     import cloudpickle      # what dask sends functions with (by reference when importable)
     try:
-        cloudpickle.dumps(obj)
+        return cloudpickle.dumps(obj)
     except Exception as exc:  # noqa: BLE001 - any pickling failure means the same to the user
         raise TypeError(f"`{what}` cannot be sent to the workers: it does not pickle "
                         f"({type(exc).__name__}: {exc}); {fix}") from None
@@ -110,6 +125,10 @@ def _check_params(params) -> list:
 
 
 # -- the store -------------------------------------------------------------------------------
+class EnsembleStoreWarning(UserWarning):
+    """A store file could not be read: named in the message, set aside, its members run again."""
+
+
 def _plain(x):
     """numpy scalars and arrays as Python numbers and lists (what JSON and Arrow hold)."""
     if isinstance(x, np.generic):
@@ -123,8 +142,8 @@ def _plain(x):
     return x
 
 
-def _param_text(param) -> str:
-    return json.dumps(_plain(param), sort_keys=True, default=repr)
+def _json_text(x) -> str:
+    return json.dumps(_plain(x), sort_keys=True, default=repr)
 
 
 def _task_text(task) -> str:
@@ -132,6 +151,107 @@ def _task_text(task) -> str:
         args = [repr(a) for a in task.args] + [f"{k}={v!r}" for k, v in sorted(task.keywords.items())]
         return f"{_name(task)}({', '.join(args)})"
     return _name(task)
+
+
+_INT64 = (-2**63, 2**63)
+_FLOAT_INTS = 2**53          # integers of at most this size are exact in float64
+
+
+def _scalar_kind(v) -> str | None:
+    """"bool", "int", "float", "str" when ``v`` fits that Arrow type without loss; None for
+    None; "other" for anything else (an int beyond int64, a long double, a list, an object)."""
+    if v is None:
+        return None
+    if isinstance(v, (bool, np.bool_)):
+        return "bool"
+    if isinstance(v, (int, np.integer)):
+        return "int" if _INT64[0] <= v < _INT64[1] else "other"
+    if isinstance(v, float) or (isinstance(v, np.floating) and v.dtype.itemsize <= 8):
+        return "float"
+    if isinstance(v, str):
+        return "str"
+    return "other"
+
+
+def _kind(v) -> str | None:
+    """The Arrow type a value fits without loss: a scalar kind, "list<kind>" for a flat list,
+    tuple or 1-d array of one scalar kind, "list" when empty, None (null) or "other"."""
+    if isinstance(v, (list, tuple)) or (isinstance(v, np.ndarray) and v.ndim == 1):
+        if len(v) == 0:
+            return "list"
+        inner = _common({_scalar_kind(e) for e in v}, v)
+        return f"list<{inner}>" if inner in ("bool", "int", "float", "str") else "other"
+    return _scalar_kind(v)
+
+
+def _exact_in_float64(values) -> bool:
+    return all(abs(int(e)) <= _FLOAT_INTS for e in values if _scalar_kind(e) == "int")
+
+
+def _common(kinds: set, values) -> str:
+    """The one kind all ``values`` (of ``kinds``, nulls allowed) share without loss, or "other"."""
+    kinds = kinds - {None}
+    if not kinds:
+        return "null"
+    if all(k.startswith("list") for k in kinds):
+        inner = {k[5:-1] for k in kinds if k != "list"}
+        if len(inner) <= 1:
+            return f"list<{inner.pop() if inner else 'float'}>"
+        elems = [e for v in values if v is not None for e in v]
+        return "list<float>" if inner == {"int", "float"} and _exact_in_float64(elems) else "other"
+    if len(kinds) == 1:
+        return next(iter(kinds))
+    # ints beside floats: a float64 column when every int is exact in it
+    return "float" if kinds == {"int", "float"} and _exact_in_float64(values) else "other"
+
+
+def _arrow_type(kind: str):
+    import pyarrow as pa
+    scalar = {"bool": pa.bool_(), "int": pa.int64(), "float": pa.float64(), "str": pa.string(),
+              "null": pa.null()}
+    if kind.startswith("list<"):
+        return pa.list_(scalar[kind[5:-1]])
+    return scalar[kind]
+
+
+def _cell_text(v) -> str:
+    """A value as JSON text (its repr inside when JSON has no form for it)."""
+    try:
+        return _json_text(v)
+    except (ValueError, TypeError, RecursionError):     # e.g. a list that contains itself
+        try:
+            return json.dumps(repr(v))
+        except Exception:  # noqa: BLE001 - a broken __repr__ must not fail the table
+            return json.dumps(f"<{type(v).__name__}>")
+
+
+def _column(values: list):
+    """(Arrow array, exact) of one result key over the members (None where a member lacks it).
+
+    Typed when every value fits one Arrow type without loss (ints with floats as float64 when
+    exact); otherwise JSON text per value (``exact`` False), the exact values staying in the
+    ``result_pickle`` column."""
+    import pyarrow as pa
+    try:
+        kind = _common({_kind(v) for v in values}, values)
+        if kind != "other":
+            if kind == "float":
+                values = [None if v is None else float(v) for v in values]
+            elif kind == "list<float>":
+                values = [None if v is None else [float(e) for e in v] for v in values]
+            return pa.array([_plain(v) for v in values], _arrow_type(kind)), True
+    except (pa.ArrowException, TypeError, ValueError, OverflowError):
+        pass        # a subclass Arrow does not take: the column as text (the pickle is exact)
+    return pa.array([None if v is None else _cell_text(v) for v in values], pa.string()), False
+
+
+_PART_FIELDS = ("member", "param", "task", "status", "error", "wall_time_s", "result_pickle")
+
+
+def _digest(row: dict) -> str:
+    """SHA-256 of a part's fields as read back: Parquet checksums only its data pages, and a
+    flipped byte in its footer can change a column's type or a value unnoticed."""
+    return hashlib.sha256(pickle.dumps(tuple(row[k] for k in _PART_FIELDS), protocol=4)).hexdigest()
 
 
 class _Store:
@@ -145,82 +265,168 @@ class _Store:
                              "folder path, it is created when missing")
         self.parts = self.path / "parts"
         self.parts.mkdir(parents=True, exist_ok=True)
-        self.texts = [_param_text(p) for p in params]
-        meta = {"task": _task_text(task), "n_members": len(params)}
+        self.texts = [_json_text(p) for p in params]
+        self.task = _task_text(task)
+        self.saved: dict[int, dict] = {}       # index -> stored record (what consolidate joins)
+        meta = {"task": self.task, "n_members": len(params)}
         mfile = self.path / "meta.json"
         if mfile.exists():
-            old = json.loads(mfile.read_text())
-            if old.get("task") != meta["task"]:
+            try:
+                old = json.loads(mfile.read_text())
+                if not isinstance(old, dict):
+                    raise ValueError(f"a JSON object expected, got {type(old).__name__}")
+            except (ValueError, UnicodeDecodeError) as exc:
+                # each part names its task too, so no finished member is lost with meta.json
+                self._warn(mfile, exc, "rewritten; each part is checked against the task it names")
+                old = {}
+            if old.get("task", self.task) != self.task:
                 raise ValueError(f"`store` {str(self.path)!r} holds the ensemble of task "
-                                 f"{old.get('task')!r}, not {meta['task']!r}; pass another store "
+                                 f"{old.get('task')!r}, not {self.task!r}; pass another store "
                                  "folder or delete this one")
-        mfile.write_text(json.dumps(meta, indent=1))
+        tmp = mfile.with_suffix(".tmp")
+        tmp.write_text(json.dumps(meta, indent=1))
+        os.replace(tmp, mfile)
 
     def _file(self, i: int) -> Path:
         return self.parts / f"member-{i:07d}.parquet"
 
-    def finished(self) -> dict[int, dict]:
-        """index -> record fields (status, error, result, wall_time_s) of the stored members."""
+    @staticmethod
+    def _warn(f: Path, exc: BaseException, what: str) -> None:
+        warnings.warn(f"ensemble store file {str(f)!r} cannot be read ({type(exc).__name__}: "
+                      f"{exc}); {what}", EnsembleStoreWarning, stacklevel=4)
+
+    def _read_part(self, f: Path) -> dict:
+        """The record in part ``f``; raises when the file is truncated, corrupt or foreign."""
         import pyarrow.parquet as pq
+        table = pq.read_table(f, page_checksum_verification=True)
+        missing = [c for c in _PART_FIELDS if c not in table.column_names]
+        if missing or table.num_rows != 1:
+            raise ValueError(f"not a part of this store's format (columns {table.column_names}, "
+                             f"{table.num_rows} rows)")
+        row = table.to_pylist()[0]
+        digest = (table.schema.metadata or {}).get(b"hbvm_md.sha256", b"").decode()
+        if digest != _digest(row):
+            raise ValueError("its content does not match its checksum")
+        if f.name != self._file(row["member"]).name:
+            raise ValueError(f"it holds member {row['member']}")
+        blob = row["result_pickle"]
+        row["result"] = pickle.loads(blob) if blob is not None else None
+        return row
+
+    def finished(self) -> dict[int, dict]:
+        """index -> record fields (status, error, result, wall_time_s) of the stored members.
+
+        A part that cannot be read is renamed ``*.corrupt`` with a warning naming it, and its
+        member runs again; a timed-out member runs again too."""
         done = {}
         for f in sorted(self.parts.glob("member-*.parquet")):
-            row = pq.read_table(f).to_pylist()[0]
+            try:
+                row = self._read_part(f)
+            except Exception as exc:  # noqa: BLE001 - any unreadable part: the member runs again
+                os.replace(f, f.with_name(f.name + ".corrupt"))
+                self._warn(f, exc, f"moved to {f.name}.corrupt; its member runs again")
+                continue
             i = row["member"]
+            if row["task"] != self.task:
+                raise ValueError(f"`store` {str(self.path)!r} holds member {i} of task "
+                                 f"{row['task']!r}, not {self.task!r}; pass another store folder "
+                                 "or delete this one")
             if i >= len(self.texts) or row["param"] != self.texts[i]:
                 have = self.texts[i] if i < len(self.texts) else "no member"
                 raise ValueError(f"`store` {str(self.path)!r} holds member {i} with param "
                                  f"{row['param']}, but this ensemble has {have} there; pass "
                                  "another store folder or delete this one")
-            result = None
-            if row["status"] == "ok":
-                result = {k[len("result."):]: v for k, v in row.items() if k.startswith("result.")}
-            done[i] = {"status": row["status"], "error": row["error"], "result": result,
-                       "wall_time_s": row["wall_time_s"]}
+            self.saved[i] = row
+            if row["status"] != "timeout":
+                done[i] = {k: row[k] for k in ("status", "error", "result", "wall_time_s")}
         return done
 
     def save(self, i: int, rec: dict) -> None:
+        import cloudpickle
         import pyarrow as pa
         import pyarrow.parquet as pq
-        row = {"member": i, "param": self.texts[i], "status": rec["status"], "error": rec["error"],
-               "wall_time_s": rec["wall_time_s"]}
-        for k, v in (rec["result"] or {}).items():
-            row[f"result.{k}"] = _plain(v)
-        try:
-            table = pa.Table.from_pylist([row])
-            # typed even when empty, so that the parts of ok and failed members join
-            table = table.set_column(table.schema.get_field_index("error"), "error",
-                                     pa.array([rec["error"]], pa.string()))
-        except (pa.ArrowException, TypeError, ValueError) as exc:
-            raise TypeError(f"member {i}: the task's result cannot be stored ({exc}); return "
-                            "numbers, strings, booleans, None or lists and arrays of numbers") from None
+        blob = None if rec["result"] is None else cloudpickle.dumps(rec["result"])
+        row = {"member": i, "param": self.texts[i], "task": self.task, "status": rec["status"],
+               "error": rec["error"], "wall_time_s": float(rec["wall_time_s"]),
+               "result": rec["result"], "result_pickle": blob}
+        table = pa.table({"member": pa.array([i], pa.int64()), "param": [row["param"]],
+                          "task": [self.task], "status": [row["status"]],
+                          "error": pa.array([row["error"]], pa.string()),
+                          "wall_time_s": pa.array([row["wall_time_s"]], pa.float64()),
+                          "result_pickle": pa.array([blob], pa.binary())})
+        table = table.replace_schema_metadata({"hbvm_md.sha256": _digest(table.to_pylist()[0])})
         tmp = self._file(i).with_suffix(".tmp")
-        pq.write_table(table, tmp)
+        pq.write_table(table, tmp, write_page_checksum=True)
         os.replace(tmp, self._file(i))      # a crash leaves the old part or the new, never half
+        self.saved[i] = row
 
     def consolidate(self) -> Path | None:
-        """Join the parts into one table (columns unified; a missing value is null)."""
+        """Join the stored records into one table (see the module docstring)."""
         import pyarrow as pa
         import pyarrow.parquet as pq
-        files = sorted(self.parts.glob("member-*.parquet"))
-        if not files:
+        if not self.saved:
             return None
-        tables = [pq.read_table(f) for f in files]
-        table = pa.concat_tables(tables, promote_options="permissive")
+        rows = [self.saved[i] for i in sorted(self.saved)]
+        keys: dict[str, Any] = {}
+        for r in rows:
+            for k in (r["result"] or {}):
+                keys.setdefault(f"result.{k}", k)
+        cols = {"member": pa.array([r["member"] for r in rows], pa.int64()),
+                "param": pa.array([r["param"] for r in rows], pa.string()),
+                "status": pa.array([r["status"] for r in rows], pa.string()),
+                "error": pa.array([r["error"] for r in rows], pa.string()),
+                "wall_time_s": pa.array([r["wall_time_s"] for r in rows], pa.float64())}
+        text_columns = []
+        for name, k in keys.items():
+            cols[name], exact = _column([(r["result"] or {}).get(k) for r in rows])
+            if not exact:
+                text_columns.append(name)
+        cols["result_pickle"] = pa.array([r["result_pickle"] for r in rows], pa.binary())
+        table = pa.table(cols).replace_schema_metadata(
+            {"hbvm_md.json_columns": json.dumps(text_columns), "hbvm_md.task": self.task})
         out = self.path / _STORE_TABLE
         tmp = out.with_suffix(".tmp")
-        pq.write_table(table, tmp)
+        pq.write_table(table, tmp, write_page_checksum=True)
         os.replace(tmp, out)
         return out
 
 
 def load_store(path) -> list[dict]:
-    """The rows of a store's ``ensemble.parquet`` as dicts (``pandas.read_parquet`` gives a frame)."""
+    """The rows of a store's ``ensemble.parquet`` as dicts, ``result.<key>`` exactly as returned.
+
+    Each row has ``member``, ``param`` (JSON text), ``status``, ``error``, ``wall_time_s`` and
+    ``result.<key>`` for every key any member returned (None where a member lacks it), with
+    the values unpickled from the ``result_pickle`` column: the task's own objects, types
+    included (a big integer, a nested dict, an array).  Unpickling runs code named in the
+    file: load stores you wrote.  A member whose pickle no longer loads (its class is gone)
+    keeps the column values, with a warning.  ``pandas.read_parquet`` gives the columns as a
+    frame (the columns listed in the schema metadata ``hbvm_md.json_columns`` as JSON text).
+    """
     import pyarrow.parquet as pq
     f = Path(path) / _STORE_TABLE
     if not f.exists():
         raise ValueError(f"`path` {str(path)!r} holds no {_STORE_TABLE}; pass the `store` folder "
                          "of a run_ensemble call")
-    return pq.read_table(f).to_pylist()
+    try:
+        rows = pq.read_table(f, page_checksum_verification=True).to_pylist()
+    except Exception as exc:  # noqa: BLE001 - any unreadable file: say which and how to rebuild it
+        raise ValueError(f"the store table {str(f)!r} cannot be read ({type(exc).__name__}: {exc}); "
+                         "run run_ensemble with the same task, params and store again to rebuild it "
+                         "from the parts") from None
+    for row in rows:
+        blob = row.pop("result_pickle", None)
+        if blob is None:
+            continue
+        try:
+            result = pickle.loads(blob)
+        except Exception as exc:  # noqa: BLE001 - keep the columns rather than fail the read
+            warnings.warn(f"{str(f)!r}: the result of member {row['member']} does not unpickle "
+                          f"({type(exc).__name__}: {exc}); its row keeps the column values",
+                          EnsembleStoreWarning, stacklevel=2)
+            continue
+        for k, v in result.items():
+            row[f"result.{k}"] = v
+    return rows
 
 
 # -- the driver ------------------------------------------------------------------------------
@@ -252,7 +458,8 @@ def _connect(client, workers: int | None, connect_timeout: float):
 
 def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, store=None, *,
                  workers: int | None = None, warmup: Callable[[], Any] | None = None,
-                 progress: bool | None = None, connect_timeout: float = 5.0) -> list[dict]:
+                 progress: bool | None = None, connect_timeout: float = 5.0,
+                 timeout: float | None = None) -> list[dict]:
     """Run ``task(param)`` for every param on a dask cluster; one record per param, in order.
 
     Parameters
@@ -281,26 +488,45 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
         Show a progress bar (default: when stderr is a terminal).
     connect_timeout : float
         Seconds to wait for a scheduler given by address.
+    timeout : float, optional
+        Seconds a member may run; a longer one is stopped and recorded with
+        ``status="timeout"``, the others go on.  With a timeout each worker thread runs its
+        members in a child process of its own, killed (with whatever it started) when its
+        member is late, and replaced for the next member; ``warmup`` then runs once per child,
+        and the timeout counts the task call only (not the child's start or the warmup).
+        A child that dies is recorded as failed with the cause ("MemberProcessDied: ...");
+        one SIGKILLed from outside is first tried again (see the module docstring).
+        Without one, members run in the worker threads and a hung member blocks its worker.
 
     Returns
     -------
     list of dict
-        Per param: ``param`` (the object given), ``status`` ("ok" or "failed"), ``error``
-        ("ExceptionType: message" of a failed member, else None), ``result`` (the task's dict;
-        None when failed) and ``wall_time_s`` (the member's own time on its worker).  Members
-        loaded from the store have ``result`` as stored (arrays become lists).
+        Per param: ``param`` (the object given), ``status`` ("ok"; "failed" when the member
+        raised, ``SystemExit`` and ``KeyboardInterrupt`` included, when its process died or
+        its worker was lost; "timeout"), ``error`` ("ExceptionType: message" of a member not
+        ok, else None), ``result`` (the task's dict; None when not ok) and ``wall_time_s``
+        (the member's own time on its worker).  Members loaded from the store have ``result``
+        exactly as returned (pickled in the store), types included.
 
     Raises
     ------
     TypeError
         The task or a parameter does not pickle, or an argument has the wrong type.
     ValueError
-        Empty ``params``; a store that holds another ensemble.
+        Empty ``params``; a store that holds another ensemble; a bad ``timeout``.
+
+    Warns
+    -----
+    EnsembleStoreWarning
+        A store file (a part, ``meta.json``) cannot be read: the message names it; a part is
+        renamed ``*.corrupt`` and its member runs again.
     ConnectionError
         No scheduler answers at the address given within ``connect_timeout``.
     """
+    import cloudpickle
     from distributed import as_completed
 
+    from .ensemble_member import call, run_in_process
     from .reports.progress import progress as progress_bar
 
     if not callable(task):
@@ -313,12 +539,18 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
             and connect_timeout > 0):
         raise ValueError(f"`connect_timeout` must be a positive number of seconds (got "
                          f"{connect_timeout!r})")
-    _check_picklable(task, "task", "define it at module level in a module the workers can "
-                     "import (not a lambda or a function holding locks, files or open simulations)")
+    if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
+                                or not math.isfinite(timeout) or timeout <= 0):
+        raise ValueError(f"`timeout` must be None or a positive number of seconds a member may "
+                         f"run (got timeout={timeout!r})")
+    task_bytes = _check_picklable(task, "task", "define it at module level in a module the "
+                                  "workers can import (not a lambda or a function holding locks, "
+                                  "files or open simulations)")
     _check_picklable(params, "params", "use numbers, tuples, dicts, arrays or other picklable values")
     warmup = warmup if warmup is not None else _task_warmup(task)
+    warmup_bytes = None
     if warmup is not None:
-        _check_picklable(warmup, "warmup", "define it at module level")
+        warmup_bytes = _check_picklable(warmup, "warmup", "define it at module level")
 
     journal = _Store(store, task, params) if store is not None else None
     records: list[dict | None] = [None] * len(params)
@@ -336,7 +568,7 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     bar = progress_bar(total=len(params), desc="ensemble", enabled=progress)
     bar.update(len(params) - len(todo))
     try:
-        if warmup is not None:
+        if warmup is not None and timeout is None:      # under a timeout: in each child
             try:
                 cl.register_plugin(_Warmup(warmup), name=f"hbvm-md-warmup-{_task_text(warmup)}")
             except Exception as exc:
@@ -345,24 +577,33 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
                                    "warmup") from exc
         index = {}
         for i in todo:
-            f = cl.submit(_run_member, task, params[i], pure=False)
+            if timeout is None:
+                f = cl.submit(call, task, params[i], pure=False)
+            else:           # pickled here: the worker passes them on without importing the task
+                f = cl.submit(run_in_process, task_bytes, cloudpickle.dumps(params[i]),
+                              warmup_bytes, timeout, pure=False)
             index[f.key] = i
             futures.append(f)
         for f in as_completed(futures):
             i = index[f.key]
             try:
                 rec = f.result()
-                lost = False
+                lost = rec.get("lost", False)
+                if "result_pickle" in rec:      # from a member's process: unpickled here only
+                    blob = rec["result_pickle"]
+                    rec = {"status": rec["status"], "error": rec["error"],
+                           "result": pickle.loads(blob) if rec["status"] == "ok" else None,
+                           "wall_time_s": rec["wall_time_s"]}
             except Exception as exc:  # noqa: BLE001 - the worker died (KilledWorker) or similar
                 rec = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "result": None,
                        "wall_time_s": math.nan}
                 lost = True
             f.release()
-            if journal is not None and not lost:     # a lost member is retried by a rerun
+            if journal is not None and not lost:     # a lost member is tried again by a rerun
                 journal.save(i, rec)
             records[i] = {"param": params[i], **rec}
             bar.update(1)
-            bar.set_postfix_str(f"{sum(r is not None and r['status'] == 'failed' for r in records)} failed")
+            bar.set_postfix_str(f"{sum(r is not None and r['status'] != 'ok' for r in records)} not ok")
     finally:
         bar.close()
         unfinished = [f for f in futures if not f.done()]

@@ -2,7 +2,8 @@
 
 ``hbvm-md ensemble stability-map --grid 20x20 --t-end 2e6 --workers 2 --out DIR`` writes
 ``DIR/stability_map.csv`` and ``DIR/stability_map.png``; its store ``DIR/stability_map_store``
-lets an interrupted map resume.  ``--scheduler ADDRESS`` runs on an existing dask cluster.
+lets an interrupted map resume.  ``--scheduler ADDRESS`` runs on an existing dask cluster;
+``--timeout SECONDS`` stops a member that runs longer (recorded as ``timeout``).
 """
 from __future__ import annotations
 
@@ -52,6 +53,9 @@ def add_ensemble_parser(sub) -> None:
                    "local cluster)")
     m.add_argument("--out", default=f"{DEFAULT_OUT}/ensemble", help=f"output folder (default "
                    f"./{DEFAULT_OUT}/ensemble); its stability_map_store resumes an interrupted map")
+    m.add_argument("--timeout", type=_positive_float, default=None, metavar="SECONDS",
+                   help="stop a member that runs longer and record it as 'timeout' (each worker "
+                   "then runs its members in a child process it can kill; default: no limit)")
     m.add_argument("--quick", action="store_true", help="a small, short map (for CI)")
 
 
@@ -78,7 +82,7 @@ def cmd_ensemble(args) -> int:
     t0 = time.perf_counter()
     try:
         records = run_ensemble(task, params, client=args.scheduler, store=out / "stability_map_store",
-                               workers=args.workers)
+                               workers=args.workers, timeout=args.timeout)
     except (ValueError, ConnectionError) as err:
         _fail(f"{err} (or pass another --out)" if "store" in str(err) else str(err))
     wall = time.perf_counter() - t0
@@ -92,11 +96,12 @@ def cmd_ensemble(args) -> int:
                              f"Planet of {PLANET_MASS:g} M_sun in the outer solar system, HBVM, "
                              f"{t_end:g} days ({shape[0]}x{shape[1]} grid)")
     failed = sum(r["status"] != "ok" for r in records)
+    timed_out = sum(r["status"] == "timeout" for r in records)
     survived = sum(r["survived"] is True for r in rows)
     _say(f"{len(rows)} members in {wall:.1f} s: {survived} survived, {len(rows) - survived - failed} "
-         f"unstable, {failed} failed")
+         f"unstable, {failed - timed_out} failed, {timed_out} timed out")
     for r in records:
         if r["status"] != "ok":
-            _say(f"  failed {r['param']}: {r['error']}")
+            _say(f"  {r['status']} {r['param']}: {r['error']}")
     _say(f"wrote {csv_path}\nwrote {png}")
     return 0 if failed == 0 else 1

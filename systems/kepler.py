@@ -78,8 +78,14 @@ class Kepler(SeparableSystem):
         return H
 
     def angular_momentum(self, y):
+        """L = q x p = q_1 p_2 - q_2 p_1 for states y of shape (..., 4): shape (...,)."""
         y = np.asarray(y, dtype=float)
         return y[..., 0] * y[..., 3] - y[..., 1] * y[..., 2]
+
+    def angular_momentum_scale(self, y):
+        """|q| |p| for states y of shape (..., 4): the size of L's terms, shape (...,)."""
+        y = np.asarray(y, dtype=float)
+        return np.hypot(y[..., 0], y[..., 1]) * np.hypot(y[..., 2], y[..., 3])
 
     def separable_kernels(self):
         return _kepler_force, _kepler_potential, np.array([self.mu])

@@ -364,6 +364,36 @@ class NBody(SeparableSystem):
         src = np.repeat(self.is_source, 3)
         return 0.5 * np.sum(np.where(src, p * p / self.masses, 0.0), axis=-1)
 
+    def angular_momentum(self, y) -> np.ndarray:
+        """Total angular momentum of the sources about the origin, shape (..., 3).
+
+        L = sum over sources of q_i x p_i (p_i = m_i v_i), the constant of motion of the closed
+        system the sources form.  Test particles are left out, as :meth:`energy` leaves them
+        out: their L is not conserved (the sources pull on them and feel nothing back).  On a
+        scene of sources and massless test particles this is ``rebound.Simulation.
+        angular_momentum()``, which also counts massive particles beyond ``N_active``.
+
+        Parameters
+        ----------
+        y : array_like, shape (..., 6N)
+            States (q, p); leading axes (samples) are kept.
+        """
+        return self._angular_momentum(y)[0]
+
+    def angular_momentum_scale(self, y) -> np.ndarray:
+        """sum over sources of |q_i| |p_i|, shape (...,): the size of the terms of
+        :meth:`angular_momentum`, hence of its round-off."""
+        return self._angular_momentum(y)[1]
+
+    def _angular_momentum(self, y):
+        from .angular_momentum import angular_momentum
+        y = np.asarray(y, dtype=float)
+        if y.shape[-1:] != (2 * self.dim,):
+            raise ValueError(f"`y` must have shape (..., {2 * self.dim}) (got {y.shape})")
+        x = y[..., : self.dim].reshape(y.shape[:-1] + (self.N, 3))[..., self.is_source, :]
+        p = y[..., self.dim:].reshape(y.shape[:-1] + (self.N, 3))[..., self.is_source, :]
+        return angular_momentum(x, p)
+
     @property
     def kinetic_weights(self) -> np.ndarray:
         """1 / m per degree of freedom for the sources, 0 for test particles (the kinetic

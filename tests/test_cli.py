@@ -67,7 +67,19 @@ def test_bench_quick_writes_csv_png_markdown(tmp_path, capsys):
     assert csv[0].startswith("scene,method,family,param")
     md = (out / "workprecision.md").read_text()
     assert "HBVM s=2 (auto k)" in md and "DOP853" in md and "IAS15" in md and "what a larger k would have cost" in md
+    assert "| max rel dL |" in md
     assert str(out / "workprecision.csv") in capsys.readouterr().out
+    import csv as csvmod
+    rows = list(csvmod.DictReader((out / "workprecision.csv").read_text().splitlines()))
+    dL = {(r["scene"], r["method"], r["param"]): float(r["max_rel_angular_momentum_error"]) for r in rows}
+    # Kepler e = 0.6 over 4 periods: the symplectic methods keep L at round-off, HBVM(k, 2)
+    # (energy at round-off) loses it by ~5e-6 at 100 steps a period (h = 2 pi / 100)
+    for (scene, method, _), v in dL.items():
+        if scene == "kepler" and method.split("(")[0] in ("Gauss", "WHFast", "SABA", "leapfrog", "IAS15"):
+            assert v < 1e-14, (method, v)
+    assert 1e-6 < dL[("kepler", "HBVM s=2 (auto k)", "h=0.06283")] < 1e-4
+    # Henon-Heiles has no angular momentum: the column is empty (nan), not a number
+    assert all(np.isnan(v) for (scene, _, _), v in dL.items() if scene == "henon-heiles")
 
 
 def test_demo_quick_writes_plots(tmp_path, capsys):
@@ -78,6 +90,7 @@ def test_demo_quick_writes_plots(tmp_path, capsys):
     assert (out / "energy_outer_solar_system.png").stat().st_size > 0
     assert (out / "energy_md_cluster.png").stat().st_size > 0
     assert "ias15" in text.lower() and "VelocityVerlet" in text
+    assert "max rel. angular momentum error" in text and "max abs(L-L0)/abs(L0)" in text
 
 
 def test_python_dash_m_runs():
@@ -141,3 +154,25 @@ def test_energy_plot_draws_magnitudes_of_signed_errors():
     from hbvm_md.reports.plots import plotted_error
     got = plotted_error([0.0, -5.6e-8, 3e-16, float("nan")])
     assert got[0] == 1e-17 and got[1] == 5.6e-8 and got[2] == 3e-16 and np.isnan(got[3])
+
+
+def test_plots_put_the_angular_momentum_beside_the_energy(tmp_path, monkeypatch):
+    """The work-precision figure gets a middle panel for the angular momentum on scenes where
+    it is an invariant (a finite value in some row), and the energy-against-time figure one
+    beside the energy when its series are given."""
+    from hbvm_md.reports import plots
+    panels = []
+    save = plots._save
+    monkeypatch.setattr(plots, "_save", lambda fig, path: (panels.append([a.get_ylabel() for a in fig.axes]),
+                                                           save(fig, path))[1])
+    row = dict(method="m", finished=True, wall_time_s=1.0, max_rel_energy_error=1e-15, solution_error=1e-9,
+               max_rel_angular_momentum_error=float("nan"))
+    plots.work_precision_plot([row], tmp_path / "a.png", "no L")
+    plots.work_precision_plot([dict(row, max_rel_angular_momentum_error=3e-6)], tmp_path / "b.png", "L")
+    series = {"m": (np.arange(3.0), np.array([0.0, 1e-15, 2e-15]))}
+    plots.energy_error_plot(series, tmp_path / "c.png", "E")
+    plots.energy_error_plot(series, tmp_path / "d.png", "E and L", angular_momentum=series)
+    assert panels == [["max relative energy error", "final solution error (vs reference)"],
+                      ["max relative energy error", "max relative angular momentum error",
+                       "final solution error (vs reference)"],
+                      ["|H - H0| / |H0|"], ["|H - H0| / |H0|", "|L - L0| / |L0|"]]

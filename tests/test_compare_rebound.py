@@ -19,6 +19,38 @@ def test_outer_solar_system_table():
     assert t.shape == e.shape == (40,) and t[-1] == pytest.approx(2e4)
     table = cmp.table()
     assert table.count("\n") == 2 + len(cmp.rows) and "vs ias15" in table
+    assert "| max rel. angular momentum error |" in table and table.splitlines()[2].count("|") == 9
+    t, dL = cmp.angular_momentum_series[h["method"]]
+    assert t.shape == dL.shape == (40,) and np.all(dL >= 0)
+    assert cmp.row("ias15")["max_rel_angular_momentum_error"] < 1e-14          # round-off
+    assert h["max_rel_angular_momentum_error"] == dL.max()
+
+
+def test_angular_momentum_column_separates_energy_from_symplecticity():
+    """The column measures L, not the energy: HBVM(8, 2) at P_J / 20 keeps the energy at
+    round-off and loses L by 4e-6 over 2e4 days (not symplectic); WHFast loses the energy by
+    8e-8 and keeps L at round-off (symplectic); IAS15 keeps both."""
+    cmp = hbvm_md.compare_rebound("outer_solar_system", t_end=2e4, hbvm=((2, None, 4332.6 / 20),),
+                                  peers=("whfast", "ias15"), n_samples=20)
+    h, wh, ias = cmp.rows
+    assert h["max_rel_energy_error"] < 1e-13 and 1e-7 < h["max_rel_angular_momentum_error"] < 1e-4
+    assert wh["max_rel_energy_error"] > 1e-8 and wh["max_rel_angular_momentum_error"] < 1e-13
+    assert ias["max_rel_energy_error"] < 1e-13 and ias["max_rel_angular_momentum_error"] < 1e-14
+
+
+def test_angular_momentum_change_is_that_of_rebounds_own_diagnostic():
+    """angular_momentum_change on REBOUND states is the change of sim.angular_momentum() (the
+    scene has only sources), relative to |L0|."""
+    from hbvm_md.reports.rebound_comparison import _state, angular_momentum_change
+    nb = outer_solar_system()
+    sim = nb.to_rebound()
+    L0, xv0 = np.array(sim.angular_momentum()), _state(sim)
+    sim.particles[2].vx *= 1 + 1e-6                     # Saturn's velocity nudged
+    sim.particles[4].z += 1e-3
+    L1, xv1 = np.array(sim.angular_momentum()), _state(sim)
+    got = angular_momentum_change(nb, np.stack([xv0, xv1]))
+    assert got[0] == 0.0
+    assert got[1] == pytest.approx(np.linalg.norm(L1 - L0) / np.linalg.norm(L0), rel=1e-9)
 
 
 def test_scene_from_astropy_and_errors():
@@ -87,8 +119,8 @@ def test_heyoka_peer_energy_and_positions():
 
 
 def test_wall_time_leaves_out_the_energy_samples(monkeypatch):
-    """The wall time is the integration's (attach included), not the energy read at each output
-    time, which heyoka's runs do not pay either: with a clock that only the energy evaluation
+    """The wall time is the integration's (attach included), not the energy and the state read
+    at each output time, which heyoka's runs do not pay either: with a clock that only the energy evaluation
     advances, every run reports zero wall time (it reported n_samples when the energy was
     inside the timed region)."""
     from types import SimpleNamespace
@@ -104,9 +136,41 @@ def test_wall_time_leaves_out_the_energy_samples(monkeypatch):
         ticks[0] += 1.0
         return energy(sim)
 
+    state = rc._state
+
+    def ticking_state(sim):
+        ticks[0] += 1.0
+        return state(sim)
+
     monkeypatch.setattr(rc, "time", SimpleNamespace(perf_counter=lambda: ticks[0]))
     monkeypatch.setattr(rebound.Simulation, "energy", ticking_energy)
+    monkeypatch.setattr(rc, "_state", ticking_state)
     cmp = hbvm_md.compare_rebound("outer_solar_system", t_end=2e3, hbvm=((6, 7, 100.0),),
                                   peers=("ias15",), n_samples=10)
-    assert ticks[0] >= 2 * 10                              # the energy was read at every output
+    # the energy and the state (for the angular momentum) were read at every output
+    assert ticks[0] >= 2 * 2 * 10
     assert [r["wall_time_s"] for r in cmp.rows] == [0.0, 0.0]
+
+
+def test_heyoka_rows_get_the_same_angular_momentum_column_without_heyoka():
+    """_run_heyoka measures L from the states the peer returns, as _run does: checked with a
+    stand-in solver that returns IAS15's states (heyoka itself is optional)."""
+    from types import SimpleNamespace
+
+    from hbvm_md.reports.rebound_comparison import _run_heyoka, _state
+
+    nb = outer_solar_system()
+
+    def propagate(xv0, ts):
+        sim = nb.to_rebound()
+        states = []
+        for t in ts:
+            sim.integrate(t)
+            states.append(_state(sim).copy())
+        return np.array(states), 0.0, int(sim.steps_done)
+
+    fake = SimpleNamespace(propagate=propagate, compile_time=0.0)
+    row, (t, err), x, (tl, dL) = _run_heyoka(lambda: nb.to_rebound(), "stand-in", fake, 2e4, 20)
+    assert t.shape == tl.shape == dL.shape == (20,) and np.array_equal(t, tl)
+    assert row["max_rel_angular_momentum_error"] == dL.max() and 0 < dL.max() < 1e-14
+    assert row["max_rel_energy_error"] < 1e-14

@@ -296,3 +296,25 @@ def test_poincare_transformed_is_exported_and_built_for_kepler():
     pt = PoincareTransformed.for_kepler(Kepler(0.9), alpha=1.0)
     assert isinstance(pt, PoincareKepler) and pt.dim == 3 and callable(distance_power)
     assert float(pt.energy(pt.extend(Kepler(0.9).initial_state()))) == 0.0
+
+
+def test_angular_momentum_is_reboundss_for_sources_and_leaves_test_particles_out():
+    """NBody.angular_momentum is REBOUND's sim.angular_momentum() on a scene of sources (and
+    massless test particles), vectorised over samples; a massive particle beyond N_active is
+    left out (REBOUND counts it, but nothing conserves its share)."""
+    nb = outer_solar_system()
+    y = nb.initial_state()
+    L = nb.angular_momentum(y)
+    np.testing.assert_allclose(L, np.array(nb.to_rebound().angular_momentum()), rtol=1e-14)
+    assert np.linalg.norm(L) <= nb.angular_momentum_scale(y) <= 1.2 * np.linalg.norm(L)
+    Y = np.stack([y, 2 * y, y])
+    assert nb.angular_momentum(Y).shape == (3, 3) and nb.angular_momentum_scale(Y).shape == (3,)
+    np.testing.assert_allclose(nb.angular_momentum(Y)[1], 4 * L, rtol=1e-14)
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    v = np.array([[0.0, 0, 0], [0, 1, 0], [1, 0, 0]])
+    sources = NBody([1.0, 1e-3, 0.0], positions=x, velocities=v)       # body 2: a test particle
+    beyond = NBody([1.0, 1e-3, 5e-3], n_active=2, positions=x, velocities=v)
+    for m in (sources, beyond):
+        np.testing.assert_allclose(m.angular_momentum(m.initial_state()), [0, 0, 1e-3], rtol=1e-15)
+    with pytest.raises(ValueError, match=r"`y` must have shape \(\.\.\., 18\)"):
+        sources.angular_momentum(np.zeros(12))

@@ -1,9 +1,16 @@
-"""Energy conservation of HBVM(k, s) against ASE's VelocityVerlet on the same atoms.
+"""Energy and angular-momentum conservation of HBVM(k, s) against ASE's VelocityVerlet on the
+same atoms.
 
 :func:`compare_md` runs every method at every time step from the same positions, the same
 calculator and the same seeded Maxwell-Boltzmann velocities, records the total energy at full
-precision after every step (through an observer; MDLogger prints 3-4 decimals) and returns an
-:class:`MDComparison` with a table and the energy-error series.
+precision and the positions and momenta after every step (through an observer; MDLogger prints
+3-4 decimals) and returns an :class:`MDComparison` with a table and the error series.  The
+angular momentum is the cluster's about its centre of mass
+(:func:`hbvm_md.reports.invariants.atoms_angular_momentum`), its change measured as
+:mod:`hbvm_md.reports.invariants` defines: a free cluster conserves it, so does VelocityVerlet
+to round-off, and HBVM(k, s) with k > s, which is not symplectic, does not.  In a periodic cell
+or with constraints L is no invariant (the cell's images and the fixed atoms exert torques): the
+column is then nan, printed "-".
 """
 from __future__ import annotations
 
@@ -21,6 +28,7 @@ _COLUMNS = [("method", "method", "{}"), ("dt_fs", "dt [fs]", "{:g}"), ("steps", 
             ("max_abs_dE_per_atom_eV", "max abs(E-E0)/N [eV]", "{:.2e}"),
             ("max_rel_dE", "max abs(E-E0)/abs(E0)", "{:.2e}"),
             ("drift_slope", "drift [eV/atom/ps]", "{:.1e}"),
+            ("max_rel_dL", "max abs(L-L0)/abs(L0)", "{:.2e}"),
             ("force_evals", "force evals", "{}"), ("wall_time_s", "wall [s]", "{:.3f}")]
 
 
@@ -34,17 +42,23 @@ class MDComparison:
         One per (method, time step): ``method``, ``dt_fs``, ``steps``, ``max_abs_dE_per_atom_eV``
         (max |E - E0| / N), ``max_rel_dE`` (max |E - E0| / |E0|), ``drift_slope`` (slope of a
         least-squares line through (E - E0) / N against time, eV per atom per ps),
-        ``force_evals`` (configurations at which forces were computed, including the initial
-        one), ``wall_time_s`` (the run, observers included), ``E0_eV`` (initial total energy)
-        and ``k``, ``s`` (None for VelocityVerlet).
+        ``max_rel_dL`` (max |L - L0| / |L0| of the angular momentum about the centre of mass,
+        :mod:`hbvm_md.reports.invariants`; nan when the atoms have a periodic direction or
+        constraints, where L is not conserved), ``force_evals`` (configurations at which forces were
+        computed, including the initial one), ``wall_time_s`` (the run without the observer
+        that records the energy and the state: what the integration costs), ``E0_eV`` (initial
+        total energy) and ``k``, ``s`` (None for VelocityVerlet).
     series : dict
         label -> (t_ps (steps + 1,), (E - E0) / |E0| (steps + 1,)), label "method dt=... fs".
+    angular_momentum_series : dict
+        label -> (t_ps (steps + 1,), |L - L0| / |L0| (steps + 1,)), the same labels.
     n_atoms : int
     """
 
     rows: list = field(default_factory=list)
     series: dict = field(default_factory=dict)
     n_atoms: int = 0
+    angular_momentum_series: dict = field(default_factory=dict)
 
     def table(self) -> str:
         """The rows as a markdown table."""
@@ -52,7 +66,8 @@ class MDComparison:
         rule = "|" + "|".join("---" for _ in _COLUMNS) + "|"
         lines = [head, rule]
         for r in self.rows:
-            lines.append("| " + " | ".join(fmt.format(r[key]) for key, _, fmt in _COLUMNS) + " |")
+            lines.append("| " + " | ".join("-" if isinstance(r[key], float) and np.isnan(r[key]) else fmt.format(r[key])
+                                           for key, _, fmt in _COLUMNS) + " |")
         return "\n".join(lines)
 
     def row(self, method: str, dt_fs: float | None = None) -> dict:
@@ -149,6 +164,7 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
     from ase.md.verlet import VelocityVerlet
 
     from ..ase_dynamics import HBVMDynamics
+    from .invariants import atoms_angular_momentum, change_series
 
     calc = atoms.calc if calculator is None else calculator
     if calc is None:
@@ -169,6 +185,8 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
             raise ValueError(f"`temperature_K` must be >= 0 or None (got {temperature_K!r})")
         maxwell_boltzmann(start, temperature_K, seed)
 
+    # L is an invariant of a free cluster only: no periodic direction, no constraints
+    free = not np.any(start.pbc) and not start.constraints
     result = MDComparison(n_atoms=len(start))
     for dt in dts:
         for kind, s, k in specs:
@@ -176,7 +194,7 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
             if hasattr(calc, "reset"):
                 calc.reset()    # every run starts with an empty cache (fair force counts)
             a.calc = calc
-            energies = []
+            energies, states = [], []
             batch0 = getattr(calc, "batch_evaluations", 0)
             with _CountingCalculator(calc) as counter:
                 if kind == "VelocityVerlet":
@@ -185,24 +203,40 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
                 else:
                     dyn = HBVMDynamics(a, timestep=dt * units.fs, s=s, k=k)
                     label = repr(dyn.method)
-                dyn.attach(lambda a=a: energies.append(a.get_potential_energy()
-                                                       + a.get_kinetic_energy()))
+                observing = [0.0]
+
+                def observe(a=a, observing=observing):
+                    # the time spent recording is left out of the wall time: the diagnostics
+                    # are not what a method costs (the same for every method)
+                    t1 = time.perf_counter()
+                    energies.append(a.get_potential_energy() + a.get_kinetic_energy())
+                    states.append((a.get_positions(), a.get_momenta()))
+                    observing[0] += time.perf_counter() - t1
+                dyn.attach(observe)
                 t0 = time.perf_counter()
                 dyn.run(steps)
-                wall = time.perf_counter() - t0
+                wall = time.perf_counter() - t0 - observing[0]
             nfev = counter.count + getattr(calc, "batch_evaluations", 0) - batch0
             E = np.array(energies)
             t_ps = np.arange(len(E)) * dt / 1000.0
             dE = E - E[0]
             scale = abs(E[0]) if E[0] != 0 else 1.0
+            if free:
+                L, L_scale = atoms_angular_momentum(np.array([x for x, _ in states]),
+                                                    np.array([p for _, p in states]), a.get_masses())
+                dL = change_series(L, L_scale)
+            else:
+                dL = np.full(len(states), np.nan)
             row = {"method": label, "dt_fs": dt, "steps": steps, "E0_eV": float(E[0]),
                    "max_abs_dE_per_atom_eV": float(np.max(np.abs(dE)) / len(a)),
                    "max_rel_dE": float(np.max(np.abs(dE)) / scale),
                    "drift_slope": float(np.polyfit(t_ps, dE / len(a), 1)[0]),
+                   "max_rel_dL": float(np.max(dL)),
                    "force_evals": int(nfev), "wall_time_s": wall,
                    "k": getattr(dyn, "k", None), "s": getattr(dyn, "s", None)}
             result.rows.append(row)
             result.series[f"{label} dt={dt:g} fs"] = (t_ps, dE / scale)
+            result.angular_momentum_series[f"{label} dt={dt:g} fs"] = (t_ps, dL)
     if verbose:
         print(result.table())
     return result

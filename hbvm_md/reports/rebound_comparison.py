@@ -1,4 +1,10 @@
-"""Energy conservation of HBVM(k, s) against REBOUND's own integrators, in one process.
+"""Energy and angular-momentum conservation of HBVM(k, s) against REBOUND's own integrators,
+in one process.
+
+The angular momentum is that of the sources about the origin (:meth:`systems.NBody.
+angular_momentum`, REBOUND's ``sim.angular_momentum()`` for sources and massless test
+particles), computed by one function from the states every method reached at the output times;
+its change is measured as :mod:`hbvm_md.reports.invariants` defines.
 
 >>> from hbvm_md import compare_rebound
 >>> cmp = compare_rebound("outer_solar_system", t_end=1e5, verbose=True)   # doctest: +SKIP
@@ -56,10 +62,14 @@ class ReboundComparison:
     ----------
     rows : list of dict
         One per run: method, dt, steps, max_rel_energy_error, drift_slope (relative energy
-        error per unit time, least-squares line), final_position_diff (max over particles of
-        |x - x_ref| at t_end, in the scene's length unit), wall_time_s.
+        error per unit time, least-squares line), max_rel_angular_momentum_error (max over the
+        output times of |L - L0| / |L0|, :mod:`hbvm_md.reports.invariants`),
+        final_position_diff (max over particles of |x - x_ref| at t_end, in the scene's length
+        unit), wall_time_s.
     series : dict
         label -> (t (n,), relative energy error (n,)) for plotting.
+    angular_momentum_series : dict
+        label -> (t (n,), |L - L0| / |L0| (n,)) for plotting.
     reference : str
         Label of the run the positions are compared with.
     t_end : float
@@ -70,6 +80,7 @@ class ReboundComparison:
     reference: str
     t_end: float
     positions: dict = field(default_factory=dict, repr=False)
+    angular_momentum_series: dict = field(default_factory=dict, repr=False)
 
     def row(self, method: str) -> dict:
         for r in self.rows:
@@ -80,28 +91,42 @@ class ReboundComparison:
     def table(self) -> str:
         """A markdown table of the rows."""
         head = ("| method | dt | steps | max rel. energy error | drift slope (1/time) | "
-                f"final position diff vs {self.reference} | wall time (s) |\n"
-                "|---|---|---|---|---|---|---|\n")
+                f"max rel. angular momentum error | final position diff vs {self.reference} | "
+                "wall time (s) |\n"
+                "|---|---|---|---|---|---|---|---|\n")
         lines = []
         for r in self.rows:
             dt = "adaptive" if r["dt"] is None else f"{r['dt']:.4g}"
             lines.append(f"| {r['method']} | {dt} | {r['steps']} | {r['max_rel_energy_error']:.2e} | "
-                         f"{r['drift_slope']:.1e} | {r['final_position_diff']:.1e} | "
+                         f"{r['drift_slope']:.1e} | {r['max_rel_angular_momentum_error']:.2e} | "
+                         f"{r['final_position_diff']:.1e} | "
                          f"{r['wall_time_s']:.4f} |")
         return head + "\n".join(lines) + "\n"
 
 
-def _positions(sim) -> np.ndarray:
-    N = sim.N
-    xv = np.zeros(6 * N)
+def _state(sim) -> np.ndarray:
+    """Positions and velocities of every particle, shape (N, 6) (REBOUND's xyzvxvyvz)."""
+    xv = np.zeros(6 * sim.N)
     sim.serialize_particle_data(xyzvxvyvz=xv)
-    return xv.reshape(N, 6)[:, :3].copy()
+    return xv.reshape(sim.N, 6)
 
 
-def _summary(label, steps, wall, ts, err, final_t, setup_time=0.0, compile_time=None) -> dict:
+def angular_momentum_change(nb, xv) -> np.ndarray:
+    """|L(t) - L(0)| / |L(0)| of the sources of ``nb`` (:class:`systems.NBody`) at states
+    ``xv`` of shape (n, N, 6) (REBOUND's or heyoka's positions and velocities, the first the
+    start); shape (n,).  One function for every method of a comparison."""
+    from .invariants import change_series
+    xv = np.asarray(xv, dtype=float).reshape(len(xv), nb.N, 6)
+    y = np.concatenate([xv[..., :3].reshape(len(xv), -1),
+                        xv[..., 3:].reshape(len(xv), -1) * nb.masses], axis=1)
+    return change_series(nb.angular_momentum(y), nb.angular_momentum_scale(y))
+
+
+def _summary(label, steps, wall, ts, err, final_t, setup_time=0.0, compile_time=None, dL=None) -> dict:
     return dict(method=label, steps=int(steps), wall_time_s=float(wall), setup_time_s=float(setup_time),
                 compile_time_s=compile_time, max_rel_energy_error=float(err.max()),
                 drift_slope=float(np.polyfit(ts - ts[0], err, 1)[0]) if len(ts) > 2 else 0.0,
+                max_rel_angular_momentum_error=float(dL.max()) if dL is not None else float("nan"),
                 final_t=float(final_t))
 
 
@@ -109,14 +134,18 @@ def _run(make, label, setup, t_end, n_samples):
     """One REBOUND-driven run: ``setup(sim)`` (attaching HBVM chooses k there) is inside the
     timed region, because the user pays for it; then ``sim.integrate(t_i)`` at each output time
     (exact_finish_time=1: REBOUND shortens the step that would overshoot an output time).  The
-    energy at each output time is measured outside the timed region, as it is for heyoka
-    (:func:`_run_heyoka`): the wall time is what the integration costs, the same work for
-    every method (``sim.energy()`` cost 1-1.5 us an output here, 3 % of HBVM's time over
-    1e5 days)."""
+    energy and the state (for the angular momentum) at each output time are read outside the
+    timed region, as they are for heyoka (:func:`_run_heyoka`): the wall time is what the
+    integration costs, the same work for every method (``sim.energy()`` cost 1-1.5 us an
+    output here, 3 % of HBVM's time over 1e5 days)."""
+    from systems import NBody
     sim = make()
+    nb = NBody.from_rebound(sim)
     E0 = sim.energy()
     ts = np.linspace(0.0, t_end, n_samples + 1)[1:] + sim.t
     err = np.empty(n_samples)
+    xv = np.empty((n_samples + 1, sim.N, 6))
+    xv[0] = _state(sim)
     steps0 = sim.steps_done
     clock = time.perf_counter
     start = clock()
@@ -127,10 +156,13 @@ def _run(make, label, setup, t_end, n_samples):
         sim.integrate(t, exact_finish_time=1)
         wall += clock() - start
         err[i] = abs(sim.energy() - E0) / abs(E0)
-    x = _positions(sim)
+        xv[i + 1] = _state(sim)
+    x = xv[-1, :, :3].copy()
     if drv is not None:
         drv.detach()
-    return _summary(label, sim.steps_done - steps0, wall, ts, err, sim.t, setup_time), (ts, err), x, drv
+    dL = angular_momentum_change(nb, xv)[1:]
+    return (_summary(label, sim.steps_done - steps0, wall, ts, err, sim.t, setup_time, dL=dL), (ts, err), x,
+            drv, (ts, dL))
 
 
 #: heyoka integrators already built in this process, by (masses, G, tol, precision, compact):
@@ -152,8 +184,11 @@ def heyoka_solver(sim, tol: float | None = None, fp_type=float, compact_mode: bo
 
 def _run_heyoka(make, label, solver, t_end, n_samples):
     """heyoka over the same output times (``propagate_grid``); energies evaluated by REBOUND's
-    ``sim.energy()`` on the output states, as for the REBOUND-driven runs (untimed)."""
+    ``sim.energy()`` on the output states and the angular momentum by
+    :func:`angular_momentum_change`, as for the REBOUND-driven runs (untimed)."""
+    from systems import NBody
     sim = make()
+    nb = NBody.from_rebound(sim)
     E0 = sim.energy()
     xv = np.zeros(6 * sim.N)
     sim.serialize_particle_data(xyzvxvyvz=xv)
@@ -164,8 +199,9 @@ def _run_heyoka(make, label, solver, t_end, n_samples):
         sim.set_serialized_particle_data(xyzvxvyvz=np.ascontiguousarray(states[i + 1], dtype=float).reshape(-1))
         err[i] = abs(sim.energy() - E0) / abs(E0)
     x = np.asarray(states[-1, :, :3], dtype=float)
-    return (_summary(label, steps, wall, ts[1:], err, ts[-1], compile_time=solver.compile_time),
-            (ts[1:], err), x)
+    dL = angular_momentum_change(nb, np.asarray(states, dtype=float))[1:]
+    return (_summary(label, steps, wall, ts[1:], err, ts[-1], compile_time=solver.compile_time, dL=dL),
+            (ts[1:], err), x, (ts[1:], dL))
 
 
 #: ``reference=EXTENDED``: heyoka in 80-bit extended precision at tol 1e-18 (compact mode).
@@ -256,24 +292,25 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
             return None
         runs.append(("rebound", name, setup, dt))
 
-    rows, series, positions = [], {}, {}
+    rows, series, positions, l_series = [], {}, {}, {}
     for kind, label, setup, dt in runs:
         if kind == "hbvm":
             # untimed warm-up over one sample interval: the first call of the compiled step in
             # a process loads it from numba's cache (or compiles it), which is not integration
             _run(make, "hbvm", setup, interval, 1)
-            row, ser, x, drv = _run(make, "hbvm", setup, t_end, n_samples)
+            row, ser, x, drv, lser = _run(make, "hbvm", setup, t_end, n_samples)
             label = row["method"] = f"HBVM({drv.method.k},{label[0]})"
         elif kind == "heyoka":
-            row, ser, x = _run_heyoka(make, label, setup, t_end, n_samples)
+            row, ser, x, lser = _run_heyoka(make, label, setup, t_end, n_samples)
             row["tol"], row["order"] = setup.tol, setup.order
         else:
-            row, ser, x, _ = _run(make, label, setup, t_end, n_samples)
+            row, ser, x, _, lser = _run(make, label, setup, t_end, n_samples)
         row["dt"] = dt
         if label in series:          # e.g. two HBVM variants that chose the same k
             label = row["method"] = f"{label} dt={dt:.4g}" if dt else f"{label} #{len(rows)}"
         rows.append(row)
         series[label] = ser
+        l_series[label] = lser
         positions[label] = x
     if reference == EXTENDED:
         sim = make()
@@ -291,7 +328,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         xr = positions[reference]
     for r in rows:
         r["final_position_diff"] = float(np.max(np.linalg.norm(positions[r["method"]] - xr, axis=1)))
-    out = ReboundComparison(rows, series, reference, float(t_end), positions)
+    out = ReboundComparison(rows, series, reference, float(t_end), positions, l_series)
     if verbose:
         print(out.table())
     return out

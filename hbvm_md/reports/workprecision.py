@@ -1,9 +1,12 @@
 """Work-precision diagrams: error against wall time for HBVM and its peers, per scene.
 
 Each scene sweeps step sizes (tolerances for adaptive peers) and measures, for every run, the
-largest relative energy error and the final position error against a reference run of
-higher accuracy (``solution_error`` = max |q - q_ref| / max |q_ref|).  :func:`bench` writes a
-CSV, one PNG per scene and a markdown table.
+largest relative energy error, the largest relative change of the angular momentum where it is
+an invariant (Kepler, the outer solar system, the free MD cluster; ``nan`` on FPU and
+Henon-Heiles; measured as :mod:`hbvm_md.reports.invariants` defines, from the same samples for
+every method, never inside a timed region) and the final position error against a reference
+run of higher accuracy (``solution_error`` = max |q - q_ref| / max |q_ref|).  :func:`bench`
+writes a CSV, one PNG per scene and a markdown table.
 
 Scenes (``SCENES``):
 
@@ -36,12 +39,13 @@ from systems import FPU, HenonHeiles, Kepler
 
 from .autok import k_cost
 from .hard_cases import kepler_exact
+from .invariants import atoms_angular_momentum, relative_change
 from .names import scene_key
 from .peers import dop853, rebound_kepler, sample_interval, stormer_verlet
 from .progress import progress
 
 FIELDS = ["scene", "method", "family", "param", "steps", "nfev", "wall_time_s",
-          "max_rel_energy_error", "solution_error", "finished", "note"]
+          "max_rel_energy_error", "max_rel_angular_momentum_error", "solution_error", "finished", "note"]
 
 
 def _pos_error(q, q_ref) -> float:
@@ -49,10 +53,22 @@ def _pos_error(q, q_ref) -> float:
     return float(np.max(np.abs(q - q_ref)) / np.max(np.abs(q_ref)))
 
 
-def _row(scene, method, family, param, steps, nfev, wall, energy_err, sol_err, finished=True, note=""):
+def _row(scene, method, family, param, steps, nfev, wall, energy_err, sol_err, finished=True, note="",
+         dL=float("nan")):
     return dict(scene=scene, method=method, family=family, param=param, steps=int(steps), nfev=int(nfev),
                 wall_time_s=float(wall), max_rel_energy_error=float(energy_err),
+                max_rel_angular_momentum_error=float(dL),
                 solution_error=float(sol_err), finished=bool(finished), note=note)
+
+
+def _dL(system, Y) -> float:
+    """Max relative change of the angular momentum over the samples Y (n, 2m) of a run, by the
+    model's own ``angular_momentum`` (Kepler, NBody); nan for a model without one (the
+    invariant does not exist there)."""
+    if not hasattr(system, "angular_momentum"):
+        return float("nan")
+    Y = np.asarray(Y, dtype=float)
+    return relative_change(system.angular_momentum(Y), system.angular_momentum_scale(Y))
 
 
 def _rel_energy(E) -> float:
@@ -90,9 +106,10 @@ def _core_run(scene, label, family, method, system, y0, h, n, q_ref, d, note="")
     try:
         r = integrate(method, system, y0, h, n, sample_every=sample_interval(n, 200))
     except StepError as err:
-        return _row(scene, label, family, f"h={h:.4g}", 0, 0, 0, np.inf, np.inf, False, f"ConvergenceError: {err.solver}")
+        return _row(scene, label, family, f"h={h:.4g}", 0, 0, 0, np.inf, np.inf, False, f"ConvergenceError: {err.solver}",
+                    dL=np.inf if hasattr(system, "angular_momentum") else np.nan)
     return _row(scene, label, family, f"h={h:.4g}", r.steps, r.nfev, r.wall_time, r.max_energy_error,
-                _pos_error(r.y[-1, :d], q_ref), True, note or f"k={method.k}")
+                _pos_error(r.y[-1, :d], q_ref), True, note or f"k={method.k}", dL=_dL(system, r.y))
 
 
 def _verlet_rows(scene, system, y0, T, ns, q_ref):
@@ -101,7 +118,8 @@ def _verlet_rows(scene, system, y0, T, ns, q_ref):
         vv = stormer_verlet(system, y0, T / n, n, sample_every=sample_interval(n, 200))
         sol = _pos_error(vv.y[-1, : system.dim], q_ref) if vv.finished else np.inf
         rows.append(_row(scene, "VelocityVerlet", "Verlet", f"h={T / n:.4g}", vv.steps, vv.nfev, vv.wall_time,
-                         vv.max_energy_error if vv.finished else np.inf, sol, vv.finished, vv.message))
+                         vv.max_energy_error if vv.finished else np.inf, sol, vv.finished, vv.message,
+                         dL=_dL(system, vv.y) if vv.finished else np.inf))
     return rows
 
 
@@ -111,7 +129,7 @@ def _dop_rows(scene, system, y0, T, rtols, q_ref):
         r = dop853(system, y0, T, rtol=rtol, samples=200)
         sol = _pos_error(r.y[-1, : system.dim], q_ref) if r.finished else np.inf
         rows.append(_row(scene, "DOP853", "DOP853", f"rtol={rtol:.0e}", r.steps, r.nfev, r.wall_time,
-                         r.max_energy_error, sol, r.finished, r.message))
+                         r.max_energy_error, sol, r.finished, r.message, dL=_dL(system, r.y)))
     return rows
 
 
@@ -131,11 +149,11 @@ def scene_kepler(quick=False, k_info=None, bar=None):
         for n in ns:
             r = _rebound_kepler_fixed(0.6, T, name, n)
             rows.append(_row("kepler", label, "REBOUND", f"h=T/{n}", r.steps, r.nfev, r.wall_time,
-                             r.max_energy_error, _pos_error(r.y[-1, :2], q_ref)))
+                             r.max_energy_error, _pos_error(r.y[-1, :2], q_ref), dL=_dL(kep, r.y)))
     for eps in ((1e-6,) if quick else (1e-3, 1e-5, 1e-7, 1e-9)):
         r = rebound_kepler(0.6, T, "ias15", epsilon=eps, samples=100)
         rows.append(_row("kepler", "IAS15", "REBOUND", f"eps={eps:.0e}", r.steps, r.nfev, r.wall_time,
-                         r.max_energy_error, _pos_error(r.y[-1, :2], q_ref)))
+                         r.max_energy_error, _pos_error(r.y[-1, :2], q_ref), dL=_dL(kep, r.y)))
     return rows, f"Kepler e=0.6, {periods} periods (reference: exact solution)"
 
 
@@ -230,17 +248,22 @@ def _heyoka_rows(scene, nb, y0, T, tols, q_ref, samples=100):
     rows = []
     for tol in tols:
         solver = heyoka_solver(nb.to_rebound(y0), tol=tol)
-        r, _, x = _run_heyoka(lambda: nb.to_rebound(y0), "heyoka", solver, T, samples)
+        r, _, x, _ = _run_heyoka(lambda: nb.to_rebound(y0), "heyoka", solver, T, samples)
         rows.append(_row(scene, "heyoka", "heyoka", f"tol={solver.tol:.0e}", r["steps"], 0, r["wall_time_s"],
                          r["max_rel_energy_error"], _pos_error(x.reshape(-1), q_ref),
-                         note=f"Taylor order {solver.order} (nfev: not applicable); compile {solver.compile_time:.2f} s not timed"))
+                         note=f"Taylor order {solver.order} (nfev: not applicable); compile {solver.compile_time:.2f} s not timed",
+                         dL=r["max_rel_angular_momentum_error"]))
     return rows
 
 
 def _rebound_nbody(scene, label, nb, y0, T, name, n=None, eps=None, q_ref=None, samples=100):
+    """One REBOUND run of the N-body scene: ``sim.steps`` (fixed step) or ``sim.integrate``
+    (IAS15) timed, the energy and the state at each output read between the timed calls."""
+    from .rebound_comparison import _state, angular_momentum_change
     sim = nb.to_rebound(y0)
     sim.integrator = name
     es = [sim.energy()]
+    xv = [_state(sim)]
     wall = 0.0
     if n is not None:
         sim.dt = T / n
@@ -250,6 +273,7 @@ def _rebound_nbody(scene, label, nb, y0, T, name, n=None, eps=None, q_ref=None, 
             sim.steps(int(c))
             wall += time.perf_counter() - t0
             es.append(sim.energy())
+            xv.append(_state(sim))
         param = f"h=T/{n}"
     else:
         sim.integrator.epsilon = eps
@@ -258,9 +282,10 @@ def _rebound_nbody(scene, label, nb, y0, T, name, n=None, eps=None, q_ref=None, 
             sim.integrate(tt)
             wall += time.perf_counter() - t0
             es.append(sim.energy())
+            xv.append(_state(sim))
         param = f"eps={eps:.0e}"
     return _row(scene, label, "REBOUND", param, sim.steps_done, sim.steps_done, wall, _rel_energy(es),
-                _pos_error(_sim_positions(sim), q_ref))
+                _pos_error(_sim_positions(sim), q_ref), dL=float(np.max(angular_momentum_change(nb, np.array(xv)))))
 
 
 def scene_md_cluster(quick=False, k_info=None, bar=None):
@@ -285,19 +310,25 @@ def scene_md_cluster(quick=False, k_info=None, bar=None):
         return a
 
     def run(make_dyn, dt):
+        """(atoms, steps, wall, energies, dL): the energy, positions and momenta read between
+        the timed ``dyn.run`` calls; dL the max relative change of the angular momentum about
+        the centre of mass (:func:`hbvm_md.reports.invariants.atoms_angular_momentum`)."""
         a = fresh()
         dyn = make_dyn(a, dt * units.fs)
         n = int(round(T_fs / dt))
         es = [a.get_total_energy()]
+        xs, ps = [a.get_positions()], [a.get_momenta()]
         every = sample_interval(n, 100)
-        t0 = time.perf_counter()
         wall = 0.0
         for _ in range(n // every):
             t0 = time.perf_counter()
             dyn.run(every)
             wall += time.perf_counter() - t0
             es.append(a.get_total_energy())
-        return a, n, wall, np.array(es)
+            xs.append(a.get_positions())
+            ps.append(a.get_momenta())
+        L, scale = atoms_angular_momentum(np.array(xs), np.array(ps), a.get_masses())
+        return a, n, wall, np.array(es), relative_change(L, scale)
 
     ref_atoms, *_ = run(lambda a, dt: HBVMDynamics(a, dt, s=3), min(dts) / 4)
     q_ref = ref_atoms.get_positions().reshape(-1)
@@ -305,17 +336,17 @@ def scene_md_cluster(quick=False, k_info=None, bar=None):
     for s in ((1, 2) if quick else (1, 2, 3)):
         for dt in dts:
             try:
-                a, n, wall, es = run(lambda a, dt_: HBVMDynamics(a, dt_, s=s), dt)
+                a, n, wall, es, dL = run(lambda a, dt_: HBVMDynamics(a, dt_, s=s), dt)
             except StepError:
                 rows.append(_row("md-cluster", f"HBVMDynamics(s={s})", "HBVM", f"dt={dt}fs", 0, 0, 0, np.inf,
-                                 np.inf, False, "ConvergenceError"))
+                                 np.inf, False, "ConvergenceError", dL=np.inf))
                 continue
             rows.append(_row("md-cluster", f"HBVMDynamics(s={s})", "HBVM", f"dt={dt}fs", n, 0, wall,
-                             _rel_energy(es), _pos_error(a.get_positions().reshape(-1), q_ref)))
+                             _rel_energy(es), _pos_error(a.get_positions().reshape(-1), q_ref), dL=dL))
     for dt in dts + ((0.5, 0.25) if not quick else (1.0,)):
-        a, n, wall, es = run(lambda a, dt_: VelocityVerlet(a, timestep=dt_), dt)
+        a, n, wall, es, dL = run(lambda a, dt_: VelocityVerlet(a, timestep=dt_), dt)
         rows.append(_row("md-cluster", "VelocityVerlet (ASE)", "Verlet", f"dt={dt}fs", n, n, wall,
-                         _rel_energy(es), _pos_error(a.get_positions().reshape(-1), q_ref)))
+                         _rel_energy(es), _pos_error(a.get_positions().reshape(-1), q_ref), dL=dL))
     return rows, f"polynomial-pair cluster through ASE, {T_fs:g} fs (reference: HBVMDynamics s=3, dt/4)"
 
 
@@ -341,14 +372,16 @@ def markdown(rows: list, titles: dict, k_info: list) -> str:
     out = ["# Work-precision benchmark", ""]
     for scene, title in titles.items():
         out += [f"## {scene}: {title}", "",
-                "| method | param | steps | wall s | max rel dE | solution error | note |",
-                "|---|---|---:|---:|---:|---:|---|"]
+                "| method | param | steps | wall s | max rel dE | max rel dL | solution error | note |",
+                "|---|---|---:|---:|---:|---:|---:|---|"]
         for r in rows:
             if r["scene"] != scene:
                 continue
             fin = "" if r["finished"] else "NOT FINISHED "
+            dL = r["max_rel_angular_momentum_error"]
             out.append(f"| {r['method']} | {r['param']} | {r['steps']} | {r['wall_time_s']:.3g} | "
-                       f"{r['max_rel_energy_error']:.2e} | {r['solution_error']:.2e} | {fin}{r['note']} |")
+                       f"{r['max_rel_energy_error']:.2e} | {'-' if np.isnan(dL) else f'{dL:.2e}'} | "
+                       f"{r['solution_error']:.2e} | {fin}{r['note']} |")
         out.append("")
     if k_info:
         out += ["## k chosen and what a larger k would have cost", "",
