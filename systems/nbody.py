@@ -49,7 +49,8 @@ def nbody_forces(Q, params, out):
     could only flip the sign of an exactly zero force, or make it nan when a test particle sat
     on a source).  A term on i from a source k > i, + c (q_k - q_i), and one from a source k < i,
     - c (q_i - q_k), are the same number, so a test particle's sum runs over its sources in one
-    loop, in registers.
+    loop, in registers.  (Measured and not taken: the test particles innermost, in runs between
+    sources, is 20 % faster a particle but made the outer solar system's kernel 3-4 % slower.)
 
     The rows (the stages of a step) go four at a time through the pair loops: four independent
     square roots and divisions per pair keep the floating-point units busy where one row at a
