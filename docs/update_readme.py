@@ -43,6 +43,10 @@ def main() -> None:
     tp = ROOT / "benchmarks/results/testparticles.md"
     if tp.exists():        # everything after the title
         parts["testparticles"] = tp.read_text().split("\n\n", 1)[1].strip()
+    dfl = ROOT / "benchmarks/results/defaults.md"
+    if dfl.exists():
+        text = dfl.read_text()
+        parts["defaults"] = text[text.index("**"):].strip()
     kep = (ROOT / "benchmarks/results/kepler.md").read_text()
     parts["kepler"] = tables(kep)[0]
     md = (ROOT / "benchmarks/results/md.md").read_text()

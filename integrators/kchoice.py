@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .core import monomial_weight
 from .errors import StepError
 from .tableau import HBVM
 
@@ -238,14 +239,16 @@ def choose_k(system, y0, s: int, h: float, steps: int, k_max: int | None = None,
 
 
 def adaptive_k(s: int, epsilon: float) -> int:
-    """k for adaptive steps: the smallest k > s with epsilon^(2k / (s - 1)) <= 1e-17.
+    """k for adaptive steps: the smallest k > s with (c epsilon)^(2k / (s - 1)) <= 1e-17,
+    c = c_(s-1) (:func:`integrators.core.monomial_weight`, 1.2e-3 for s = 6).
 
-    The control keeps the error estimate, about (h / T)^(s - 1) for the local time scale T,
-    near epsilon; the quadrature error of HBVM(k, s) in the energy is about (h / T)^(2k), so
-    this k keeps it below round-off on every step the control takes.  For the default s = 6,
-    epsilon = 1e-5 it gives k = 9; measured (medians of 3 starts, same steps for every k;
-    `python benchmarks/bench_adaptive.py` scenes), the relative energy error is at its round-off
-    level for k = 8, 9 and 10 alike (e = 0.9 and 0.99 over 1000 orbits, the outer solar system
-    over 1e6 days, the close encounter), and k = 9 costs 8 % less than k = 10."""
-    need = 17.0 * (s - 1) / (2.0 * -math.log10(epsilon))
+    The control keeps the error estimate, about (h / T)^(s - 1) / (s - 1)! for the local time
+    scale T, near epsilon; c epsilon is then the size of the Legendre coefficient gamma_(s-1)
+    against gamma_0, and the quadrature error of HBVM(k, s) in the energy, about that to the
+    power 2k / (s - 1), stays below round-off on every step the control takes.  For the
+    default s = 6, epsilon = 1e-3 it gives k = 8; measured (`python benchmarks/bench_defaults.py`,
+    REBOUND's outer solar system over 1000 Jupiter years, medians of 7-9 starts, same steps for
+    every k): k = 9 gives no smaller energy error (4.4e-15 against 2.7e-15) for 5-10 % more
+    time, k = 7 3.5e-15 to 3.9e-15 for 5 % less."""
+    need = 17.0 * (s - 1) / (2.0 * -math.log10(monomial_weight(s - 1) * epsilon))
     return int(min(128, max(s + 1, math.ceil(need - 1e-9))))
