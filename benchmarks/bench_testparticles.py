@@ -27,12 +27,12 @@ max over the particles, printed beside the table): errors within twice it are no
 ("equal within twice the reference's resolution").
 
 The time per step and per particle is (wall time - attach) / steps / n; "x IAS15" is the wall
-time, attach included, over IAS15's on the same scene.  Each scene runs ``--repeat`` times, all methods once per repeat in
-turn; the table gives the fastest wall time of each method (the machine is shared) and the
-accuracy of the first run (every run takes the same steps).  The time per step and particle
-across sizes is then measured once more, all sizes in turn over several rounds (the
-table's scenes run minutes apart, under whatever load the machine has then).  Writes
-benchmarks/results/testparticles.md.
+time, attach included, over IAS15's on the same scene.  Each scene runs ``--repeat`` times, all
+methods once per repeat in turn; the table gives the fastest wall time of each method (the
+machine is shared) and the accuracy of the first run (every run takes the same steps).  The
+time per step and particle across sizes is then measured once more, in CPU time, all sizes in
+turn over several rounds (the table's scenes run minutes apart, under whatever load the machine
+has then).  Writes benchmarks/results/testparticles.md.
 
     python benchmarks/bench_testparticles.py [--repeat 3] [--quick]
 """
@@ -118,8 +118,10 @@ def run(method: str, n: int) -> dict:
 
 
 def per_step(method: str, n: int, steps: int) -> float:
-    """Seconds per step and per particle of ``steps`` steps of ``method`` (not its first two,
-    nor attaching) on the scene of n particles."""
+    """CPU seconds per step and per particle of ``steps`` steps of ``method`` (not its first
+    two, nor attaching) on the scene of n particles: the process's CPU time, which a shared
+    machine's load does not stretch as it stretches wall time (every method runs on one
+    thread)."""
     sim = scene(n)
     if method == "HBVM defaults":
         HBVMIntegrator(sim)
@@ -128,9 +130,9 @@ def per_step(method: str, n: int, steps: int) -> float:
     else:
         sim.integrator = method.lower()
     sim.steps(2)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     sim.steps(steps)
-    return (time.perf_counter() - t0) / steps / n
+    return (time.process_time() - t0) / steps / n
 
 
 def reference(n: int) -> np.ndarray:
@@ -186,9 +188,10 @@ def main() -> None:
                        f"({b['err'][0]:.1e} / {b['err'][1]:.1e} vs {i['err'][0]:.1e} / "
                        f"{i['err'][1]:.1e}; resolution {resol[0]:.1e} / {resol[1]:.1e})")
         print("\n".join(rows[-len(methods):]) + f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
-    # the flatness itself: a few steps of each size in turn, fastest of `rounds` (a shared
-    # machine's load drifts over the minutes one scene takes)
-    rounds = 3 if args.quick else 7
+    # the flatness itself: CPU time of a few steps of each size in turn, fastest of `rounds` (a
+    # shared machine's load drifts over the minutes one scene takes; the first full run measured
+    # wall time here: HBVM 1.14x in one run, 1.71x in the next, IAS15 1.30x and 1.70x)
+    rounds = 3 if args.quick else 9
     flat_t = {}
     for _ in range(rounds):
         for n in sizes:
@@ -214,7 +217,8 @@ def main() -> None:
              "", "Time per step and per particle (without attaching), largest over smallest across "
              f"{sizes[0]} .. {sizes[-1]} particles in the table above: "
              + ", ".join(f"{m} {flat[m]:.2f}x" for m in methods) + ".", "",
-             f"The same measured for its own sake, all sizes in turn, fastest of {rounds} rounds of "
+             f"The same measured for its own sake in CPU time (the process's, which the machine's "
+             f"load does not stretch), all sizes in turn, fastest of {rounds} rounds of "
              "max(10, 20000 / n) steps after two (ns per step and particle; last column: largest "
              "over smallest):", "",
              "| method | " + " | ".join(f"n = {n}" for n in sizes) + " | flatness |",
