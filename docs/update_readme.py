@@ -51,6 +51,9 @@ def main() -> None:
     parts["kepler"] = tables(kep)[0]
     md = (ROOT / "benchmarks/results/md.md").read_text()
     parts["md"] = md.splitlines()[0] + "\n\n" + tables(md)[0]
+    cost = ROOT / "benchmarks/results/md_cost.md"
+    if cost.exists():
+        parts["md_cost"] = cost.read_text().strip()
     if len(sys.argv) > 1:
         demo = pathlib.Path(sys.argv[1]).read_text()
         t = tables(demo)

@@ -18,6 +18,7 @@ from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
 from integrators import HBVM, ConvergenceError, Stepper
+from integrators.engine import check_step
 from systems.base import SeparableSystem
 
 _log = logging.getLogger(__name__)
@@ -30,23 +31,26 @@ def default_k(s: int, polynomial_degree: int | None) -> int:
     """The k that ``HBVMDynamics(k=None)`` uses.
 
     Polynomial H of degree nu: the smallest k with nu s <= 2 k, which conserves H exactly
-    (BIT, eq. (knu)).  Otherwise k = s + 4.  The energy error of HBVM(k, s) on a smooth
-    non-polynomial H is the quadrature error of the line integral, O(h^(2k)); measured on the
-    Morse oscillator and the pendulum (``systems.Morse``, ``systems.Pendulum``, 2000 steps) at
-    step sizes where the midpoint rule's relative energy error is 2e-3 .. 1e-2 (larger than in
-    usual MD), HBVM(s + 4, s) reached the round-off plateau (relative error <= 6e-15) for s = 1, 2, 3.
-    Potentials with a cutoff (EMT, Lennard-Jones, cutoff polynomials) have an error floor
-    set by their smoothness at the cutoff that no k removes; there k = s + 1 often reaches it.
+    (BIT, eq. (knu)).  Otherwise k = s + 1, chosen by cost: the energy error of HBVM(k, s) on
+    a non-polynomial H is the quadrature error of the line integral, O(h^(2k+1)) a step, so
+    k = s + 1 already puts it two orders of h below the trajectory's own error, and each
+    further node costs one more force evaluation a stage sweep.  Measured on ASE's MD tutorial
+    (EMT copper, 108 atoms, 300 K, 5 fs; ``benchmarks/bench_md_cost.py``): HBVM(3, 2) and
+    HBVM(6, 2) reach the same energy error, 2.8e-10 eV per atom (a floor set by EMT's cutoff,
+    which no k removes), with 30 and 62 force evaluations a step.  On smooth potentials at
+    large steps (Morse, the pendulum) a larger k (s + 4) brings the energy error down to
+    round-off: pass ``k`` for that.
     """
     if polynomial_degree is not None:
         return HBVM.for_polynomial_degree(max(int(polynomial_degree), 2), s).k
-    return s + 4
+    return s + 1
 
 
 class _AtomsSystem(SeparableSystem):
     """The atoms as a separable system (q, p flattened to (3N,)); fixed atoms feel no force."""
 
     polynomial_degree = None
+    rows_independent = True     # forces keeps the stage rows apart: no probe (2 calculator calls)
 
     def __init__(self, atoms, fixed: np.ndarray, batched: bool):
         self.atoms = atoms
@@ -59,6 +63,8 @@ class _AtomsSystem(SeparableSystem):
         self.fixed = np.asarray(fixed, dtype=int)
         self.batched = batched
         self.stage_evaluations = 0
+        # a polynomial calculator's degree: the engine's default energy check is then strict
+        self.polynomial_degree = getattr(self.calc, "polynomial_degree", None)
         # the engine writes the stage forces straight into its array when the calculator's
         # forces_batch takes out= (PolynomialPairPotential's does) and no atom is fixed
         try:
@@ -97,6 +103,12 @@ class _AtomsSystem(SeparableSystem):
 
     def potential(self, q: np.ndarray):
         q = np.asarray(q, dtype=float)
+        if q.ndim == 1:
+            # one state (the step's energy check, at the new positions): on the atoms
+            # themselves, so that the forces the step then asks there come from the cache (a
+            # failed step puts the atoms and the calculator's results back, HBVMDynamics.step)
+            self.atoms.set_positions(q.reshape(self.n_atoms, 3), apply_constraint=False)
+            return float(self.calc.get_property("energy", self.atoms))
         flat = q.reshape((-1, self.dim))
         work = self.atoms.copy()
         work.calc = self.calc
@@ -142,8 +154,8 @@ class HBVMDynamics(MolecularDynamics):
     k : int, optional
         Number of quadrature nodes (k >= s).  None: the smallest k that conserves H exactly
         when the calculator has a ``polynomial_degree`` (e.g. :class:`systems.PolynomialPairPotential`
-        without cutoff), otherwise :func:`default_k` = s + 4, which brings the quadrature
-        error below round-off for smooth potentials at usual step sizes.
+        without cutoff), otherwise :func:`default_k` = s + 1, the cheapest k whose quadrature
+        error is below the trajectory's own error (measured on EMT copper).
     solver : {"auto", "fixed_point", "newton"}
         Nonlinear solver of the engine (see :class:`integrators.Stepper`).  "newton" (and
         "auto" once fixed point has failed) needs d^2V/dq^2 at the start of each step: a
@@ -196,8 +208,7 @@ class HBVMDynamics(MolecularDynamics):
             raise ValueError("`atoms` has no calculator; set atoms.calc before creating "
                              "HBVMDynamics")
         self._check_atoms(atoms)
-        if not np.isfinite(timestep) or timestep == 0:
-            raise ValueError(f"`timestep` must be a nonzero finite number (got timestep={timestep!r})")
+        timestep = check_step(timestep, "timestep")
         if solver not in ("auto", "fixed_point", "newton"):
             raise ValueError(f"`solver` must be 'auto', 'fixed_point' or 'newton' (got solver={solver!r})")
         if k is None:
@@ -205,7 +216,7 @@ class HBVMDynamics(MolecularDynamics):
             nu = getattr(atoms.calc, "polynomial_degree", None)
             k = default_k(s, nu)
             why = (f"chosen: exact for the calculator's polynomial degree {nu}" if nu is not None
-                   else "chosen: s + 4, round-off quadrature error for smooth potentials")
+                   else "chosen: s + 1, the cheapest k for a non-polynomial calculator")
         else:
             why = "given"
         self.method = HBVM(k, s, nodes)
@@ -341,7 +352,7 @@ class HBVMDynamics(MolecularDynamics):
             saved_calc = (None if calc.atoms is None else calc.atoms.copy(),
                           {key: (v.copy() if isinstance(v, np.ndarray) else v)
                            for key, v in calc.results.items()})
-        saved_stepper = dict(st.__dict__)
+        saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
         try:
             y = st.step(self.dt)
@@ -354,8 +365,9 @@ class HBVMDynamics(MolecularDynamics):
                                        hint="the forces at the new positions are not finite; "
                                             "try a smaller timestep")
         except BaseException as err:
-            st.__dict__.clear()
-            st.__dict__.update(saved_stepper)
+            # the engine as before the step (its arrays are changed in place by a step that
+            # succeeded before the forces at the new positions failed), then the atoms
+            st.restore_state(saved_stepper)
             self._system.stage_evaluations = saved_count
             atoms.set_positions(pos0, apply_constraint=False)
             atoms.set_momenta(mom0, apply_constraint=False)

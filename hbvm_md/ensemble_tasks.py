@@ -55,7 +55,7 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
     An integration error (a close encounter the step cannot resolve) ends the run too: the
     record says when and why, the member does not fail.
     """
-    from .rebound_driver import HBVMIntegrator
+    from .rebound import HBVMIntegrator
 
     if not (np.isfinite(t_end) and t_end > 0):
         raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")
@@ -99,8 +99,6 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
                 stop_reason = f"escaped: distance {r:.4g} > r_max={r_max:g} from body 0"
                 break
     steps = drv_a.nsteps
-    drv_a.detach()
-    drv_b.detach()
     tt, ee, dd = np.array(t_done), np.array(errs), np.array(logd)
     return {
         "t_end": float(t_end), "t_stop": float(tt[-1]) if tt.size else 0.0,

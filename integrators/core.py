@@ -41,6 +41,8 @@ LIPSCHITZ_ULPS = 4.0     # ... within this many ulps of the stage values' roundi
 STATE_ULPS = 16.0        # ... and so is one that moves the new state by at most this many ulps
 STRONG_CONTRACTION = 1e-3  # a contraction at least this strong is extrapolated (stop_action) ...
 EXTRAPOLATED_ULPS = 1e-3   # ... to an iterate predicted within this many ulps of the fixed point
+RUNAWAY = 1e8             # coefficients that would move the state this many times farther than
+                          # the first iterate and the state itself: the iteration runs away
 
 # status codes of a step (one table maps them to exceptions: integrators.errors.step_error);
 # TOO_SMALL: an adaptive step was not accepted down to min_dt (loop.attempt)
@@ -201,6 +203,43 @@ def weighted_kinetic(p, w):
     for i in range(p.shape[0]):
         ke += 0.5 * p[i] * p[i] * w[i]
     return ke
+
+
+@jit
+def energy_flow(full, y, minv, h, g, W, I, G):
+    """The energy the step moves into and out of a term of H along its polynomial path sigma,
+    |h| sum_i |b_i dH/dy sigma'(c_i)| taken coordinate by coordinate in absolute value.
+
+    Separable form: the kinetic term, |h| sum_i sum_j |v_ij b_i sigma_p'(c_i)_j| with v =
+    (p0 + h I_s gamma) M^{-1} the stage velocities and b_i sigma_p'(c_i) = sum_l W[l, i]
+    gamma_l (W = P_s^T Omega); the k-point rule integrates v . sigma_p' (degree 2s - 1)
+    exactly, so this is at least |T(p1) - T(p0)|.  Full form: half of |h| sum_i sum_j |G_ij
+    b_i sigma'(c_i)_j| with G (k, 2m) = grad H at the stages (each unit of energy leaves one
+    term and enters another).  A resolved step's energy error, the quadrature error of the
+    line integral of grad H along sigma (Brugnano-Iavernaro-Trigiante), is far smaller than
+    this flow; a converged state whose error exceeds it is not a solution of the step
+    (:func:`integrators.loop.run`)."""
+    s, u = g.shape
+    n = W.shape[1]
+    flow = 0.0
+    if full:
+        for i in range(n):
+            for j in range(u):
+                acc = 0.0
+                for l in range(s):
+                    acc += W[l, i] * g[l, j]
+                flow += abs(G[i, j] * acc)
+        return 0.5 * abs(h) * flow
+    m = minv.shape[0]
+    for i in range(n):
+        for j in range(m):
+            vel = 0.0
+            acc = 0.0
+            for l in range(s):
+                vel += I[i, l] * g[l, j]
+                acc += W[l, i] * g[l, j]
+            flow += abs((y[m + j] + h * vel) * minv[j] * acc)
+    return abs(h) * flow
 
 
 @jit
@@ -509,7 +548,7 @@ def newton_update(g, pg, NV, NVinv, NM, Rt, Z):
 
 
 @jit
-def stop_action(delta, scale, F, floor, hstate, it, hist, tol):
+def stop_action(delta, scale, F, floor, hstate, hmove, ymax, it, hist, tol):
     """The stopping rule, one increment at a time (HLW Sec. VIII.6: iterate until the increment
     vanishes or stops decreasing at round-off level).
 
@@ -538,11 +577,22 @@ def stop_action(delta, scale, F, floor, hstate, it, hist, tol):
     0.2) iterate as before: an estimate of theta from ratios near 0.1 let the polish's error,
     which has the same sign step after step, build a phase error on Kepler (an earlier rule,
     measured and reverted).
-    hist = [previous increment, stalls, the last two increment ratios]; returns ITERATE, POLISH
-    or -status.
+    An iteration that runs away is a failure (DIVERGED) at once, before any of the round-off
+    levels above, which grow with the iterates and would take it as converged (a step of
+    h = 10 on H = p^2 / 2 + 1e6 q^4 ran to 1e100 in three iterations and was accepted by the
+    Lipschitz floor): the coefficients would move the state, by ``hmove`` = |h| max|gamma|,
+    more than RUNAWAY times what the first iterate moved it plus the state's own size ``ymax``
+    (max |y|).  A converging iteration moves it by about as much as its first iterate does.
+
+    hist = [previous increment, stalls, the last two increment ratios, the first iterate's
+    move plus ymax]; returns ITERATE, POLISH or -status.
     """
     if not np.isfinite(delta):        # also when a force is not finite (see project)
         return -NOT_FINITE
+    if it == 1:
+        hist[4] = ymax + hmove
+    elif hmove > RUNAWAY * hist[4]:
+        return -DIVERGED
     if delta <= 2.0 * EPS * scale or delta <= tol * scale:
         return POLISH
     if delta >= hist[0]:
@@ -601,14 +651,14 @@ def commit_full(y, cy, h, g):
 def work_sizes(n, s, u, m, d):
     """(float, complex) lengths of the work buffers :func:`carve` cuts for k = n stages, s
     coefficient blocks of width u, m masses and a state of length d."""
-    return 4 * n + 4 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * min(u, BLOCK), 2 * s * u
+    return 4 * n + 5 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * min(u, BLOCK), 2 * s * u
 
 
 @jit
 def carve(work, cwork, n, s, u, m, d):
     """The step's work arrays as views of two buffers (one array argument each instead of
     eighteen, which a host calling one step at a time pays for: about 0.1 microsecond each to
-    unbox, or to allocate): ht, ht_lo (n), hist (4), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
+    unbox, or to allocate): ht, ht_lo (n), hist (5), dq, dq_lo (m), a, pg, g (s, u), X, F, G,
     Xp, Fp (n, u), yt, cyt (d), R (5, min(u, BLOCK)) (scratch of the column sums), Rt, Z (s, u)
     complex.  The views are :func:`integrators.pointers.view`'s (no reference counts, no call:
     about 1 ns for all, against 0.7 microsecond with slices and reshapes); a buffer shorter than
@@ -620,10 +670,10 @@ def carve(work, cwork, n, s, u, m, d):
     ht = view1(work, 0, n)
     ht_lo = view1(work, n, n)
     o = 2 * n
-    hist = view1(work, o, 4)
-    dq = view1(work, o + 4, m)
-    dq_lo = view1(work, o + 4 + m, m)
-    o += 4 + 2 * m
+    hist = view1(work, o, 5)
+    dq = view1(work, o + 5, m)
+    dq_lo = view1(work, o + 5 + m, m)
+    o += 5 + 2 * m
     yt = view1(work, o, d)
     cyt = view1(work, o + d, d)
     o += 2 * d

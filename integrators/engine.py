@@ -7,6 +7,8 @@ Like scipy's ``OdeSolver``: the public ``step`` owns time, counters and status; 
 """
 from __future__ import annotations
 
+import math
+import numbers
 import time
 from dataclasses import dataclass, field
 
@@ -18,11 +20,23 @@ from .core import next_step, select_extrapolation
 from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
-from .protocol import adapt_system
+from .protocol import _Adapted, adapt_system
 from .tableau import gauss_rule01
 from .specialise import specialise
 
 SOLVERS = ("auto", "fixed_point", "newton")
+#: The default energy check of every host (engine, ASE, REBOUND): a step of a method exact for H
+#: (a polynomial H with k >= nu s / 2, iterated to round-off) that changes H by more than this,
+#: relative to |T| + |V|, is refused (:class:`integrators.UnresolvedStepError`).  HBVM at such
+#: k changes it by about 1e-16 a step; 1e-10 leaves room for the rounding of H itself.
+DEFAULT_ENERGY_TOL = 1e-10
+#: ... and of a method not exact for H, whose own energy error has no computable bound: a step
+#: that changes H by more than this fraction of |T| + |V| and more than the energy it moved
+#: between the terms of H (:func:`integrators.core.energy_flow`) is refused.  A coarse step's
+#: own error stays below it (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3; on Kepler
+#: e = 0.6 at 50 steps a period: 2e-2); a spurious root lands far beyond it (HBVM(6, 3) on
+#: Kepler at h = 1e6: an escaping state 1.25 (|T| + |V|) off).
+NOT_A_SOLUTION = 0.1
 FORMS = ("auto", "full", "separable")
 MAX_ITER = {"fixed_point": 60, "newton": 30}
 
@@ -33,9 +47,22 @@ def _is_separable(system) -> bool:
 
 def check_state(system, y, name: str = "y0"):
     """(system, y): the system as the engine calls it (:func:`.protocol.adapt_system`) and a
-    float copy of y, checked: shape (2 * system.dim,) and finite."""
+    float copy of y, checked: a system instance (not its class), y real, of shape
+    (2 * system.dim,) and finite."""
+    if isinstance(system, type):
+        raise TypeError(f"`system` must be a system instance, not the class {system.__name__}: "
+                        f"pass {system.__name__}(...) (e.g. Kepler(e=0.6), not Kepler)")
     try:
-        y = np.array(y, dtype=float)
+        a = np.asarray(y)
+    except (TypeError, ValueError):       # ragged nesting
+        a = None
+    if a is not None and a.dtype.kind == "c":
+        raise ValueError(f"`{name}` must be real (got a complex array): a state (q, p) is real; "
+                         f"pass its real part explicitly if that is what you mean")
+    try:
+        if a is None or a.dtype.kind in "USV":     # strings would be parsed as numbers
+            raise TypeError
+        y = np.array(a, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be an array of numbers (got {y!r})") from None
     if not np.all(np.isfinite(y)):
@@ -49,6 +76,58 @@ def check_state(system, y, name: str = "y0"):
     return system, y
 
 
+def is_real(value) -> bool:
+    """True for a real number: an int, a float, a numpy real scalar or 0-d array; False for a
+    bool, a string, a complex number, None or a sequence."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, numbers.Real):
+        return True
+    return isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf"
+
+
+def check_real(name: str, value, accepted: str, ok=None, none: bool = False):
+    """``float(value)``, or a ValueError naming ``name``, the value received and what is
+    ``accepted`` (e.g. "a positive number or None") when it is not a finite real number for
+    which ``ok(float(value))`` holds.  ``none=True`` lets None through (returned as None)."""
+    if value is None and none:
+        return None
+    good = is_real(value)
+    if good:
+        try:
+            x = float(value)
+        except OverflowError:        # an int beyond the float range
+            good = False
+        else:
+            good = math.isfinite(x) and (ok is None or ok(x))
+    if not good:
+        raise ValueError(f"`{name}` must be {accepted} (got {name}={value!r})")
+    return x
+
+
+def check_times(name: str, times, t0: float, t_end: float) -> list:
+    """The floats of ``times`` (None: none) in the order the run from t0 to t_end meets them,
+    or a ValueError naming ``name`` when it is not a sequence of finite real numbers between
+    t0 and t_end (a single number, a nan, a time the run never reaches)."""
+    if times is None:
+        return []
+    if is_real(times) or isinstance(times, (str, bytes)):
+        raise ValueError(f"`{name}` must be a sequence of times between t0={t0!r} and "
+                         f"t_end={t_end!r} (got {name}={times!r}); for one time write [{times!r}]")
+    try:
+        values = list(times)
+    except TypeError:
+        raise ValueError(f"`{name}` must be a sequence of times between t0={t0!r} and "
+                         f"t_end={t_end!r} (got {name}={times!r})") from None
+    lo, hi = min(t0, t_end), max(t0, t_end)
+    for i, x in enumerate(values):
+        if not is_real(x) or not (np.isfinite(float(x)) and lo <= float(x) <= hi):
+            raise ValueError(f"`{name}` must hold finite times between t0={t0!r} and "
+                             f"t_end={t_end!r} (got {name}[{i}]={x!r}): a sample the run never "
+                             f"reaches would be missing from the result without a word")
+    return sorted((float(x) for x in values), reverse=t_end < t0)
+
+
 def check_count(name: str, value, minimum: int) -> int:
     """``value`` as an int, or ValueError naming ``name`` when it is not an integer >= minimum
     (a bool, a float such as 10.0, or a smaller number)."""
@@ -57,14 +136,40 @@ def check_count(name: str, value, minimum: int) -> int:
     return int(value)
 
 
-def check_step(h) -> float:
-    try:
-        hf = float(h)
-    except (TypeError, ValueError):
-        raise ValueError(f"`h` must be a nonzero finite number (got h={h!r})") from None
-    if isinstance(h, bool) or not np.isfinite(hf) or hf == 0.0:
-        raise ValueError(f"`h` must be a nonzero finite number (got h={h!r})")
-    return hf
+def check_step(h, name: str = "h") -> float:
+    """``float(h)``, or a ValueError naming ``name`` when h is not a nonzero finite real
+    number (a string such as "1", None, a bool, nan, inf or 0)."""
+    if type(h) is float and h != 0.0 and math.isfinite(h):    # (every Stepper.step: 60 ns)
+        return h
+    return check_real(name, h, "a nonzero finite number", lambda x: x != 0.0)
+
+
+def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool = False) -> float:
+    """The step's energy check ``etol`` (:func:`integrators.loop.run`) for ``energy_tol``.
+
+    ``"auto"`` (the default of every host): when the method conserves H exactly (``system.
+    polynomial_degree`` nu known, k >= nu s / 2, the iteration to round-off: ``tol`` None),
+    or when the host chose k for a round-off quadrature error (``round_off_k``: the REBOUND
+    host's ``choose_k`` / ``adaptive_k``), +DEFAULT_ENERGY_TOL, a step changing H by more than
+    round-off is refused (an unresolved close encounter, a spurious root); otherwise
+    -NOT_A_SOLUTION, a change above that fraction of |T| + |V| is refused when it also exceeds
+    the energy the step moved between the terms of H (:func:`integrators.core.energy_flow`):
+    a state that is not a solution (the Kepler problem at h = 1e6 converges to a state 1.25
+    (|T| + |V|) off), where the method's own error passes.  A number: that tolerance,
+    strictly.  None: 0, no check."""
+    if energy_tol is None:
+        return 0.0
+    if isinstance(energy_tol, str) and energy_tol == "auto":
+        nu = getattr(system, "polynomial_degree", None)
+        exact = (nu is not None and tol is None
+                 and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
+                                                                     method.nodes).k)
+        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -NOT_A_SOLUTION
+    if (isinstance(energy_tol, (bool, str)) or not isinstance(energy_tol, (int, float, np.number))
+            or not (np.isfinite(energy_tol) and energy_tol > 0)):
+        raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
+                         f"energy_tol={energy_tol!r}); None switches the energy check off")
+    return float(energy_tol)
 
 
 def check_options(solver, form, tol, max_iter, t0) -> float:
@@ -79,13 +184,7 @@ def check_options(solver, form, tol, max_iter, t0) -> float:
     if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
                                  or max_iter < 1):
         raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
-    try:
-        t0f = float(t0)
-    except (TypeError, ValueError):
-        raise ValueError(f"`t0` must be a finite number (got t0={t0!r})") from None
-    if not np.isfinite(t0f):
-        raise ValueError(f"`t0` must be a finite number (got t0={t0!r})")
-    return t0f
+    return check_real("t0", t0, "a finite number")
 
 
 _COEF_CACHE: dict = {}
@@ -147,6 +246,52 @@ class Extrapolation:
                                                  self.E1, self.t, self.w, self.buf, self.zero)
 
 
+def _checked_result(method: str, system: str, r, given: tuple, expected: tuple) -> np.ndarray:
+    """``r``, the result of ``method`` of a system (its class name ``system``) on a stack of
+    shape ``given``, as a float array of shape ``expected``, or a ValueError naming the method
+    and both shapes."""
+    a = np.asarray(r)
+    if a.shape != expected:
+        raise ValueError(f"`{method}` of {system} must return shape {expected} for a stack of shape "
+                         f"{given} (the k stages of a step, one row each) (got shape {a.shape}); "
+                         f"index the last axis (x[..., i], not x[i]) and keep the stack axis")
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"`{method}` of {system} must return shape {expected} for a stack of shape "
+                         f"{given}, real numbers (got dtype {a.dtype})")
+    return a
+
+
+def _checked_rows(method: str, system: str, fn, X: np.ndarray, r: np.ndarray) -> None:
+    """Once, on the first stack of several rows: the first and the last row of ``r`` =
+    ``fn(X)`` must equal ``fn`` of that row alone (to round-off), else a ValueError naming the
+    method: a result of the right shape can still mix the rows (transposed when the stack is
+    square, x[i] where x[..., i] was meant)."""
+    for i in (0, X.shape[0] - 1):
+        alone = np.asarray(fn(X[i:i + 1]), dtype=float).reshape(-1)
+        if alone.shape != r[i].shape or not np.all(np.abs(r[i] - alone)
+                                                   <= 1e-9 * (np.max(np.abs(alone)) + 1e-300)):
+            raise ValueError(f"`{method}` of {system} on a stack of shape {X.shape} returned a row "
+                             f"{i} that differs from `{method}` of that row alone: it mixes the rows "
+                             f"of the stack (a transposed result, or x[i] where x[..., i] was "
+                             f"meant); return one row per row of the stack")
+
+
+def _commit_seen(watch: list) -> None:
+    """The Python kernels' note of a new committed step (see :meth:`Binding.watch`)."""
+    watch[1] = watch[0][0]
+    watch[2][:] = watch[3]
+
+
+def _checked_number(method: str, system: str, v, given: tuple) -> float:
+    """``v``, the result of ``method`` (energy or potential) for one state of shape ``given``,
+    as a float, or a ValueError naming the method and the shape received."""
+    a = np.asarray(v)
+    if a.size != 1 or a.dtype.kind not in "iuf":
+        raise ValueError(f"`{method}` of {system} must return one real number for one state of "
+                         f"shape {given} (got {'shape ' + str(a.shape) if a.size != 1 else repr(v)})")
+    return float(a.reshape(()))
+
+
 class Binding:
     """A system bound to the step: the form, the kernels (compiled or Python), their parameters
     and the arrays the step works in.  Built once per Stepper (and per REBOUND resync).
@@ -172,6 +317,7 @@ class Binding:
                              "`potential`; use form='full'")
         self.full = not (form == "separable" or (form == "auto" and _is_separable(system)))
         self.method, self.system = method, system
+        self._watch = None
         d = 2 * int(system.dim)
         m = d // 2
         kernels_attr = "full_kernels" if self.full else "separable_kernels"
@@ -213,24 +359,75 @@ class Binding:
         self._eig = None
 
     def _python_kernels(self, system):
-        """Kernels that call the system's own (numpy) methods: the Python path."""
+        """Kernels that call the system's own (numpy) methods: the Python path.
+
+        Every result is checked against the shape the step needs, whatever the system's class
+        (a :class:`systems.base.SeparableSystem` subclass is not probed by
+        :mod:`.protocol`): numpy would broadcast a result of shape (n, 1), or one summed over
+        the stack, into the step's array and the run would finish with a wrong answer.  The
+        first call of each checks fully (shape, real numbers); later calls compare the shape
+        only (a tuple comparison), so that a method whose result changes shape mid-run is
+        refused at that call.  The kernels also keep the counters of the last committed step
+        (:meth:`watch`)."""
+        name = type(system._system if isinstance(system, _Adapted) else system).__name__
         if self.full:
-            def force(Y, params, out):
-                out[...] = system.gradient(Y)
-
-            def potential(y, params):
-                return float(system.energy(y))
+            rhs, rhs_name, one, one_name = system.gradient, "gradient", system.energy, "energy"
         else:
-            if callable(getattr(system, "forces_into", None)):
-                def force(Q, params, out):        # writes out itself (no copy of the result)
-                    system.forces_into(Q, out)
-            else:
-                def force(Q, params, out):
-                    out[...] = system.forces(Q)
+            rhs, rhs_name, one, one_name = system.forces, "forces", system.potential, "potential"
+        # watch: [the counters' C_STEPS as a memoryview (None: not watched), the value seen,
+        # a copy of the counters at the first kernel call after a commit, the counters]
+        self._watch = watch = [None, -1.0, None, None]
+        into = None if self.full else getattr(system, "forces_into", None)
+        if callable(into):
+            def force(X, params, out):        # writes out itself (no copy of the result)
+                w = watch[0]
+                if w is not None and w[0] != watch[1]:
+                    _commit_seen(watch)
+                into(X, out)
+        else:
+            # until the first call and the first stack of several rows (a system declaring
+            # rows_independent = True, the ASE adapter's, is not probed row by row)
+            unchecked = [True]
+            rows = not getattr(system, "rows_independent", False)
 
-            def potential(q, params):
-                return float(system.potential(q))
+            def force(X, params, out):
+                w = watch[0]
+                if w is not None and w[0] != watch[1]:
+                    _commit_seen(watch)
+                r = rhs(X)
+                if unchecked[0] or getattr(r, "shape", None) != out.shape:
+                    r = _checked_result(rhs_name, name, r, X.shape, out.shape)
+                    if X.shape[0] > 1:
+                        if rows:
+                            _checked_rows(rhs_name, name, rhs, X, r)
+                        unchecked[0] = False
+                out[...] = r
+
+        def potential(x, params):
+            w = watch[0]
+            if w is not None and w[0] != watch[1]:
+                _commit_seen(watch)
+            v = one(x)
+            return float(v) if isinstance(v, float) else _checked_number(one_name, name, v, x.shape)
         return force, potential, np.zeros(1)
+
+    def watch(self, counters: np.ndarray) -> None:
+        """Let the Python kernels keep a copy of ``counters`` as of the last committed step:
+        taken at their first call after a commit (a step calls them before it changes
+        anything), so that :meth:`restore` can undo the work counted by a step that the
+        system's own function (or Ctrl-C) stopped midway.  Compiled kernels never raise.
+        (A memoryview reads the step counter as a Python float: half the cost of numpy's
+        scalar, on every kernel call of the Python path.)"""
+        if getattr(self, "_watch", None) is not None:
+            self._watch[:] = [memoryview(counters)[C_STEPS:C_STEPS + 1], -1.0, counters.copy(),
+                              counters]
+
+    def restore(self, counters: np.ndarray) -> None:
+        """``counters`` back to the last committed step's (see :meth:`watch`), when the copy
+        is of that step (no step committed since the kernels were last called)."""
+        w = getattr(self, "_watch", None)
+        if w is not None and w[3] is counters and w[2][C_STEPS] == counters[C_STEPS]:
+            counters[:] = w[2]
 
     def energy(self, y: np.ndarray) -> float:
         t, v = self.step_code.energy_parts(self.full, y, self.kin_w, self.params)
@@ -276,6 +473,19 @@ class Binding:
         return V, Vinv, NM
 
 
+def _attach(err: BaseException, result) -> None:
+    """Give an exception that stopped a run (not a StepError: those carry ``result`` by
+    construction) the samples up to the last committed step, and say so in its notes."""
+    try:
+        err.result = result
+    except AttributeError:       # (an exception class with __slots__ and no __dict__)
+        return
+    if hasattr(err, "add_note"):             # Python >= 3.11
+        end = f" (t = {float(result.t[-1])!r})" if len(result.t) else ""
+        err.add_note(f"hbvm-md: the run stopped after {result.steps} committed steps{end}; "
+                     f"their samples are in this exception's `.result`")
+
+
 class Stepper(Counted):
     """Integrates a Hamiltonian system with HBVM(k, s), one step at a time.
 
@@ -299,24 +509,28 @@ class Stepper(Counted):
         ``forces``, ``potential``); ``"auto"`` uses it when the system offers them.
     fast : bool or None
         Compiled kernels: required (True), never (False), when the system has them (None).
-    energy_tol : float, optional
-        Refuse a converged step whose energy change exceeds this, relative to |T| + |V|
-        (:class:`integrators.UnresolvedStepError`); None: no check.
+    energy_tol : "auto", float or None
+        Refuse a converged step whose energy change, relative to |T| + |V|, exceeds this
+        (:class:`integrators.UnresolvedStepError`, nothing committed); None: no check.
+        "auto" (default, :func:`energy_check`): DEFAULT_ENERGY_TOL (1e-10) for a method exact
+        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (0.1) that
+        also exceeds the energy the step moved between the terms of H is refused (a state that
+        is not a solution), and the method's own quadrature error passes.
 
     Attributes
     ----------
     t, y : current time and state (copies; the state is kept as a double-double number).
     nsteps, nfev, niter, newton_steps, solver_switches : counters.
-    status : "running", or "failed" after a step raised.
+    status : "running" after a step succeeded; "failed" after a step raised (a StepError or
+        an exception from the system's own function), "interrupted" after KeyboardInterrupt or
+        SystemExit; the state and time are those of the last committed step.
     """
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-                 fast: bool | None = None, energy_tol: float | None = None):
+                 fast: bool | None = None, energy_tol: float | str | None = "auto"):
         t0 = check_options(solver, form, tol, max_iter, t0)
-        if energy_tol is not None and not (np.isfinite(energy_tol) and energy_tol > 0):
-            raise ValueError(f"`energy_tol` must be a positive number or None (got "
-                             f"energy_tol={energy_tol!r})")
+        energy_check(method, None, energy_tol, tol)        # checks the argument first
         system, self._y = check_state(system, y0)
         self.method, self.system = method, system
         self.binding = Binding(method, system, form, fast)
@@ -328,9 +542,11 @@ class Stepper(Counted):
         self._extrapolation = Extrapolation(method)
         self._eref = np.full(1, np.nan)
         self.counters = np.zeros(N_COUNTERS)
+        self.binding.watch(self.counters)
         self.solver_option = solver
         self._solver = "newton" if solver == "newton" else "fixed_point"
-        self.tol, self.max_iter, self.energy_tol = tol, max_iter, energy_tol
+        self.tol, self.max_iter = tol, max_iter
+        self.energy_tol = energy_tol
         self.solver_switches = 0
         self.rejected = 0
         self.status = "running"
@@ -349,6 +565,17 @@ class Stepper(Counted):
         return int(self.counters[C_STEPS])
 
     @property
+    def energy_tol(self):
+        """The energy check as given ("auto", a number or None); setting it re-derives what
+        the step checks (:func:`energy_check`)."""
+        return self._energy_tol
+
+    @energy_tol.setter
+    def energy_tol(self, value) -> None:
+        self._etol = energy_check(self.method, self.system, value, self.tol)
+        self._energy_tol = value
+
+    @property
     def solver(self) -> str:
         """The solver the next step will use."""
         return self._solver
@@ -360,18 +587,41 @@ class Stepper(Counted):
         UnresolvedStepError) with the state, time and coefficients unchanged when the step
         fails, also after the automatic switch to Newton."""
         h = check_step(h)
-        status = self._advance(h, self._solver)
-        if status in (DIVERGED, NOT_FINITE) and self.solver_option == "auto" and self._solver == "fixed_point":
-            status = self._advance(h, "newton")
-            if status == OK:
-                self._solver = "newton"
-                self.solver_switches += 1
-            else:
+        try:
+            status = self._advance(h, self._solver)
+            switch = (status in (DIVERGED, NOT_FINITE) and self.solver_option == "auto"
+                      and self._solver == "fixed_point")
+            if switch:
+                status = self._advance(h, "newton")
+        except BaseException as err:        # the system's own function, numpy, Ctrl-C
+            self._stopped(err)
+            raise
+        if switch:
+            if status != OK:
                 self._fail(status, h, "auto")
+            self._solver = "newton"
+            self.solver_switches += 1
         elif status != OK:
             self._fail(status, h, self.solver_option)
         self._after_step(h)
+        self.status = "running"
         return self._y.copy()
+
+    def save_state(self) -> tuple:
+        """Everything a step changes (state, coefficients, energy reference, clock, counters,
+        solver, status), copied: :meth:`restore_state` puts it back, for a host whose own part
+        of a step failed after the engine's succeeded (ASE's forces at the new positions)."""
+        return (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
+                self._clock.copy(), self.counters.copy(), self._h_prev, self._solver,
+                self.solver_switches, self.rejected, self.status)
+
+    def restore_state(self, saved: tuple) -> None:
+        """Back to a :meth:`save_state` exactly (in place: the arrays keep their identity)."""
+        for mine, kept in zip((self._y, self._cy, self._gamma, self._eref, self._clock,
+                               self.counters), saved[:6]):
+            mine[...] = kept
+        (self._h_prev, self._solver, self.solver_switches, self.rejected,
+         self.status) = saved[6:]
 
     def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
         """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
@@ -382,17 +632,32 @@ class Stepper(Counted):
         h = check_step(h)
         steps = check_count("steps", steps, 0)
         sample_every = check_count("sample_every", sample_every, 1)
-        b = self.binding
         nsamp = steps // sample_every + 1
-        out_t, out_y, out_e = np.empty(nsamp), np.empty((nsamp, self._y.size)), np.empty(nsamp)
+        # t and H start as nan: a run stopped by an exception keeps the samples written
+        out_t, out_y, out_e = np.full(nsamp, np.nan), np.empty((nsamp, self._y.size)), np.full(nsamp, np.nan)
         start = self.nsteps
         t_start = time.perf_counter()
+        try:
+            return self._run(h, steps, sample_every, start, t_start, out_t, out_y, out_e)
+        except StepError:
+            raise
+        except BaseException as err:        # the system's own function, numpy, Ctrl-C
+            self._stopped(err)
+            k = (self.nsteps - start) // sample_every + 1
+            while k > 0 and np.isnan(out_e[k - 1]):    # a sample whose energy was not written
+                k -= 1
+            _attach(err, self._result(out_t[:k], out_y[:k], out_e[:k], h, t_start, self.status,
+                                      f"{type(err).__name__}: {err}"))
+            raise
+
+    def _run(self, h, steps, sample_every, start, t_start, out_t, out_y, out_e):
+        b = self.binding
         if self._solver == "fixed_point":
             E = self._extrapolation(h, self._h_prev)
             b.step_code.run(b.full, self._y, self._cy, b.minv, b.kin_w,
                             b.params, h, E, self._gamma, b.c1, b.c2, *b.no_newton,
                             self._max_iter("fixed_point"), float(self.tol or 0.0),
-                            float(self.energy_tol or 0.0), self._eref,
+                            self._etol, self._eref,
                             self.counters, b.work, b.cwork, steps, sample_every, self._clock, out_t, out_y, out_e)
             done = self.nsteps - start
             if done > 0:
@@ -433,7 +698,8 @@ class Stepper(Counted):
         coefficients above ``epsilon``, a failed iteration or energy check) retry smaller.
         Returns (the step taken, the next step proposed).  A rejected attempt leaves no trace
         in the state, the time or the counters.  Raises :class:`integrators.StepSizeError`
-        when no step down to ``min_dt`` is accepted."""
+        when no step down to ``min_dt``, or down to the smallest step that still changes t, is
+        accepted."""
         s = self.method.s
         while True:
             snap = (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
@@ -455,7 +721,9 @@ class Stepper(Counted):
                 h_new = next_step(h, err_est, epsilon, s)
             self.rejected += 1
             self.status = "running"
-            if abs(h_new) < min_dt:
+            # (a step that no longer changes t, as loop.attempt: without it the steps into a
+            # collision shrink to h = 0 and the run ends in check_step's error, not this one)
+            if abs(h_new) < min_dt or self.t + h_new == self.t:
                 self.status = "failed"
                 raise StepSizeError(h, min_dt, self.t, cause)
             h = h_new
@@ -463,23 +731,35 @@ class Stepper(Counted):
     def run_adaptive(self, h: float, t_end: float, epsilon: float, min_dt: float,
                      sample_every: int = 1, sample_times=None) -> "IntegrationResult":
         """Adaptive steps from t to t_end, h the first step tried: samples every
-        ``sample_every`` accepted steps, and at each of ``sample_times`` (the steps are
-        shortened to land on them exactly, and on t_end)."""
+        ``sample_every`` accepted steps, and at each of ``sample_times`` (times between t and
+        t_end; the steps are shortened to land on them exactly, and on t_end).  Raises
+        :class:`integrators.StepSizeError` when the step proposed no longer changes t (steps
+        shrinking into a collision).  Whatever stops the run, the exception carries the
+        samples so far in ``result``."""
         sample_every = check_count("sample_every", sample_every, 1)
+        t_end = check_real("t_end", t_end, f"a finite time other than t={self.t!r}",
+                           lambda x: x != self.t)
+        marks = [x for x in check_times("sample_times", sample_times, self.t, t_end)
+                 if x != self.t and x != t_end]     # (the run samples its start and its end)
+        marks.append(t_end)
         t_start = time.perf_counter()
-        marks = sorted(float(x) for x in (sample_times if sample_times is not None else ()))
-        marks = [x for x in marks if (x - self.t) * (t_end - self.t) > 0 and abs(x) <= abs(t_end)]
-        marks.append(float(t_end))
-        ts, ys, es = [self.t], [self._y.copy()], [self.binding.energy(self._y)]
+        ts, ys, es = [], [], []
         hs = []
         n = 0
         sign = 1.0 if t_end >= self.t else -1.0
         h = abs(h) * sign
         try:
+            ts.append(self.t)
+            ys.append(self._y.copy())
+            es.append(self.binding.energy(self._y))
             for mark in marks:
                 while (mark - self.t) * sign > 0:
                     remaining = (mark - self._clock[0]) + self._clock[1]
                     last = abs(h) >= abs(remaining)
+                    if not last and self.t + h == self.t:    # steps shrinking into a singularity
+                        self.status = "failed"
+                        raise StepSizeError(h, min_dt, self.t, f"the step proposed, h={h:.3g}, "
+                                            f"no longer changes t={self.t!r}")
                     done, h_next = self.step_adaptive(remaining if last else h, epsilon, min_dt)
                     hs.append(done)
                     if last and done == remaining:
@@ -494,6 +774,12 @@ class Stepper(Counted):
         except StepError as err:
             err.result = self._result(ts, ys, es, h, t_start, "failed", str(err))
             raise
+        except BaseException as err:        # the system's own function, numpy, Ctrl-C
+            self._stopped(err)
+            n = min(len(ts), len(ys), len(es))     # (stopped between the appends of a sample)
+            _attach(err, self._result(ts[:n], ys[:n], es[:n], h, t_start, self.status,
+                                      f"{type(err).__name__}: {err}"))
+            raise
         res = self._result(ts, ys, es, h, t_start, "finished", "")
         res.extra.update(adaptive=True, epsilon=epsilon, rejected=self.rejected,
                          h_min=float(np.min(np.abs(hs))) if hs else float("nan"),
@@ -506,25 +792,40 @@ class Stepper(Counted):
 
     def _advance(self, h: float, solver: str) -> int:
         b = self.binding
-        newton = (b.newton_matrices(self._y, h, self.counters) if solver == "newton"
-                  else b.no_newton)
-        return b.step_code.advance(b.full, self._y, self._cy, b.minv,
-                                   b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
-                                   *newton, self._max_iter(solver), float(self.tol or 0.0),
-                                   float(self.energy_tol or 0.0), self._eref,
-                                   self.counters, b.work, b.cwork, self._clock)
+        if solver == "newton":
+            nfev = self.counters[C_NFEV]
+            newton = b.newton_matrices(self._y, h, self.counters)
+        else:
+            newton = b.no_newton
+        status = b.step_code.advance(b.full, self._y, self._cy, b.minv,
+                                     b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
+                                     *newton, self._max_iter(solver), float(self.tol or 0.0),
+                                     self._etol, self._eref,
+                                     self.counters, b.work, b.cwork, self._clock)
+        if status != OK and solver == "newton":
+            self.counters[C_NFEV] = nfev     # the Jacobian's evaluations were the failed step's too
+        return status
 
     def _after_step(self, h: float) -> None:
         self._h_prev = h          # the step itself advanced the compensated clock
 
+    def _stopped(self, err: BaseException) -> None:
+        """After an exception that is not a :class:`StepError` (the system's own function
+        raised, a numpy error, Ctrl-C): the counters back at the last committed step (the
+        state and the time are: a step writes them only when it commits) and the status
+        "interrupted" (KeyboardInterrupt, SystemExit) or "failed"."""
+        self.binding.restore(self.counters)
+        self.status = "interrupted" if isinstance(err, (KeyboardInterrupt, SystemExit)) else "failed"
+
     def _fail(self, status: int, h: float, solver: str) -> None:
         self.counters[C_STATUS] = status
         self.status = "failed"
-        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self.energy_tol)
+        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self._etol)
 
     def _result(self, t, y, e, h, t_start, status, message) -> "IntegrationResult":
         self.status = "running" if status == "finished" else status
-        return IntegrationResult(np.array(t), np.array(y), np.array(e), self.method, h,
+        y = np.array(y, dtype=float).reshape(len(t), self._y.size)
+        return IntegrationResult(np.array(t, dtype=float), y, np.array(e, dtype=float), self.method, h,
                                  self.nsteps, self.nfev, self.niter, self.binding.name,
                                  time.perf_counter() - t_start, self.newton_steps,
                                  self.solver_switches, status=status, message=message)
@@ -546,8 +847,10 @@ class IntegrationResult:
     wall_time : float
         Seconds spent in the integration loop.
     status, message : str
-        "finished", or "failed" with the error's message (a failed :func:`integrate` raises
-        and carries this result in the exception's ``result``).
+        "finished"; or "failed" (a failed step, or an exception from the system's own
+        function) or "interrupted" (KeyboardInterrupt, SystemExit), with the exception's
+        message: a stopped :func:`integrate` raises that exception and carries this result,
+        the samples up to the last committed step, in its ``result``.
     """
 
     t: np.ndarray
@@ -612,7 +915,7 @@ def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
 def integrate(method, system, y0, h: float, steps: int | None = None, t0: float = 0.0,
               solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
               tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-              energy_tol: float | None = None, *, adaptive: bool = False,
+              energy_tol: float | str | None = "auto", *, adaptive: bool = False,
               t_end: float | None = None, epsilon: float = DEFAULT_EPSILON,
               min_dt: float | None = None, sample_times=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
@@ -627,7 +930,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
     adaptive : bool
         Step-size control from each step's own coefficients (:meth:`Stepper.step_adaptive`); a
         step that fails its iteration or energy check is retried smaller, down to ``min_dt``
-        (default 0).
+        (default 0) and while t + h != t (else :class:`integrators.StepSizeError`).
     epsilon : float
         The precision of adaptive steps, in (0, 1), with the meaning of IAS15's ``epsilon``: a
         bound on the relative size of the highest term of the force polynomial over a step,
@@ -654,19 +957,25 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
     ------
     StepError
         A step failed; ``err.result`` holds the samples up to the last committed step.
+        (:class:`integrators.StepSizeError` when adaptive steps shrink below ``min_dt`` or
+        below what the time can resolve.)
+    Exception, KeyboardInterrupt
+        Raised by the system's own functions, numpy, or Ctrl-C: it reaches the caller as
+        itself, with ``err.result`` holding the samples up to the last committed step
+        (``status`` "failed", or "interrupted" for KeyboardInterrupt and SystemExit).
     """
     h = check_step(h)
     if adaptive:
         if steps is not None:
             raise ValueError("give `t_end` (not `steps`) with adaptive=True: the number of "
                              "steps is what the control chooses")
-        if t_end is None or not np.isfinite(float(t_end)) or float(t_end) == float(t0):
-            raise ValueError(f"`t_end` must be a finite time other than t0 with adaptive=True "
-                             f"(got t_end={t_end!r})")
+        t0f = check_real("t0", t0, "a finite number")
+        t_end = check_real("t_end", t_end, "a finite time other than t0 with adaptive=True",
+                           lambda x: x != t0f)
         epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
         sample_every = check_count("sample_every", sample_every, 1)
         st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
-        return st.run_adaptive(h, float(t_end), epsilon, min_dt, sample_every, sample_times)
+        return st.run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
     if steps is None:
         raise ValueError("`steps` is required without adaptive=True")
     steps = check_count("steps", steps, 0)

@@ -86,28 +86,36 @@ class UnresolvedStepError(StepError):
     or the iteration found a spurious root of the nonlinear system).  Nothing was committed.
 
     Attributes (besides :class:`StepError`'s): ``change``, |H(y1) - H(y0)| relative to the size
-    of the energy terms (|T| + |V|); ``tolerance``, the tolerance it exceeded.
+    of the energy terms (|T| + |V|); ``tolerance``, the tolerance it exceeded; ``flow``, True
+    when the check was that of a method not exact for H (``energy_tol="auto"``): the change
+    exceeded both the tolerance and the energy the step moved between the terms of H.
     """
 
     def __init__(self, h: float, change: float, tolerance: float, iterations: int,
-                 t: float | None = None, hint: str | None = None, solver: str = "fixed_point"):
+                 t: float | None = None, hint: str | None = None, solver: str = "fixed_point",
+                 flow: bool = False):
         self.h, self.t, self.iterations, self.solver = h, t, iterations, solver
-        self.change, self.tolerance, self.residual = change, tolerance, change
+        self.change, self.tolerance, self.residual, self.flow = change, tolerance, change, flow
         self.hint = hint or "use a smaller step"
-        super().__init__(f"{self._where()} changed the energy by {change:.3e} (relative), more "
-                         f"than energy_tol={tolerance:.1e}: the step does not resolve the motion; "
-                         f"{self.hint}")
+        what = (f"more than energy_tol={tolerance:.1e} and more than the energy the step moved "
+                f"between the terms of H: the state is not a solution of the step" if flow else
+                f"more than energy_tol={tolerance:.1e}: the step does not resolve the motion")
+        super().__init__(f"{self._where()} changed the energy by {change:.3e} (relative), "
+                         f"{what}; {self.hint}")
 
 
 class StepSizeError(StepError):
-    """An adaptive step could not be resolved even at the smallest step allowed (``min_dt``):
-    its error estimate stayed above ``epsilon``, or its iteration or energy check failed."""
+    """An adaptive step could not be resolved even at the smallest step allowed (``min_dt``, or
+    the smallest step that still changes t): its error estimate stayed above ``epsilon``, or
+    its iteration or energy check failed (steps shrinking into a collision)."""
 
     def __init__(self, h: float, min_dt: float, t: float | None, cause: str):
         self.h, self.t, self.iterations, self.solver, self.min_dt = h, t, 0, "fixed_point", min_dt
         self.hint = ("lower min_dt, raise epsilon, or check the state (two bodies on top of each "
                      "other, a singular force)")
-        super().__init__(f"{self._where()}: the adaptive step fell below min_dt={min_dt:.6g} "
+        # (with min_dt = 0 the floor is the smallest step that still changes t)
+        floor = f"min_dt={min_dt:.6g}" if min_dt > 0 else "the smallest step that changes t"
+        super().__init__(f"{self._where()}: the adaptive step fell below {floor} "
                          f"without being resolved ({cause}); {self.hint}")
 
 
@@ -118,7 +126,8 @@ def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
     ``counters`` is the step's counter array (layout in :mod:`integrators.core`); ``solver``
     the solver that failed, or "auto" when the automatic switch to Newton failed too; ``hints``
     maps "diverged", "not_finite" and "unresolved" to a host's own advice (REBOUND's sim.dt,
-    ASE's timestep)."""
+    ASE's timestep).  ``energy_tol`` is the check the step ran (:func:`integrators.engine.
+    energy_check`: negative for the energy-flow check of a method not exact for H)."""
     from .core import C_CHANGE, C_LAST, C_LASTIT
     hints = hints or {}
     it = int(counters[C_LASTIT])
@@ -127,6 +136,7 @@ def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
     if status == NOT_FINITE:
         return NonFiniteError(h, it, solver, t, hints.get("not_finite"))
     if status == UNRESOLVED:
-        return UnresolvedStepError(h, float(counters[C_CHANGE]), float(energy_tol or 0.0), it, t,
-                                   hints.get("unresolved"), solver)
+        etol = float(energy_tol or 0.0)
+        return UnresolvedStepError(h, float(counters[C_CHANGE]), abs(etol), it, t,
+                                   hints.get("unresolved"), solver, flow=etol < 0)
     raise ValueError(f"unknown step status {status!r}")

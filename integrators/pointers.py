@@ -1,5 +1,5 @@
 """Raw addresses as typed pointers inside numba-compiled code, and views of a buffer built on
-them (for :func:`integrators.core.carve` and :mod:`hbvm_md.rebound_step`).
+them (for :func:`integrators.core.carve` and :mod:`hbvm_md.rebound.glue`).
 
 numba can view memory it did not allocate (``numba.carray``) only through a typed pointer; these
 intrinsics turn an integer address into one, and a ``void*`` argument (what REBOUND hands a C

@@ -15,7 +15,8 @@ So, like scipy, which wraps the user's function once and checks its output on th
 
 A system with ``stack_protocol = True`` (set by :class:`systems.base.HamiltonianSystem`, so all
 of :mod:`systems`) declares all of this and passes through unchanged, unprobed, at no cost per
-call.
+call.  (Whatever the class, the step compares each result of a model run as Python with the
+shape it needs: :meth:`integrators.engine.Binding._python_kernels`.)
 """
 from __future__ import annotations
 

@@ -334,10 +334,13 @@ class HBVM:
         st.step(h)
         return st.y.copy()
 
-    def integrate(self, system, y0, h: float, steps: int, **options):
-        """Integrate ``steps`` steps of size h; see :func:`integrators.engine.integrate`."""
+    def integrate(self, system, y0, h: float, steps: int | None = None, *args, **options):
+        """Integrate ``steps`` steps of size h, or with ``adaptive=True`` up to ``t_end``: the
+        module-level :func:`integrators.engine.integrate` with this method, which takes the
+        same arguments (``t0``, ``solver``, ..., ``adaptive``, ``t_end``, ``epsilon``,
+        ``min_dt``, ``sample_times``)."""
         from .engine import integrate
-        return integrate(self, system, y0, h, steps, **options)
+        return integrate(self, system, y0, h, steps, *args, **options)
 
 
 @lru_cache(maxsize=None)

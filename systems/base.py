@@ -10,6 +10,11 @@ A system is any object with
     grad H(y), same shape as y; must accept a stack (n, 2m) of states and return one gradient
     per row, shape (n, 2m) (the k stages of a step are evaluated in one call).  Checked once on
     a stack of 3 states; a mistake is a ``ValueError`` naming ``gradient`` and the shapes.
+    Whatever the class, a model run as Python code has every result of ``forces``,
+    ``gradient``, ``potential`` and ``energy`` checked against the shape the step needs
+    (:class:`integrators.engine.Binding`), also when it changes mid-run, and its first stack
+    of several rows row by row (two extra calls, once; ``rows_independent = True`` declares
+    that the rows are kept apart and skips them).
 
 and optionally
 

@@ -1,6 +1,9 @@
 """The README's quick start and .ci/run must not drift apart."""
 import pathlib
 import re
+import textwrap
+
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -25,23 +28,115 @@ def test_ci_runs_the_readme_test_command():
 
 
 def _python_blocks():
-    return re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    """Every python block of the README (indented ones, inside a list item, dedented)."""
+    return [textwrap.dedent(b) for b in
+            re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)]
 
 
-def test_readme_api_snippet_runs_and_prints_its_claims(capsys):
-    blocks = _python_blocks()
-    api = next(b for b in blocks if "# 1. The core engine" in b)
-    exec(compile(api, "README.md (Public API)", "exec"), {})
-    out = capsys.readouterr().out
+# -- every python block of the README runs here as written ----------------------------------------
+# Each block is found by a phrase it contains and runs in a fresh folder; `subs` are the only
+# changes (each must still match the README, so that the two cannot drift apart), and are made
+# where the block as written takes minutes:
+#   - the ensemble block runs 4 members of 1e4 days instead of 16 of 1e7 (the records[3] it reads
+#     exists either way);
+# `setup` gives a fragment the names it uses; `check` asserts what the block claims.
+def _check_api(ns, out):
     # each printed energy error is at round-off, as the README says (the REBOUND run prints its
     # final error, which can be exactly 0.0)
     errors = [float(x) for x in re.findall(r"(?:=|:|error) (\d\.\d+e-\d+|0\.0)\b", out)]
     assert len(errors) == 4 and max(errors) < 1e-12, out
 
 
-def test_readme_own_hamiltonian_example_prints_a_round_off_error(capsys):
-    block = next(b for b in _python_blocks() if "class Oscillator" in b)
-    exec(compile(block, "README.md (own Hamiltonian)", "exec"), {})
-    out = capsys.readouterr().out
+def _failing_run():
+    """The names the StepError fragment uses: a run whose 4th step cannot converge."""
+    from integrators import HBVM, StepError, integrate
+    from systems import Kepler
+
+    kep = Kepler(0.6)
+    return dict(integrate=integrate, StepError=StepError, method=HBVM(4, 2), system=kep,
+                y0=kep.initial_state(), h=1.0, steps=10)
+
+
+def _check_failure(ns, out):
+    res = ns["res"]
+    assert res.status == "failed" and "did not converge" in res.message
+    assert len(res.t) == res.steps + 1 and res.steps < 10
+
+
+def _check_oscillator(ns, out):
     assert out.startswith("oscillator, 1000 steps: max |H-H0|/|H0| =")
     assert float(out.split("=")[-1]) < 1e-13
+
+
+def _check_ensemble(ns, out):
+    records = ns["records"]
+    assert [r["status"] for r in records] == ["ok"] * 4
+    assert records[3]["result"]["max_rel_energy_error"] < 1e-13
+    assert (pathlib.Path("clones") / "ensemble.parquet").exists()
+
+
+def _check_restart(ns, out):
+    assert ns["sim"].t == 1e5 and ns["sim"].integrator == "hbvm"
+    assert sorted(p.name for p in pathlib.Path(".").iterdir()) == ["run.bin"]   # no side file
+
+
+README_BLOCKS = {   # phrase: (substitutions, setup, check)
+    "# 1. The core engine": ((), None, _check_api),
+    "except StepError as err": ((), _failing_run, _check_failure),
+    "class Oscillator": ((), None, _check_oscillator),
+    "run_ensemble(task": ((("t_end=1e7", "t_end=1e4"), ("range(16)", "range(4)")), None,
+                          _check_ensemble),
+    'rebound.Simulation("run.bin")': ((), None, _check_restart),
+}
+
+
+def test_every_readme_block_has_one_entry():
+    blocks = _python_blocks()
+    for block in blocks:
+        hits = [p for p in README_BLOCKS if p in block]
+        assert len(hits) == 1, f"README block without one entry in README_BLOCKS ({hits}):\n{block}"
+    for phrase in README_BLOCKS:
+        assert sum(phrase in b for b in blocks) == 1, f"no README block contains {phrase!r}"
+
+
+@pytest.mark.parametrize("phrase", list(README_BLOCKS))
+def test_readme_block_runs_as_written(phrase, tmp_path, monkeypatch, capsys):
+    subs, setup, check = README_BLOCKS[phrase]
+    block = next(b for b in _python_blocks() if phrase in b)
+    for old, new in subs:
+        assert old in block, f"the README block no longer has {old!r}: update README_BLOCKS"
+        block = block.replace(old, new)
+    monkeypatch.chdir(tmp_path)
+    ns = setup() if setup else {}
+    exec(compile(block, f"README.md ({phrase})", "exec"), ns)
+    check(ns, capsys.readouterr().out)
+
+
+def _inline_calls():
+    """The calls the README writes inline (`method.integrate(...)`, `method.step(...)`)."""
+    text = (ROOT / "README.md").read_text()
+    return [" ".join(c.split()) for c in re.findall(r"`(method\.(?:integrate|step)\(.*?\))`", text, re.S)]
+
+
+def test_readme_inline_calls_run_as_written():
+    """The signatures the README gives in prose run with the names they use (the adaptive one,
+    `method.integrate(system, y0, h, t_end=T, adaptive=True, ...)`, raised "missing 1 required
+    positional argument: 'steps'")."""
+    import numpy as np
+
+    from integrators import HBVM
+    from systems import Kepler
+
+    calls = _inline_calls()
+    assert any("adaptive=True" in c for c in calls) and any("steps" in c for c in calls), calls
+    kep = Kepler(0.6)
+    names = dict(method=HBVM(6, 3), system=kep, y0=kep.initial_state(), y=kep.initial_state(),
+                 h=0.1, T=2.0, steps=20)
+    for call in calls:
+        out = eval(call, {}, names)
+        if "adaptive=True" in call:
+            assert out.t[-1] == 2.0 and out.status == "finished", call
+        elif "integrate" in call:
+            assert out.steps == 20, call
+        else:
+            assert np.shape(out) == (4,), call

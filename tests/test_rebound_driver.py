@@ -1,4 +1,4 @@
-"""HBVMIntegrator: HBVM(k, s) driven by REBOUND."""
+"""HBVMIntegrator and sim.integrator = "hbvm": HBVM(k, s) registered with REBOUND."""
 import math
 
 import numpy as np
@@ -110,7 +110,7 @@ def test_test_particles_and_n_active():
     drv = HBVMIntegrator(sim, s=6, dt=100.0)
     sim.integrate(2e4)
     assert np.max(np.abs(_xyz(sim) - _xyz(ref))) < 1e-9
-    assert not drv._system.is_source[6]
+    assert drv.resyncs == 1
     # the massive bodies move as without the test particle
     alone = nb.to_rebound()
     HBVMIntegrator(alone, s=6, k=drv.method.k, dt=100.0)
@@ -135,7 +135,8 @@ def test_particles_added_between_calls():
 
 @pytest.mark.parametrize("setting, match", [
     (lambda s: setattr(s, "softening", 0.01), "softening"),
-    (lambda s: setattr(s, "collision", "direct"), "collision"),
+    (lambda s: (setattr(s, "testparticle_type", 1), setattr(s, "N_active", 3)),
+     "testparticle_type=1"),
     (lambda s: setattr(s, "gravity", "none"), "gravity='none'"),
     (lambda s: s.add_variation(), "variational particles"),
     (lambda s: setattr(s, "additional_forces", lambda p: None), "additional_forces"),
@@ -159,16 +160,21 @@ def test_refusals_at_attach_and_first_step(setting, match):
 
 
 def test_settings_changed_between_runs_are_checked_again():
-    """The checks of a run are skipped while the settings' bytes are those of the last run that
-    passed them: any change (the integrator, the step, N_active) is caught again."""
+    """The compiled step checks the settings' words of the simulation against those it was
+    prepared with: any change (the step, testparticle_type, softening) is caught again; the
+    integrator is REBOUND's to change (the handle then says so)."""
     sim = outer_solar_system().to_rebound()
-    HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
     sim.integrate(200.0)
-    sim.integrator = "whfast"
-    with pytest.raises(ValueError, match="integrator was changed"):
-        sim.integrate(300.0)
     sim.integrator = "none"
+    with pytest.raises(ValueError, match="sim.integrator is 'none', not HBVM"):
+        drv.nsteps
     sim.integrate(300.0)
+    drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    sim.softening = 1e-3
+    with pytest.raises(ValueError, match="softening"):
+        sim.integrate(400.0)
+    sim.softening = 0.0
     sim.dt = float("nan")
     with pytest.raises(ValueError, match="sim.dt"):
         sim.integrate(400.0)
@@ -202,25 +208,21 @@ def test_detach_restores_rebound():
     sim = outer_solar_system().to_rebound()
     sim.integrator = "whfast"
     drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
-    assert str(sim.integrator) == "none"
+    assert sim.integrator == "hbvm" and type(sim) is rebound.Simulation
+    assert not sim._post_timestep_modifications      # no callback of ours
     sim.integrate(500.0)
     drv.detach()
-    assert type(sim) is rebound.Simulation and str(sim.integrator) == "whfast"
-    assert not sim._post_timestep_modifications      # NULL again: no callback left
+    assert str(sim.integrator) == "whfast" and HBVMIntegrator.of(sim) is None
     x = _xv(sim)
     sim.integrate(1000.0)          # whfast moves the particles all the way
     assert sim.t == 1000.0 and not np.array_equal(_xv(sim), x)
-    with pytest.raises(ValueError, match="already attached"):
-        d2 = HBVMIntegrator(sim, s=6, k=8)
-        HBVMIntegrator(sim, s=6, k=8)
-    d2.detach()
 
 
-def test_user_callback_is_chained_and_restored():
+def test_user_callback_is_rebounds_own():
     sim = outer_solar_system().to_rebound()
     calls = []
-    sim.post_timestep_modifications = lambda simp: calls.append(simp.contents.t)
     drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    sim.post_timestep_modifications = lambda simp: calls.append(simp.contents.t)
     sim.integrate(500.0)
     assert calls == [100.0, 200.0, 300.0, 400.0, 500.0]
     drv.detach()
@@ -240,8 +242,9 @@ def test_simulation_archive_and_heartbeat(tmp_path):
     arch = rebound.Simulationarchive(fn)
     assert len(arch) >= 5 and len(beats) >= 50
     again = arch[-1]
-    HBVMIntegrator(again, s=6, k=8, dt=100.0)
-    again.integrate(5000.0)
+    assert again.integrator == "hbvm" and again.t == 5000.0
+    again.integrate(6000.0)
+    sim.integrate(6000.0)
     assert np.max(np.abs(_xyz(again) - _xyz(sim))) < 1e-12
 
 
@@ -287,7 +290,7 @@ def test_energy_tol_is_checked(bad):
 
 
 def test_driver_step_matches_the_compiled_engine():
-    """The REBOUND step (hbvm_md.rebound_step, compiled with the core's step) and the engine's
+    """The REBOUND step (hbvm_md.rebound.glue, compiled with the core's step) and the engine's
     compiled step run the same code: the same trajectory and counters to the last bit."""
     from integrators import HBVM, integrate
     nb = outer_solar_system()
@@ -305,7 +308,7 @@ def test_shortest_period_is_the_shortest_over_pairs_with_a_gravitating_member():
     """The time scale that sizes the k probe and the first adaptive step: the shortest
     two-body period over every pair with a gravitating member (test particles among
     themselves do not count), the same from the simulation or its NBody."""
-    from hbvm_md.rebound_driver import shortest_period
+    from hbvm_md.rebound import shortest_period
     rng = np.random.default_rng(3)
     sim = rebound.Simulation()
     sim.G = 2.5
@@ -345,7 +348,7 @@ def test_k_probe_early_exit_keeps_the_energy_at_the_references_round_off(monkeyp
     quadrature error shows (22 eps against 5): the early exit must not take it, and the full
     measurement decides as before."""
     import integrators.kchoice as kc
-    from hbvm_md.rebound_driver import shortest_period
+    from hbvm_md.rebound import shortest_period
     from integrators import HBVM, integrate
     from integrators.kchoice import period_steps
     picked, full, e_k, e_ref = [], [], [], []
@@ -372,7 +375,7 @@ def test_k_probe_early_exit_runs_one_method(runs):
     """When HBVM(s, s) is at round-off the probe runs it alone (not the reference HBVM(k_ref,
     s), twice the stages); when it is not, the reference and the k = s run measured already
     decide (no run repeated)."""
-    from hbvm_md.rebound_driver import shortest_period
+    from hbvm_md.rebound import shortest_period
     from integrators.kchoice import choose_k, period_steps
     nb = _probe_scene(0)
     y0, T = nb.initial_state(), shortest_period(nb)
@@ -384,8 +387,8 @@ def test_k_probe_early_exit_runs_one_method(runs):
 @pytest.mark.parametrize("field, value, error", [("exit_max_distance", 15.0, rebound.Escape),
                                                  ("exit_min_distance", 6.0, rebound.Encounter)])
 def test_rebounds_own_stops_raise_as_under_rebound(field, value, error):
-    """sim.integrate with HBVM attached calls REBOUND's C integrate itself (not through
-    rebound.Simulation.integrate): REBOUND's own stops (a particle beyond exit_max_distance,
+    """sim.integrate with HBVM calls REBOUND's C integrate itself (not REBOUND's Python
+    method, to raise HBVM's own exceptions): REBOUND's own stops (a particle beyond exit_max_distance,
     two closer than exit_min_distance) raise the exception REBOUND raises, with its message,
     and the run can go on once the cause is gone."""
     plain = outer_solar_system().to_rebound()
@@ -399,7 +402,6 @@ def test_rebounds_own_stops_raise_as_under_rebound(field, value, error):
     with pytest.raises(error) as got:
         sim.integrate(1000.0)
     assert str(got.value) == str(want.value)
-    assert drv.last_run_native
     setattr(sim, field, 0.0)
     sim.integrate(1000.0)
     assert sim.t == 1000.0 and drv.nsteps == 10
@@ -426,5 +428,4 @@ def test_first_run_starts_from_the_particles_as_they_are_then(change):
     a.integrate(1e4)
     b.integrate(1e4)
     assert np.array_equal(_xv(a), _xv(b))
-    if change == "mass":
-        assert da._system.body_masses[2] == b.particles[2].m
+    assert da.resyncs == 1

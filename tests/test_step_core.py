@@ -423,7 +423,7 @@ def test_carved_work_arrays_tile_their_buffers_and_a_short_buffer_is_refused():
     nf, nc = core.work_sizes(n, s, u, m, d)
     work, cwork = np.zeros(nf), np.zeros(nc, dtype=complex)
     views = core.carve(work, cwork, n, s, u, m, d)
-    shapes = [(n,), (n,), (4,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
+    shapes = [(n,), (n,), (5,), (m,), (m,), (s, u), (s, u), (s, u), (n, u), (n, u), (n, u),
               (n, u), (n, u), (d,), (d,), (5, min(u, core.BLOCK)), (s, u), (s, u)]
     assert [v.shape for v in views] == shapes
     spans = {0: [], 1: []}
@@ -447,10 +447,10 @@ def _stop_sequence(deltas, scale=1.0, floor=0.0, hstate=np.inf, F=None):
     until the first that is not ITERATE, and the iteration it came at."""
     from integrators import core
 
-    hist = np.array([np.inf, 0.0, np.inf, np.inf])
+    hist = np.array([np.inf, 0.0, np.inf, np.inf, np.nan])
     F = np.zeros((2, 3)) if F is None else F
     for it, d in enumerate(deltas, 1):
-        a = core.stop_action(d, scale, F, floor, hstate, it, hist, 0.0)
+        a = core.stop_action(d, scale, F, floor, hstate, scale, 1.0, it, hist, 0.0)
         if a != core.ITERATE:
             return a, it
     return core.ITERATE, len(deltas)

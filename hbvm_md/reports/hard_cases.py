@@ -313,7 +313,7 @@ def _sample(sim, nb, t_end, samples, es, ys, clock) -> None:
 
 def _hbvm_nbody_run(nb, y0, dt, t_end, s, samples) -> Run:
     """HBVM on the N-body scene through REBOUND (:class:`hbvm_md.HBVMIntegrator`)."""
-    from ..rebound_driver import HBVMIntegrator
+    from ..rebound import HBVMIntegrator
     sim = nb.to_rebound(y0)
     drv = HBVMIntegrator(sim, s=s, dt=dt)
     label = f"HBVM{(drv.method.k, drv.method.s)}"

@@ -158,8 +158,6 @@ def _run(make, label, setup, t_end, n_samples):
         err[i] = abs(sim.energy() - E0) / abs(E0)
         xv[i + 1] = _state(sim)
     x = xv[-1, :, :3].copy()
-    if drv is not None:
-        drv.detach()
     dL = angular_momentum_change(nb, xv)[1:]
     return (_summary(label, sim.steps_done - steps0, wall, ts, err, sim.t, setup_time, dL=dL), (ts, err), x,
             drv, (ts, dL))
@@ -227,7 +225,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         Length of each run, in the scene's time unit.
     hbvm : sequence of (s, k) or (s, k, dt)
         HBVM variants; k None chooses k on the scene when HBVM attaches
-        (:func:`hbvm_md.rebound_driver.choose_k`, timed as part of the run); dt None (the
+        (:func:`integrators.kchoice.choose_k`, timed as part of the run); dt None (the
         default) uses HBVMIntegrator's adaptive steps, as a user who gives no step gets.
     peers : sequence of str or (str, dt)
         REBOUND integrators ("whfast", "saba(10,6,4)", "leapfrog", "ias15", ...); a fixed step
@@ -255,7 +253,7 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         and ``compile_time_s`` (heyoka's one-off compile, outside the wall time; None for the
         others).
     """
-    from ..rebound_driver import HBVMIntegrator, shortest_period
+    from ..rebound import HBVMIntegrator, shortest_period
 
     if not (np.isfinite(t_end) and t_end > 0):
         raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")

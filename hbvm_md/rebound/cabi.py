@@ -1,0 +1,82 @@
+"""The two C functions registered with REBOUND that do not depend on the force kernel: the
+step REBOUND calls (:func:`dispatch`) and the state's ``free`` (:func:`release`).
+
+They are compiled once (numba ``cfunc``, cached on disk) when ``hbvm_md`` registers HBVM, so
+that registering does not compile the step itself.  :func:`dispatch` calls, through the
+addresses in HBVM's state (slots in :mod:`hbvm_md.rebound.layout`):
+
+* the compiled step (``SL_CORE``, :func:`hbvm_md.rebound.glue.core_step`), which returns OK, a
+  failure status (nothing changed), or RESYNC when the particles are not what it wrote last;
+* the host's ``prepare`` (a Python callback, ``SL_PREPARE``) when there is no compiled step for
+  this state yet (a new, loaded or copied simulation) or after RESYNC: it builds the model, the
+  compiled step and the context block from the particles, then the step is called again;
+* the host's ``fail`` (a Python callback, ``SL_FAIL``) when the step failed: it records the
+  exception and sets REBOUND's status and error message.
+
+Python runs only in those rare events; a normal step is two compiled calls.
+"""
+from __future__ import annotations
+
+from numba import carray, types
+from numba.extending import intrinsic
+
+from integrators.jit import cjit
+from integrators.pointers import address_of, int64_pointer
+from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COUNTERS, SL_FAIL,
+                                    SL_FREE, SL_GAMMA, SL_PREPARE, SL_STATUS, SL_Y)
+
+
+@intrinsic
+def call_status(typingctx, fn, r, p):
+    """``((int (*)(void*, void*)) fn)(r, p)``: a function known by its address at run time."""
+    if not (isinstance(fn, types.Integer) and r == types.voidptr and p == types.voidptr):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.IntType(32), [i8p, i8p])
+        return builder.call(builder.inttoptr(args[0], fnty.as_pointer()), [args[1], args[2]])
+    return types.int32(fn, r, p), codegen
+
+
+@intrinsic
+def call_free(typingctx, fn, addr):
+    """``((void (*)(void*)) fn)((void*) addr)``: the C library's ``free``."""
+    if not (isinstance(fn, types.Integer) and isinstance(addr, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()), [builder.inttoptr(args[1], i8p)])
+        return context.get_dummy_value()
+    return types.none(fn, addr), codegen
+
+
+@cjit("void(voidptr, voidptr)")
+def dispatch(r, p):
+    """REBOUND's step: the compiled step, prepared first when needed; a failure reported."""
+    st = carray(int64_pointer(address_of(p)), N_SLOTS)
+    status = RESYNC
+    if st[SL_CORE] != 0:
+        status = call_status(st[SL_CORE], r, p)
+    if status == RESYNC:
+        status = call_status(st[SL_PREPARE], r, p)
+        if status == OK:
+            status = call_status(st[SL_CORE], r, p)
+    if status != OK:
+        st[SL_STATUS] = status
+        call_status(st[SL_FAIL], r, p)
+
+
+@cjit("void(voidptr)")
+def release(p):
+    """REBOUND's ``free``: the arrays REBOUND or the host allocated, then the state."""
+    st = carray(int64_pointer(address_of(p)), N_SLOTS)
+    free = st[SL_FREE]
+    for slot in (SL_Y, SL_GAMMA, SL_COUNTERS, SL_CTX):
+        if st[slot] != 0:
+            call_free(free, st[slot])
+    call_free(free, address_of(p))

@@ -1,0 +1,80 @@
+"""What HBVM in REBOUND refuses, with the reason and the fix, and the scene's time scale."""
+from __future__ import annotations
+
+import math
+import numbers
+
+import numpy as np
+
+from systems.nbody import NBody, shortest_r3_over_m
+
+
+def check_simulation(sim) -> None:
+    """Raise ValueError if ``sim`` uses something HBVM cannot honour, with the reason and the
+    fix.  Collisions are REBOUND's: it finds and resolves them after each step."""
+    problems = []
+    if sim.softening != 0.0:
+        problems.append(f"softening={sim.softening!r} (HBVM integrates plain Newtonian gravity; "
+                        "set sim.softening = 0)")
+    if bool(sim._additional_forces):
+        problems.append("additional_forces is set (not part of the separable Hamiltonian; "
+                        "remove it or use a REBOUND integrator)")
+    if sim.N_var > 0:
+        problems.append(f"{sim.N_var} variational particles (HBVM does not integrate the "
+                        "variational equations yet; remove them or use IAS15 or WHFast)")
+    if sim.gravity not in ("basic", "compensated"):
+        problems.append(f"gravity={sim.gravity!r} (only direct summation 'basic' or "
+                        "'compensated' is honoured)")
+    if sim.boundary != "none":
+        problems.append(f"boundary={sim.boundary!r} (set sim.boundary = 'none')")
+    if sim._N_odes > 0:
+        problems.append(f"{sim._N_odes} user ODEs attached (integrated by BS only)")
+    N, na = sim.N, sim.N_active
+    if sim.testparticle_type != 0 and 0 <= na < N:
+        problems.append("testparticle_type=1 (massive test particles acting on active bodies "
+                        "are not a Hamiltonian system; use testparticle_type = 0)")
+    if problems:
+        raise ValueError("HBVM cannot honour this simulation: " + "; ".join(problems))
+
+
+def _real(name: str, value) -> float:
+    """``value`` as a float, or TypeError naming ``name`` (bools and strings are not numbers)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise TypeError(f"`{name}` must be a real number (got {name}={value!r})")
+    return float(value)
+
+
+def _step_size(name: str, value) -> float:
+    h = _real(name, value)
+    if not (math.isfinite(h) and h != 0.0):
+        raise ValueError(f"`{name}` must be a nonzero finite step size (got {name}={value!r}); "
+                         "set it to the step you want, e.g. a fraction of the shortest period")
+    return h
+
+
+def check_particles(y: np.ndarray, model: NBody) -> None:
+    """Raise ValueError when the state y = (q, p) of ``model`` is not finite, or when two
+    particles of which one gravitates share a position (their force is infinite); the
+    message names the particles by their index in ``sim.particles``."""
+    if not np.all(np.isfinite(y)):
+        raise ValueError("the simulation holds non-finite positions or velocities")
+    x = np.asarray(y[: model.dim]).reshape(-1, 3)
+    order = np.lexsort(x.T[::-1])
+    xs = x[order]
+    same = np.all(xs[1:] == xs[:-1], axis=1)        # sorted neighbours that coincide
+    for i in np.flatnonzero(same):
+        members = np.flatnonzero(np.all(x == xs[i], axis=1))
+        if np.any(model.is_source[members]):
+            raise ValueError(
+                f"particles {', '.join(map(str, members))} are at the same position "
+                f"{tuple(map(float, xs[i]))}: the force between them is infinite; remove one "
+                "of them or move it")
+
+
+def shortest_period(sim) -> float:
+    """The shortest two-body orbital period 2 pi sqrt(r^3 / (G M)) over pairs with a
+    gravitating member, from the current positions (a crude time scale of the scene).
+    ``sim``: a ``rebound.Simulation`` or the :class:`systems.NBody` read from one."""
+    nb = sim if isinstance(sim, NBody) else NBody.from_rebound(sim)
+    g = np.where(nb.is_source, nb.body_masses, 0.0)
+    return 2 * math.pi * math.sqrt(shortest_r3_over_m(np.ascontiguousarray(nb.positions), g) / nb.G)

@@ -1,0 +1,163 @@
+"""REBOUND's step around the single step core, compiled in the same module as the core.
+
+:mod:`integrators.specialise` appends this file's text to the step's (:mod:`integrators.loop`,
+the N-body kernel bound) and compiles :data:`GLUE_FUNCTIONS` and the C function
+:data:`GLUE_CFUNCS` there: one REBOUND step is one compiled call of :func:`core_step`, which
+:func:`hbvm_md.rebound.cabi.dispatch` calls with REBOUND's simulation and HBVM's state.  It
+reads the addresses, sizes and REBOUND's offsets from the context block the host built
+(:mod:`hbvm_md.rebound.layout`), checks that the particles, G and N_active are those it wrote
+(else RESYNC: the host reads them afresh), takes the core's step on trial arrays (adaptive
+steps retried smaller inside it) and commits state, particles, ``t``, ``dt_last_done``, the
+proposed ``dt`` and the counts together.  A failed step changes nothing and records its step
+size, start and cause in the state.  No numerics here.
+
+:func:`step_arrays` is the same step on arrays: the compiled :func:`core_step` views the memory
+and calls it; with ``NUMBA_DISABLE_JIT`` the host calls it as Python.
+"""
+import numpy as np
+from numba import carray
+
+from integrators.core import N_COUNTERS, OK, TINY_RATIO, copy1, copy2
+from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
+from hbvm_md.rebound.layout import (
+    A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
+    A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
+    BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_K, D_M, D_N, D_NC, D_NF, D_NODES, D_P, D_PTR, D_S,
+    N_CFG, N_HEADER, N_HOST, N_RES, N_SLOTS, RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
+    R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
+    SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
+    SL_K, SL_MAX_ITER, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES, SL_S, SL_TOL,
+    SL_T_FAIL, SL_Y)
+
+GLUE_FUNCTIONS = ("particles_match", "settings_ok", "step_arrays")
+GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
+GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout")
+
+
+def particles_match(view, written, ix, ivx, im):
+    """Are REBOUND's particles (view: (N, stride) doubles over reb_particle, x, vx and m at
+    columns ix, ivx, im) what the last commit wrote (written: x, y, z, vx, vy, vz, m)?"""
+    N = view.shape[0]
+    if written.shape[0] != N:
+        return False
+    for i in range(N):
+        for c in range(3):
+            if view[i, ix + c] != written[i, c] or view[i, ivx + c] != written[i, 3 + c]:
+                return False
+        if view[i, im] != written[i, 6]:
+            return False
+    return True
+
+
+def settings_ok(st, sd):
+    """The ranges :func:`hbvm_md.rebound.host.check_settings` checks (and names), for the
+    settings a user may change in ``sim.integrator`` between runs."""
+    if st[SL_MAX_ITER] < 1 or not 0.0 <= sd[SL_TOL] < 1.0 or not 0.0 <= sd[SL_ETOL] < np.inf:
+        return False
+    return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
+
+
+def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters, yt, cyt,
+                gammat, ereft, written, minv, kin_w, params, host, tn, ts, Wp, Cp, NV, NVinv, NM,
+                work, cwork, clock, E1, Et, Ew, Ebuf, Ezero):
+    """One REBOUND step of sim.dt (simd/simi: the simulation's head as float64/int64, view its
+    particles; st/sd: HBVM's state as int64/float64; the rest: the context block's arrays).
+    Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause recorded)."""
+    if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
+        return RESYNC
+    ix, ivx = ctx[R_X], ctx[R_VX]
+    if not particles_match(view, written, ix, ivx, ctx[R_M]):
+        return RESYNC
+    if not settings_ok(st, sd):
+        return BAD_SETTINGS
+    h = simd[ctx[R_DT]]
+    if not (abs(h) < np.inf and h != 0.0):
+        sd[SL_H_FAIL] = h
+        return BAD_DT
+    t_start = simd[ctx[R_T]]
+    adaptive = st[SL_ADAPTIVE] != 0
+    epsilon = sd[SL_EPSILON] if adaptive else 0.0
+    etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
+    res[2] = 0.0
+    status = attempt(False, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w,  # noqa: F821
+                     params, h, sd[SL_H_PREV], E1, Et, Ew, Ebuf, Ezero, (tn, ts), (Wp, Cp),
+                     NV, NVinv, NM, st[SL_MAX_ITER], sd[SL_TOL], etol, counters, work, cwork,
+                     clock, epsilon, sd[SL_MIN_DT], t_start, res)
+    st[SL_REJECTED] += int(res[2])
+    if status != OK:
+        sd[SL_H_FAIL] = res[0]
+        sd[SL_T_FAIL] = t_start
+        sd[SL_CAUSE_ERR] = res[3]
+        sd[SL_CAUSE_STATUS] = res[4]
+        return status
+    h_done = res[0]
+    hp = sd[SL_H_PREV]
+    # exact_finish_time's sliver of a step (1e-16): the next step extrapolates from the last
+    # regular one, whose gamma is kept
+    sliver = not np.isnan(hp) and abs(h_done) < TINY_RATIO * abs(hp)
+    copy1(y, yt)
+    copy1(cy, cyt)
+    if not sliver:
+        copy2(gamma, gammat)
+        sd[SL_H_PREV] = h_done
+    eref[0] = ereft[0]
+    m = minv.shape[0]
+    for i in range(view.shape[0]):
+        for c in range(3):
+            view[i, ix + c] = y[3 * i + c]
+            view[i, ivx + c] = y[m + 3 * i + c] * minv[3 * i + c]
+            written[i, c] = view[i, ix + c]
+            written[i, 3 + c] = view[i, ivx + c]
+    simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
+    simd[ctx[R_DTL]] = h_done
+    if adaptive:
+        simd[ctx[R_DT]] = res[1]               # the next step proposed
+    st[SL_NSTEPS] += 1
+    return OK
+
+
+def core_step(r, p):
+    """:func:`step_arrays` on REBOUND's simulation ``r`` and HBVM's state ``p`` (the context
+    block's addresses in ``p``'s slot SL_CTX); RESYNC also when the particle array moved or
+    changed size."""
+    ra, pa = address_of(r), address_of(p)
+    st = carray(int64_pointer(pa), N_SLOTS)
+    sd = carray(float64_pointer(pa), N_SLOTS)
+    ctx = carray(int64_pointer(st[SL_CTX]), N_HEADER)
+    simd = carray(float64_pointer(ra), ctx[R_HEAD])
+    simi = carray(int64_pointer(ra), ctx[R_HEAD])
+    N = ctx[D_N]
+    if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
+        return RESYNC
+    if st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]:
+        return RESYNC                              # the method was changed between runs
+    for i in range(N_CFG):
+        if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
+            return RESYNC                          # a setting HBVM checks was changed
+    s, k, m = ctx[D_S], ctx[D_K], ctx[D_M]
+
+    def f(slot, n):
+        return carray(float64_pointer(ctx[slot]), n)
+
+    def f2(slot, a, b):
+        return carray(float64_pointer(ctx[slot]), (a, b))
+
+    def f3(slot, a, b, c):
+        return carray(float64_pointer(ctx[slot]), (a, b, c))
+
+    def z2(slot, a, b):
+        return carray(complex128_pointer(ctx[slot]), (a, b))
+
+    view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
+    return step_arrays(
+        simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_EREF), 1),
+        carray(float64_pointer(pa + 8 * SL_RES), N_RES), carray(float64_pointer(st[SL_Y]), 2 * m),
+        carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
+        carray(float64_pointer(st[SL_GAMMA]), (s, m)),
+        carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS), f(A_YT, 2 * m), f(A_CYT, 2 * m),
+        f2(A_GAMMAT, s, m), f(A_EREFT, 1), f2(A_WRITTEN, N, 7), f(A_MINV, m), f(A_KINW, m),
+        f(A_PARAMS, ctx[D_P]), f(A_HOST, N_HOST), f2(A_TN, 2, k), f2(A_TS, 2, s),
+        f3(A_WP, 2, s, k), f3(A_CP, 4, k, s), z2(A_NV, s, s), z2(A_NVINV, s, s),
+        carray(complex128_pointer(ctx[A_NM]), (0, m, m)), f(A_WORK, ctx[D_NF]),
+        carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]), f(A_CLOCK, 2), f2(A_E1, s, s),
+        f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s))

@@ -1,0 +1,506 @@
+"""The Python side of HBVM in REBOUND: registration, the state's ``create``, the step's
+``prepare`` and ``fail`` callbacks, and the map from a failed step to its exception in
+``Simulation.integrate`` / ``steps``.  See :mod:`hbvm_md.rebound` for the design."""
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+import warnings
+
+import numpy as np
+
+from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
+from integrators import HBVM
+from integrators.core import N_COUNTERS, OK, TOO_SMALL
+from integrators.engine import DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive
+from integrators.errors import StepSizeError, step_error
+from integrators.kchoice import adaptive_k
+from systems.nbody import NBody
+
+NAME = "hbvm"
+DEFAULTS = dict(s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60, adaptive=True,
+                epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None, energy_tol=1e-10)
+_HINTS = {"diverged": "try a smaller sim.dt or a larger max_iter",
+          "not_finite": "try a smaller sim.dt, and check for particles at the same position",
+          "unresolved": "use a smaller sim.dt (or IAS15 for close encounters), or pass "
+                        "energy_tol=None to accept such steps"}
+_REB_GENERIC_ERROR = 1            # enum REB_STATUS
+_PENDING: dict = {}               # simulation address -> the exception of its failed step
+_REG = None                       # what registration keeps alive (see register)
+_LIBC = ctypes.CDLL(None)
+_LIBC.malloc.restype = _LIBC.calloc.restype = _LIBC.realloc.restype = ctypes.c_void_p
+_LIBC.calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
+_LIBC.realloc.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+_LIBC.free.argtypes = [ctypes.c_void_p]
+_HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def _rebound():
+    import rebound
+    return rebound
+
+
+def _slots(p: int) -> tuple[np.ndarray, np.ndarray]:
+    """HBVM's state at address p as int64 and float64 arrays (the same memory)."""
+    buf = (ctypes.c_int64 * L.N_SLOTS).from_address(p)
+    return np.frombuffer(buf, np.int64), np.frombuffer(buf, np.float64)
+
+
+def _doubles(addr: int, n: int) -> np.ndarray:
+    return np.frombuffer((ctypes.c_double * n).from_address(addr), np.float64) if n else np.zeros(0)
+
+
+def _user_stacklevel() -> int:
+    """The stacklevel of the first frame outside this package (the user's line)."""
+    import sys
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.dirname(os.path.abspath(frame.f_code.co_filename)) == _HERE:
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+# -- registration ------------------------------------------------------------------------------
+def register() -> None:
+    """Register HBVM with REBOUND under the name "hbvm", once per process (``import hbvm_md``
+    calls it).  REBOUND cannot register a name twice (its registry then loops), so a second call
+    returns at once, and a name "hbvm" registered by someone else is an error."""
+    global _REG
+    rebound = _rebound()
+    if _REG is not None:
+        return
+    mark = getattr(rebound.clibrebound, "_hbvm_md_registration", None)
+    if mark is not None:           # hbvm_md imported again (a reload): keep the first one
+        _REG = mark
+        return
+    L.check_version(rebound)
+    lib = rebound.clibrebound
+    lib.reb_integrators_registered.restype = ctypes.POINTER(ctypes.c_char_p)
+    names = lib.reb_integrators_registered()
+    i, known = 0, []
+    while names[i]:
+        known.append(names[i].decode())
+        i += 1
+    _LIBC.free(ctypes.cast(names, ctypes.c_void_p))
+    if NAME in known:
+        raise RuntimeError(f"an integrator named {NAME!r} is registered with REBOUND already, "
+                           "not by hbvm_md; HBVM cannot register")
+    from rebound.binarydata_field_descriptor import BinarydataFieldDescriptor, EnumDescriptor
+    from rebound.integrator import Integrator
+    from hbvm_md.rebound import cabi
+    enums = (EnumDescriptor * (len(L.NODES) + 1))()
+    for j, n in enumerate(L.NODES):
+        enums[j].value, enums[j].name = j, n.encode()
+    fds = (BinarydataFieldDescriptor * (len(L.SAVED) + 1))()
+    docs = []
+    for j, (name, slot, dtype, slot_n, doc) in enumerate(L.SAVED):
+        docs.append(ctypes.create_string_buffer(doc.encode()))
+        fd = fds[j]
+        fd.documentation = ctypes.cast(docs[-1], ctypes.c_char_p)
+        fd.dtype, fd.name, fd.offset = dtype, name.encode(), 8 * slot
+        fd.offset_N = 8 * slot_n if slot_n is not None else 0
+        fd.element_size = 8 if dtype == L._POINTER else 0
+        if name == "nodes":
+            fd.enum_descriptor_list = ctypes.cast(enums, type(fd.enum_descriptor_list))
+    create = ctypes.CFUNCTYPE(ctypes.c_void_p)(_create)
+    prepare = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_prepare_cb)
+    fail = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_fail_cb)
+    python_core = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_python_core)
+    doc = ctypes.create_string_buffer(
+        b"HBVM(k, s) (Brugnano, Iavernaro, Trigiante: Hamiltonian Boundary Value Methods), "
+        b"registered by the hbvm_md package: energy-conserving implicit Runge-Kutta steps of "
+        b"order 2s, adaptive by default.  Configure with hbvm_md.HBVMIntegrator(sim, ...).")
+    integ = Integrator()
+    integ.documentation = ctypes.cast(doc, ctypes.c_char_p)
+    integ.step = cabi.dispatch.address
+    integ.create = ctypes.cast(create, ctypes.c_void_p).value
+    integ.free = cabi.release.address
+    integ.field_descriptor_list = ctypes.cast(fds, type(integ.field_descriptor_list))
+    step_at, state_at = L.state_offset(rebound)
+    reg = dict(keep=(enums, fds, docs, create, prepare, fail, python_core, doc, integ),
+               dispatch=cabi.dispatch.address, prepare=ctypes.cast(prepare, ctypes.c_void_p).value,
+               fail=ctypes.cast(fail, ctypes.c_void_p).value,
+               python_core=ctypes.cast(python_core, ctypes.c_void_p).value,
+               free=ctypes.cast(_LIBC.free, ctypes.c_void_p).value,
+               step_at=step_at, state_at=state_at, offsets=L.rebound_offsets(rebound),
+               config_words=L.config_words(rebound), **L.run_offsets(rebound))
+    lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
+    _REG = reg                    # (create reads it)
+    lib.reb_integrator_register(integ, NAME.encode())
+    rebound.clibrebound._hbvm_md_registration = reg
+    _install_runs(rebound)
+    _self_check(rebound)
+
+
+def _self_check(rebound) -> None:
+    """REBOUND steps, saves and reads HBVM's state where this host put it (the ctypes layouts
+    of ``struct reb_integrator`` and its field descriptors are REBOUND's Python's; this checks
+    them against the C library once)."""
+    sim = rebound.Simulation()
+    sim.integrator = NAME
+    p = ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["state_at"]).value
+    st, sd = _slots(p) if p else (None, None)
+    ok = (p == sim.integrator.state and st[L.SL_PREPARE] == _REG["prepare"]
+          and int(sim.integrator.s) == DEFAULTS["s"] and str(sim.integrator.nodes) == "gauss"
+          and float(sim.integrator.epsilon) == DEFAULTS["epsilon"]
+          and ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["step_at"]).value
+          == _REG["dispatch"])
+    copy = sim.copy() if ok else None
+    if not ok or int(copy.integrator.k) != DEFAULTS["k"]:
+        raise RuntimeError(f"REBOUND {rebound.__version__} does not keep HBVM's state where its "
+                           f"own layout says; HBVM's REBOUND host supports {L.SUPPORTED}")
+
+
+def _create() -> int:
+    """REBOUND's ``create``: a new state with HBVM's defaults (REBOUND then reads saved fields
+    into it when it loads or copies a simulation)."""
+    p = _LIBC.calloc(L.N_SLOTS, 8)
+    if not p:
+        return 0
+    st, sd = _slots(p)
+    d = DEFAULTS
+    st[[L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
+        d["s"], d["k"], L.NODES.index(d["nodes"]), d["max_iter"], int(d["adaptive"]))
+    sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV, L.SL_EREF]] = (
+        d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan, np.nan)
+    st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
+    return p
+
+
+# -- the integrate and steps of rebound.Simulation ------------------------------------------------
+def _install_runs(rebound) -> None:
+    """``rebound.Simulation.integrate`` and ``steps`` raise a failed HBVM step's own exception.
+
+    REBOUND's Python maps the C status of a run to its exceptions in these two methods, and an
+    error message to a RuntimeError; our ``fail`` callback sets that status and message (so a
+    caller of the C library sees the failure too).  For a simulation whose integrator is HBVM
+    these methods make the same C call with the same arguments and the same exceptions for
+    REBOUND's own statuses, and raise the recorded ConvergenceError, StepSizeError, ... in place
+    of the RuntimeError; for any other integrator they are REBOUND's own, untouched."""
+    S = rebound.Simulation
+    if getattr(S.integrate, "_hbvm_md", False):
+        return
+    lib = rebound.clibrebound
+    c_integrate = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_double)(
+        ctypes.cast(lib.reb_simulation_integrate, ctypes.c_void_p).value)
+    c_steps = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_size_t)(
+        ctypes.cast(lib.reb_simulation_steps, ctypes.c_void_p).value)
+    reb_integrate, reb_steps = S.integrate, S.steps
+    step_at, dispatch, eft_at = _REG["step_at"], _REG["dispatch"], _REG["eft_at"]
+    messages_at = _REG["messages_at"]
+    c_int, c_void_p, addressof = ctypes.c_int, ctypes.c_void_p, ctypes.addressof
+    c_double, c_size_t = ctypes.c_double, ctypes.c_size_t
+
+    def integrate(self, tmax, exact_finish_time=1):
+        addr = addressof(self)
+        if c_void_p.from_address(addr + step_at).value != dispatch:
+            return reb_integrate(self, tmax, exact_finish_time)
+        _PENDING.pop(addr, None)
+        c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
+        _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
+
+    def steps(self, N_steps):
+        addr = addressof(self)
+        if c_void_p.from_address(addr + step_at).value != dispatch:
+            return reb_steps(self, N_steps)
+        _PENDING.pop(addr, None)
+        _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
+
+    integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
+    integrate._hbvm_md = steps._hbvm_md = True
+    S.integrate, S.steps = integrate, steps
+
+
+def _after_run(sim, addr: int, status: int, messages_at: int) -> None:
+    """What ``rebound.Simulation.integrate`` does with the C status, with a failed HBVM step's
+    exception in place of REBOUND's RuntimeError."""
+    err = _PENDING.pop(addr, None)
+    if err is not None:
+        _drop_messages(sim, _message(err))
+        raise err
+    rebound = _rebound()
+    if status == 1:
+        sim.process_messages()
+        raise rebound.GenericError("An error occurred during the integration.")
+    if status == 2:
+        if sim._N_odes > 0:
+            raise rebound.NoParticles("No particles found. Will exit. Use BS integrator to "
+                                      "integrate user-defined ODEs without any particles present.")
+        raise rebound.NoParticles("No more particles left in simulation.")
+    if status == 3:
+        raise rebound.Encounter("Two particles had a close encounter (d<exit_min_distance).")
+    if status == 4:
+        raise rebound.Escape("A particle escaped (r>exit_max_distance).")
+    if status == 6:
+        raise KeyboardInterrupt
+    if status == 7:
+        raise rebound.Collision("Two particles collided (d < r1+r2)")
+    if ctypes.c_void_p.from_address(addr + messages_at).value:
+        sim.process_messages()
+
+
+def _drop_messages(sim, ours: str) -> None:
+    """Show REBOUND's queued messages as ``process_messages`` does, except the error message
+    our ``fail`` queued (its exception is raised instead)."""
+    while True:
+        try:
+            sim.process_messages()
+            return
+        except RuntimeError as exc:
+            if not (str(exc) and ours.startswith(str(exc))):
+                warnings.warn(f"REBOUND: {exc}", RuntimeWarning, stacklevel=_user_stacklevel())
+
+
+# -- the callbacks the compiled step calls --------------------------------------------------------
+def _prepare_cb(r: int, p: int) -> int:
+    try:
+        _prepare(_rebound().Simulation.from_address(r), p)
+        return OK
+    except BaseException as exc:  # noqa: BLE001 - ctypes would print and swallow it
+        _PENDING[r] = exc
+        return L.PREPARE_FAILED
+
+
+def _fail_cb(r: int, p: int) -> int:
+    """A step failed (nothing changed): record its exception, set REBOUND's error status and
+    queue the message (so that REBOUND's own run loop stops, and a C caller sees it)."""
+    try:
+        st, sd = _slots(p)
+        if int(st[L.SL_STATUS]) != L.PREPARE_FAILED or r not in _PENDING:
+            try:
+                _PENDING[r] = _step_failure(st, sd)
+            except BaseException as exc:  # noqa: BLE001 - the run must stop with it
+                _PENDING[r] = exc
+        msg = _message(_PENDING[r])
+        _rebound().clibrebound.reb_simulation_error(ctypes.c_void_p(r), msg.encode())
+    finally:
+        ctypes.c_int.from_address(r + _REG["status_at"]).value = _REB_GENERIC_ERROR
+    return 0
+
+
+def _message(err: BaseException) -> str:
+    """The error message REBOUND queues for a failed HBVM step (REBOUND keeps its start)."""
+    return f"{type(err).__name__}: {err}"
+
+
+def _step_failure(st: np.ndarray, sd: np.ndarray):
+    """The exception of a failed step, from what the compiled step recorded."""
+    status = int(st[L.SL_STATUS])
+    if status == L.BAD_DT:
+        return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
+                          f"{float(sd[L.SL_H_FAIL])!r}); set it to the step you want, e.g. a "
+                          "fraction "
+                          "of the shortest period")
+    if status == L.BAD_SETTINGS:
+        check_settings(st, sd)
+    if status in (L.RESYNC, L.BAD_SETTINGS):
+        raise RuntimeError("HBVM: the step refused the state its host had just prepared (an "
+                           "internal inconsistency; please report it)")
+    counters = _doubles(int(st[L.SL_COUNTERS]), N_COUNTERS)
+    h, t = float(sd[L.SL_H_FAIL]), float(sd[L.SL_T_FAIL])
+    etol = float(sd[L.SL_ETOL])
+    if status == TOO_SMALL:
+        cause_status = int(sd[L.SL_CAUSE_STATUS])
+        cause = (f"error estimate {sd[L.SL_CAUSE_ERR]:.3e} > epsilon={sd[L.SL_EPSILON]:.3e}"
+                 if cause_status == OK else
+                 str(step_error(cause_status, h, t, counters, "fixed_point", energy_tol=etol,
+                                hints=_HINTS)))
+        return StepSizeError(h, float(sd[L.SL_MIN_DT]), t, cause)
+    return step_error(status, h, t, counters, "fixed_point", energy_tol=etol, hints=_HINTS)
+
+
+def _python_core(r: int, p: int) -> int:
+    """The step as Python (``NUMBA_DISABLE_JIT``): the glue's :func:`step_arrays` on numpy
+    views of the same memory the compiled :func:`core_step` views."""
+    try:
+        return _PYTHON_STEPS[p](r, p)
+    except BaseException as exc:  # noqa: BLE001
+        _PENDING[r] = exc
+        return L.PREPARE_FAILED
+
+
+_PYTHON_STEPS: dict = {}
+
+
+# -- prepare: the model, the compiled step and the context block from the particles ----------------
+def method_of(st: np.ndarray) -> HBVM:
+    """The HBVM(k, s) a state's settings name (ValueError naming a bad one)."""
+    nodes = int(st[L.SL_NODES])
+    if not 0 <= nodes < len(L.NODES):
+        raise ValueError(f"`sim.integrator.nodes` must be 'gauss' or 'lobatto' (got {nodes})")
+    return HBVM(int(st[L.SL_K]), int(st[L.SL_S]), nodes=L.NODES[nodes])
+
+
+def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM:
+    """Check the settings in ``sim.integrator`` (a user may change them between runs; the
+    compiled step checks the same ranges, ``glue.settings_ok``); returns the method."""
+    method = method_of(st)
+    bad = [(n, v, want) for n, v, want in (
+        ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
+        ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
+        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check)"))
+        if not (v >= 1 if n == "max_iter" else 0 <= v < (1 if n == "tol" else math.inf))]
+    if bad:
+        n, v, want = bad[0]
+        raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
+    if st[L.SL_ADAPTIVE]:
+        check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
+    return method
+
+
+def _prepare(sim, p: int) -> None:
+    """Build (again) what the compiled step needs: check the simulation and the settings, the
+    N-body model of the particles, the compiled step and the context block; keep the saved state
+    (compensations, gamma) when it is the particles' (a loaded or copied run), else start it
+    afresh from the particles."""
+    st, sd = _slots(p)
+    method = check_settings(st, sd)
+    check_simulation(sim)
+    h = sim.dt
+    if not (math.isfinite(h) and h != 0.0):
+        _step_size("sim.dt", h)
+    N = sim.N
+    offsets = _REG["offsets"]
+    stride = offsets[L.R_STRIDE - L.R_T]
+    ix, ivx, im = (offsets[i - L.R_T] for i in (L.R_X, L.R_VX, L.R_M))
+    ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
+    if N == 0 or not ptr:
+        raise ValueError("the simulation has no particles")
+    view = _doubles(ptr, N * stride).reshape(N, stride)
+    na = sim.N_active
+    nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
+    x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
+    dim, s = nb.dim, method.s
+    binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue")
+    minv = binding.minv
+    y, g, c = (_doubles(int(st[a]), int(st[n])) for a, n in
+               ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
+    keep = (y.size == 4 * dim and g.size == s * dim and np.array_equal(y[:dim], x.reshape(-1))
+            and np.array_equal(y[dim:2 * dim] * minv, v.reshape(-1)))
+    if not keep:
+        q0 = x.reshape(-1).copy()
+        p0 = nb.momenta_from_velocities(v.copy())
+        check_particles(np.concatenate([q0, p0]), nb)
+        y = _array(st, L.SL_Y, L.SL_NY, 4 * dim)
+        y[:] = 0.0
+        y[:dim], y[dim:2 * dim] = q0, p0
+        _array(st, L.SL_GAMMA, L.SL_NGAMMA, s * dim)[:] = 0.0
+        sd[L.SL_H_PREV] = sd[L.SL_EREF] = np.nan
+        st[L.SL_RESYNCS] += 1
+    if c.size != N_COUNTERS:
+        _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
+    # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
+    # most one gravitating body, at rest (the restricted problem with a star at rest): then it
+    # stays zero, there is nothing to check, and test particles are not checked.
+    check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
+    if not check and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
+        warnings.warn("HBVM: the gravitating bodies have no energy (a single body at rest), so "
+                      "energy_tol checks nothing here; test particles' steps are not checked",
+                      RuntimeWarning, stacklevel=_user_stacklevel())
+    st[L.SL_ECHECK] = 1 if check else -1
+    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)
+    code = binding.step_code
+    if code.kind == "compiled":
+        st[L.SL_CORE] = code.core_step.address
+    else:
+        _PYTHON_STEPS[p] = _python_step(code, st)
+        st[L.SL_CORE] = _REG["python_core"]
+
+
+def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
+    """The state's array at ``slot`` with n doubles (reallocated with the C library, as REBOUND
+    allocates it when it loads a simulation, so that either may free it)."""
+    if int(st[slot_n]) != n or not st[slot]:
+        addr = _LIBC.realloc(ctypes.c_void_p(int(st[slot]) or None), 8 * max(n, 1))
+        if not addr:
+            raise MemoryError("HBVM: could not allocate its state")
+        st[slot], st[slot_n] = addr, n
+    return _doubles(int(st[slot]), n)
+
+
+def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
+    """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
+    allocated with the C library (the state's ``free`` releases it with the state)."""
+    ex = Extrapolation(method)
+    (tn, ts), (Wp, Cp) = binding.c1, binding.c2
+    NV, NVinv, NM = binding.no_newton
+    s, m, N = method.s, binding.minv.shape[0], view.shape[0]
+    written = np.empty((N, 7))
+    written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
+    written[:, 6] = view[:, im]
+    host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
+    arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, m)),
+              L.A_EREFT: np.zeros(1), L.A_WRITTEN: written, L.A_MINV: binding.minv,
+              L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
+              L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
+              L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
+              L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
+    sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
+    head = 8 * L.N_HEADER
+    total = head + sum(sizes.values())
+    if st[L.SL_CTX]:
+        _LIBC.free(ctypes.c_void_p(int(st[L.SL_CTX])))
+        st[L.SL_CTX] = st[L.SL_CORE] = 0
+    base = _LIBC.malloc(total + 16)
+    if not base:
+        raise MemoryError("HBVM: could not allocate its step's context")
+    header = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(base), np.int64)
+    at = base + head
+    for k, a in arrays.items():
+        header[k] = at
+        if a.nbytes:
+            dst = np.frombuffer((ctypes.c_char * a.nbytes).from_address(at), a.dtype)
+            dst[:] = np.ascontiguousarray(a).reshape(-1)
+        at += sizes[k]
+    header[[L.D_S, L.D_K, L.D_NODES, L.D_M, L.D_N, L.D_P, L.D_NF, L.D_NC, L.D_PTR]] = (
+        s, method.n_stages, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
+        binding.work.shape[0],
+        binding.cwork.shape[0], ptr)
+    header[L.R_T:L.R_M + 1] = _REG["offsets"]
+    words = _REG["config_words"]
+    header[L.C_WORDS:L.C_VALUES] = words
+    sim_words = np.frombuffer(
+        (ctypes.c_int64 * (max(words) + 1)).from_address(ctypes.addressof(sim)), np.int64)
+    header[L.C_VALUES:L.N_HEADER] = sim_words[words]
+    st[L.SL_CTX] = base
+
+
+def _python_step(code, st):
+    """The glue's step_arrays run as Python on views of the state and context block."""
+    def step(r: int, p: int) -> int:
+        st_, sd = _slots(p)
+        ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st_[L.SL_CTX])),
+                            np.int64)
+        head = int(ctx[L.R_HEAD])
+        simi = np.frombuffer((ctypes.c_int64 * head).from_address(r), np.int64)
+        simd = simi.view(np.float64)
+        N = int(ctx[L.D_N])
+        if simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N or any(
+                st_[a] != ctx[b] for a, b in ((L.SL_S, L.D_S), (L.SL_K, L.D_K),
+                                               (L.SL_NODES, L.D_NODES))):
+            return L.RESYNC
+        s, k, m = (int(ctx[i]) for i in (L.D_S, L.D_K, L.D_M))
+
+        def f(slot, shape, dtype=np.float64):
+            n = int(np.prod(shape))
+            size = n * np.dtype(dtype).itemsize
+            if size == 0:
+                return np.zeros(shape, dtype)
+            return np.frombuffer((ctypes.c_char * size).from_address(int(ctx[slot])),
+                                 dtype).reshape(shape)
+        y = _doubles(int(st_[L.SL_Y]), 4 * m)
+        view = _doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
+        return int(code.step_arrays(
+            simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + 1],
+            sd[L.SL_RES:L.SL_RES + L.N_RES], y[:2 * m], y[2 * m:],
+            _doubles(int(st_[L.SL_GAMMA]), s * m).reshape(s, m),
+            _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS), f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m),
+            f(L.A_GAMMAT, (s, m)), f(L.A_EREFT, 1), f(L.A_WRITTEN, (N, 7)), f(L.A_MINV, m),
+            f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
+            f(L.A_TN, (2, k)), f(L.A_TS, (2, s)), f(L.A_WP, (2, s, k)), f(L.A_CP, (4, k, s)),
+            f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
+            f(L.A_NM, (0, m, m), complex), f(L.A_WORK, int(ctx[L.D_NF])),
+            f(L.A_CWORK, int(ctx[L.D_NC]), complex), f(L.A_CLOCK, 2), f(L.A_E1, (s, s)),
+            f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)), f(L.A_EZERO, (s, s))))
+    return step

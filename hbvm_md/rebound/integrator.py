@@ -1,0 +1,227 @@
+"""The user's handle: :class:`HBVMIntegrator` selects HBVM on a simulation with checked
+settings, and reads its state back (it holds none itself)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
+                                    shortest_period)
+from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
+from integrators import HBVM
+from integrators.core import N_COUNTERS
+from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive
+from integrators.kchoice import adaptive_k, choose_k, period_steps
+from systems.nbody import NBody
+
+
+class HBVMIntegrator(Counted):
+    """Select and configure HBVM(k, s) on a ``rebound.Simulation``: ``sim.integrator = "hbvm"``
+    with these settings (checked), and k measured on the scene when not given.
+
+    Parameters
+    ----------
+    sim : rebound.Simulation
+        Newtonian gravity (no softening, additional forces, variational particles; gravity
+        'basic' or 'compensated'); test particles (``N_active``, ``testparticle_type = 0``) and
+        REBOUND's collision detection and resolve functions are honoured.
+    s : int
+        Degree of the method (order 2s).
+    k : int, optional
+        Quadrature nodes (k >= s).  None: measured on the scene at attach time for ``sim.dt``
+        (:func:`integrators.kchoice.choose_k` over one shortest orbital period) with a fixed
+        step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive steps.
+    dt : float, optional
+        Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
+    max_iter : int
+        Fixed-point iterations allowed per step.
+    tol : float, optional
+        Relative tolerance of the iteration; None iterates to round-off.
+    nodes : {"gauss", "lobatto"}
+        Quadrature of the line integral.
+    adaptive : bool or None
+        Step-size control (None, the default: adaptive unless ``dt`` is given, as with IAS15).
+        Each step's error estimate, the weight of its last Legendre coefficient
+        max|gamma_(s-1)| / max|gamma_0| (no extra force evaluation), is kept below ``epsilon``;
+        a step whose estimate, iteration or energy check fails is retried smaller within the
+        same REBOUND step, which then records the step taken (``sim.t``,
+        ``sim.dt_last_done``); ``sim.dt`` shows the next step proposed.
+    epsilon : float
+        Precision of the adaptive control (dimensionless, like IAS15's).
+    min_dt : float
+        Smallest step the adaptive control may take; below it a step that cannot be resolved
+        raises :class:`integrators.StepSizeError`.
+    energy_tol : float or None
+        A step that changes the energy of the gravitating bodies by more than this, relative to
+        |T| + |V|, is refused with :class:`integrators.UnresolvedStepError` (nothing committed).
+        HBVM at round-off k changes it by about 1e-16 a step; a step that does not resolve the
+        motion changes it visibly.  The check costs one potential evaluation a step.  None
+        disables it.
+
+    Attributes
+    ----------
+    method : HBVM
+    nsteps, nfev, niter, rejected, resyncs : int
+        Steps, force evaluations, fixed-point iterations, rejected adaptive trials and reads of
+        the state afresh from the particles, as saved with the simulation.
+
+    Notes
+    -----
+    This object holds no state: it is a view of ``sim.integrator`` (``HBVMIntegrator.of(sim)``
+    makes one for any simulation whose integrator is HBVM, e.g. a copy or a loaded file).  A
+    failed step raises ``ConvergenceError``, ``UnresolvedStepError``, ``StepSizeError``, ...
+    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.
+    """
+
+    def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
+                 max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
+                 energy_tol: float | None = 1e-10, adaptive: bool | None = None,
+                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0):
+        # Everything is checked before anything is changed: a failed attach leaves sim as it was.
+        rebound = _rebound()
+        if not isinstance(sim, rebound.Simulation):
+            raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
+        L.check_version(rebound)
+        register()
+        method = HBVM(s if k is None else k, s, nodes=nodes)    # checks s, k and nodes
+        if (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
+                or max_iter < 1):
+            raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
+        if tol is not None and not 0 < _real("tol", tol) < 1:
+            raise ValueError(f"`tol` must be None (round-off) or in (0, 1) (got tol={tol!r})")
+        if energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
+            raise ValueError(f"`energy_tol` must be a positive number or None (got "
+                             f"energy_tol={energy_tol!r}); None switches the energy check off")
+        if adaptive is None:
+            adaptive = dt is None      # like IAS15: no step to choose unless one is given
+        if not isinstance(adaptive, (bool, np.bool_)):
+            raise TypeError(f"`adaptive` must be True, False or None (got adaptive={adaptive!r})")
+        if adaptive:
+            epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
+        check_simulation(sim)
+        if dt is not None:
+            h = _step_size("dt", dt)
+        elif adaptive:
+            # the first step tried: the controller takes it from there
+            period = shortest_period(sim) if sim.N > 1 else math.inf
+            h = period / 50 if math.isfinite(period) else _step_size("sim.dt", sim.dt)
+            h = math.copysign(h, sim.dt) if sim.dt != 0 else h
+        else:
+            h = _step_size("sim.dt", sim.dt)
+        if k is None and adaptive:
+            # the steps vary (pericentres, encounters): no single step to probe k on
+            method = HBVM(adaptive_k(method.s, epsilon), method.s, nodes=nodes)
+        elif k is None and sim.N > 1:
+            nb = NBody.from_rebound(sim)
+            y0 = nb.initial_state()
+            check_particles(y0, nb)
+            steps = period_steps(shortest_period(nb), h)
+            method = HBVM(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k,
+                          method.s, nodes=nodes)
+        self._prev_integrator = str(sim.integrator)
+        self.sim = sim
+        sim.integrator = NAME
+        sim.dt = h
+        st, sd = self._slots()
+        st[[L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
+            method.s, method.k, L.NODES.index(method.nodes), int(max_iter), int(adaptive))
+        sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL]] = (
+            float(epsilon), float(min_dt), float(tol or 0.0), float(energy_tol or 0.0))
+
+    @classmethod
+    def of(cls, sim) -> "HBVMIntegrator | None":
+        """A view of ``sim``'s HBVM integrator (a copy's, a loaded file's), or None when its
+        integrator is not HBVM."""
+        if str(sim.integrator) != NAME:
+            return None
+        self = cls.__new__(cls)
+        self.sim, self._prev_integrator = sim, "ias15"
+        return self
+
+    def _slots(self) -> tuple[np.ndarray, np.ndarray]:
+        name = str(self.sim.integrator)
+        if name != NAME:
+            raise ValueError(f"sim.integrator is '{name}', not HBVM (it was changed after "
+                             "HBVMIntegrator(sim)); set sim.integrator = 'hbvm' or attach again")
+        return _slots(self.sim.integrator.state)
+
+    def _get(self, slot: int):
+        st, sd = self._slots()
+        return int(st[slot]) if slot in L.INT_SLOTS else float(sd[slot])
+
+    @property
+    def method(self) -> HBVM:
+        return method_of(self._slots()[0])
+
+    @property
+    def counters(self) -> np.ndarray:
+        """The core's counters (layout of :mod:`integrators.core`), as saved with the run."""
+        st, _ = self._slots()
+        n = int(st[L.SL_NCOUNTERS])
+        return _doubles(int(st[L.SL_COUNTERS]), n).copy() if n else np.zeros(N_COUNTERS)
+
+    nsteps = property(lambda self: self._get(L.SL_NSTEPS), doc="Steps committed.")
+    rejected = property(lambda self: self._get(L.SL_REJECTED),
+                        doc="Adaptive trial steps rejected (and retried smaller).")
+    resyncs = property(lambda self: self._get(L.SL_RESYNCS),
+                       doc="How often the state was read afresh from the particles.")
+    adaptive = property(lambda self: bool(self._get(L.SL_ADAPTIVE)))
+    epsilon = property(lambda self: self._get(L.SL_EPSILON))
+    min_dt = property(lambda self: self._get(L.SL_MIN_DT))
+
+    @property
+    def attached(self) -> bool:
+        return str(self.sim.integrator) == NAME
+
+    @property
+    def max_iter(self) -> int:
+        """Fixed-point iterations allowed per step (settable between runs)."""
+        return self._get(L.SL_MAX_ITER)
+
+    @max_iter.setter
+    def max_iter(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"`max_iter` must be a positive integer (got max_iter={value!r})")
+        self._slots()[0][L.SL_MAX_ITER] = int(value)
+
+    @property
+    def tol(self) -> float:
+        """Relative tolerance of the iteration (0: round-off)."""
+        return self._get(L.SL_TOL)
+
+    @property
+    def energy_tol(self) -> float | None:
+        """The energy check's tolerance (None: off); settable between runs."""
+        return self._get(L.SL_ETOL) or None
+
+    @energy_tol.setter
+    def energy_tol(self, value: float | None) -> None:
+        if value is not None and not 0 < _real("energy_tol", value) < math.inf:
+            raise ValueError(f"`energy_tol` must be a positive number or None (got "
+                             f"energy_tol={value!r}); None switches the energy check off")
+        self._slots()[1][L.SL_ETOL] = float(value or 0.0)
+
+    def __repr__(self) -> str:
+        return f"HBVMIntegrator({self.method!r}, attached={self.attached}, nsteps={self.nsteps})"
+
+    def integrate(self, tmax: float, exact_finish_time: int = 1) -> None:
+        """``sim.integrate(tmax, exact_finish_time)``."""
+        self.sim.integrate(tmax, exact_finish_time)
+
+    def detach(self) -> None:
+        """Give the simulation back its previous integrator."""
+        if self.attached:
+            self.sim.integrator = self._prev_integrator
+
+    def save(self, path) -> None:
+        """``sim.save_to_file(path, delete_file=True)``: REBOUND's binary holds HBVM's
+        settings and state; ``rebound.Simulation(path)`` continues bit for bit."""
+        self.sim.save_to_file(str(path), delete_file=True)
+
+    @classmethod
+    def load(cls, path) -> tuple:
+        """``(sim, HBVMIntegrator.of(sim))`` for ``sim = rebound.Simulation(path)``."""
+        sim = _rebound().Simulation(str(path))
+        return sim, cls.of(sim)

@@ -1,0 +1,163 @@
+"""Memory layouts shared by the Python host and the compiled step: HBVM's state in REBOUND,
+the step's context block, and REBOUND's own offsets (read from its ctypes structures).
+
+HBVM's state
+------------
+``struct reb_integrator``'s ``create`` returns the state REBOUND keeps per simulation
+(``r->integrator.state``) and passes to the step.  Here it is an array of ``N_SLOTS`` 8-byte
+slots (int64 or float64 by slot), so that the compiled code and the field descriptors share
+one table of slot numbers and no struct offset is written twice.  The slots in
+:data:`SAVED` are described to REBOUND by field descriptors (``integrator.hbvm.<name>`` in its
+binary format): settings, the proposed next step lives in ``sim.dt``, the previous step size,
+the reference energy, the counts, and three arrays REBOUND allocates, saves and restores itself
+(the double-double state, the last step's coefficients gamma, the core's counters).  The other
+slots hold this process's function addresses, the context block and a failed step's record;
+REBOUND neither saves nor copies them (a loaded or copied state starts with them zero, and the
+step rebuilds them).
+
+REBOUND's layout
+----------------
+The compiled step reads a handful of ``struct reb_simulation`` and ``struct reb_particle``
+fields.  Their offsets are taken at run time from REBOUND's own ctypes structures
+(``rebound.Simulation``, ``rebound.Particle``, ``rebound.integrator.Integrator``,
+``BinarydataFieldDescriptor``), which REBOUND checks against its C library when it is
+imported, and written into each context block: no REBOUND offset is a literal anywhere in this
+project.  :func:`rebound_offsets` checks that every field the step reads is an aligned 8-byte
+value, and :func:`check_version` that the REBOUND is one whose plug-in interface this host was
+written and tested for.
+"""
+from __future__ import annotations
+
+import ctypes
+
+#: REBOUND versions with the plug-in interface (``reb_integrator_register``, the step called
+#: with the integrator's state) that this host was written for and tested with
+SUPPORTED = "REBOUND >= 5.2, < 6 (tested with 5.2.2)"
+
+OK = 0
+RESYNC = -1           # the particles are not what the last step wrote: the host prepares again
+PREPARE_FAILED = -2   # the host refused the simulation (its exception is pending)
+BAD_DT = -3           # sim.dt is zero or not finite
+BAD_SETTINGS = -4     # a setting in sim.integrator is out of its range (host.check_settings)
+
+# ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
+(SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
+ SL_H_PREV, SL_EREF, SL_NSTEPS, SL_REJECTED, SL_RESYNCS,
+ SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS, SL_NCOUNTERS,
+ # not saved: this process's addresses, and what a failed step recorded
+ SL_CORE, SL_CTX, SL_PREPARE, SL_FAIL, SL_FREE, SL_ECHECK,
+ SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(32)
+N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, its status
+N_SLOTS = SL_RES + N_RES
+
+NODES = ("gauss", "lobatto")
+
+# REBOUND's dtype ids (enum REB_BINARYDATA_DTYPE; rebound.binarydata_field_descriptor maps them)
+_DOUBLE, _INT64, _POINTER = 1, 5, 10
+
+#: (name, slot, dtype, slot of the element count or None, documentation) of every saved slot
+SAVED = (
+    ("s", SL_S, _INT64, None, "Degree of the method: HBVM(k, s) has order 2s."),
+    ("k", SL_K, _INT64, None, "Quadrature nodes of the line integral (k >= s)."),
+    ("nodes", SL_NODES, _INT64, None, "Quadrature: 'gauss' or 'lobatto'."),
+    ("max_iter", SL_MAX_ITER, _INT64, None, "Fixed-point iterations allowed per step."),
+    ("adaptive", SL_ADAPTIVE, _INT64, None, "1: adaptive steps (sim.dt shows the next step "
+     "proposed); 0: fixed steps of sim.dt."),
+    ("epsilon", SL_EPSILON, _DOUBLE, None, "Precision of the adaptive step control."),
+    ("min_dt", SL_MIN_DT, _DOUBLE, None, "Smallest adaptive step; below it a step that cannot "
+     "be resolved raises StepSizeError."),
+    ("tol", SL_TOL, _DOUBLE, None, "Relative tolerance of the iteration (0: round-off)."),
+    ("energy_tol", SL_ETOL, _DOUBLE, None, "A step changing the energy by more than this "
+     "(relative) is refused with UnresolvedStepError (0: no check)."),
+    ("h_prev", SL_H_PREV, _DOUBLE, None, ""),
+    ("eref", SL_EREF, _DOUBLE, None, ""),
+    ("nsteps", SL_NSTEPS, _INT64, None, "Steps committed."),
+    ("rejected", SL_REJECTED, _INT64, None, "Adaptive trial steps rejected and retried smaller."),
+    ("resyncs", SL_RESYNCS, _INT64, None, "Times the state was read afresh from the particles."),
+    ("state", SL_Y, _POINTER, SL_NY, ""),
+    ("gamma", SL_GAMMA, _POINTER, SL_NGAMMA, ""),
+    ("counters", SL_COUNTERS, _POINTER, SL_NCOUNTERS, ""),
+)
+INT_SLOTS = frozenset(slot for _, slot, dtype, _, _ in SAVED if dtype == _INT64)
+
+# ---- the context block: int64 header (addresses, sizes, REBOUND's offsets), then the arrays --
+(A_YT, A_CYT, A_GAMMAT, A_EREFT, A_WRITTEN, A_MINV, A_KINW, A_PARAMS, A_TN, A_TS, A_WP, A_CP,
+ A_NV, A_NVINV, A_NM, A_WORK, A_CWORK, A_CLOCK, A_E1, A_ET, A_EW, A_EBUF, A_EZERO, A_HOST,
+ D_S, D_K, D_NODES, D_M, D_N, D_P, D_NF, D_NC, D_PTR,
+ # REBOUND's offsets in doubles: reb_simulation's fields, then reb_particle's size and fields
+ R_T, R_G, R_DT, R_DTL, R_N, R_PARTICLES, R_NACTIVE, R_HEAD, R_STRIDE, R_X, R_VX, R_M,
+ ) = range(45)
+#: settings HBVM checks (host.check_simulation): the 8-byte words of reb_simulation holding
+#: them, and their values when the step was prepared, follow; a changed word makes the step
+#: answer RESYNC, and the host checks the settings again (a neighbour's change costs only that)
+CONFIG_FIELDS = ("softening", "N_var", "testparticle_type", "_gravity", "_boundary",
+                 "_N_odes", "_additional_forces")
+N_CFG = len(CONFIG_FIELDS)
+C_WORDS = 45
+C_VALUES = C_WORDS + N_CFG
+N_HEADER = C_VALUES + N_CFG
+N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
+#: the simulation fields the step reads or writes (R_T ...), and the particle's
+SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")
+PARTICLE_FIELDS = ("x", "vx", "m")
+
+
+def _offset8(structure, name: str) -> int:
+    field = getattr(structure, name)
+    if field.offset % 8 or field.size != 8:
+        raise RuntimeError(f"HBVM's REBOUND host needs {structure.__name__}.{name} as an aligned "
+                           f"8-byte field (offset {field.offset}, size {field.size}); it supports "
+                           f"{SUPPORTED}")
+    return field.offset // 8
+
+
+def rebound_offsets(rebound) -> list[int]:
+    """REBOUND's offsets for the header slots R_T .. R_M (in doubles), from its ctypes
+    structures: the simulation's fields, the number of doubles viewed from its start (up to
+    the last of them or of the settings' words), the particle's size in doubles and its x, vx
+    and m."""
+    sim = [_offset8(rebound.Simulation, f) for f in SIM_FIELDS]
+    P = rebound.Particle
+    if ctypes.sizeof(P) % 8:
+        raise RuntimeError(f"sizeof(reb_particle) = {ctypes.sizeof(P)} is not a multiple of 8; "
+                           f"HBVM's REBOUND host supports {SUPPORTED}")
+    words = [getattr(rebound.Simulation, f).offset // 8 for f in CONFIG_FIELDS]
+    x, vx, m = (_offset8(P, f) for f in PARTICLE_FIELDS)
+    if [_offset8(P, f) for f in ("y", "z", "vy", "vz")] != [x + 1, x + 2, vx + 1, vx + 2]:
+        raise RuntimeError(f"reb_particle's x, y, z and vx, vy, vz are not consecutive; HBVM's "
+                           f"REBOUND host supports {SUPPORTED}")
+    return sim + [max(sim + words) + 1, ctypes.sizeof(P) // 8, x, vx, m]
+
+
+def config_words(rebound) -> list[int]:
+    """The 8-byte words of ``struct reb_simulation`` that hold :data:`CONFIG_FIELDS`."""
+    return [getattr(rebound.Simulation, f).offset // 8 for f in CONFIG_FIELDS]
+
+
+def check_version(rebound) -> None:
+    """Raise RuntimeError unless ``rebound`` is a version this host supports."""
+    version = getattr(rebound, "__version__", "?")
+    try:
+        major, minor = (int(v) for v in version.split(".")[:2])
+    except ValueError:
+        major, minor = 0, 0
+    if major != 5 or minor < 2 or not hasattr(rebound.clibrebound, "reb_integrator_register"):
+        raise RuntimeError(f"HBVM's REBOUND host supports {SUPPORTED}; got rebound {version}: "
+                           "pip install 'rebound>=5.2,<6'")
+
+
+def run_offsets(rebound) -> dict:
+    """Byte offsets in ``struct reb_simulation`` of the fields the host's ``integrate`` and
+    ``fail`` touch: exact_finish_time, status, messages."""
+    S = rebound.Simulation
+    return dict(eft_at=S.exact_finish_time.offset, status_at=S._status.offset,
+                messages_at=S.messages.offset)
+
+
+def state_offset(rebound) -> tuple[int, int]:
+    """Byte offsets in ``struct reb_simulation`` of the integrator's step function pointer and
+    of its state pointer (``r->integrator.callbacks.step``, ``r->integrator.state``)."""
+    from rebound.integrator import Integrator, IntegratorConfiguration
+    base = rebound.Simulation.integrator.offset
+    return (base + IntegratorConfiguration.callbacks.offset + Integrator.step.offset,
+            base + IntegratorConfiguration.state.offset)

@@ -1,0 +1,353 @@
+"""HBVM registered with REBOUND ("hbvm"): REBOUND steps, saves, archives, copies and resolves
+collisions; the patterns of REBOUND's own notebooks (Simulationarchive, restarting, collisions,
+test particles) with HBVM swapped in."""
+import math
+import os
+import pickle
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rebound
+
+import hbvm_md
+from hbvm_md import HBVMIntegrator
+from integrators import StepSizeError
+from integrators.engine import DEFAULT_EPSILON
+from integrators.kchoice import adaptive_k
+from systems import outer_solar_system
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _xv(sim):
+    return np.array([[p.x, p.y, p.z, p.vx, p.vy, p.vz] for p in sim.particles])
+
+
+def _outer(kind):
+    sim = outer_solar_system().to_rebound()
+    if kind == "fixed":
+        HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    else:
+        sim.integrator = "hbvm"          # HBVM's defaults: adaptive steps
+        sim.dt = 50.0
+    return sim
+
+
+def _max_energy_error(sim, t_end=1e5, n=200):
+    E0, err = sim.energy(), 0.0
+    for t in np.linspace(0, t_end, n + 1)[1:]:
+        sim.integrate(t)
+        err = max(err, abs(sim.energy() / E0 - 1))
+    return err
+
+
+# -- registration ------------------------------------------------------------------------------
+def test_registered_once_with_defaults_as_fields():
+    hbvm_md.rebound.register()                  # a second call does nothing (REBOUND would hang)
+    sim = outer_solar_system().to_rebound()
+    sim.integrator = "hbvm"
+    cfg = sim.integrator
+    assert cfg == "hbvm" and (cfg.s, str(cfg.nodes), cfg.adaptive) == (6, "gauss", 1)
+    assert cfg.k == adaptive_k(6, DEFAULT_EPSILON) and cfg.epsilon == DEFAULT_EPSILON
+    assert cfg.energy_tol == 1e-10 and cfg.max_iter == 60
+    assert "HBVM(k, s)" in cfg.__doc__ and "Degree of the method" in cfg.__doc__
+    cfg.nodes = "lobatto"                       # REBOUND's enum mapping of the field
+    assert HBVMIntegrator.of(sim).method.nodes == "lobatto"
+    d = HBVMIntegrator(sim, s=4, k=5, dt=10.0)
+    assert sim.integrator == "hbvm" and d.method.k == 5 and not d.adaptive
+
+
+def test_sim_integrator_hbvm_conserves_energy_like_hbvmintegrator():
+    """``sim.integrator = "hbvm"`` on the outer solar system over 1e5 days (200 outputs):
+    round-off energy like HBVMIntegrator(sim), and IAS15's positions to 1e-10 AU."""
+    a = outer_solar_system().to_rebound()
+    a.integrator = "hbvm"
+    b = outer_solar_system().to_rebound()
+    HBVMIntegrator(b)
+    ref = outer_solar_system().to_rebound()
+    ref.integrate(1e5)
+    ea, eb = _max_energy_error(a), _max_energy_error(b)
+    assert ea <= 1e-14 and eb <= 1e-14
+    assert np.max(np.abs(_xv(a)[:, :3] - _xv(ref)[:, :3])) < 1e-10
+    assert HBVMIntegrator.of(a).nsteps == a.steps_done          # no step failed
+    assert HBVMIntegrator.of(a).adaptive and a.dt != 50.0
+
+
+# -- REBOUND's Simulationarchive notebook ----------------------------------------------------------
+@pytest.mark.parametrize("kind", ["fixed", "adaptive"])
+def test_simulationarchive_three_modes_and_restart_pattern(tmp_path, kind):
+    """An archive written during an HBVM run: every snapshot is the run's state at its time bit
+    for bit; "close" and "exact" are the uninterrupted run to the same time bit for bit; the
+    notebook's restart (``sim = rebound.Simulation(archive)``, save again, integrate) continues
+    like the uninterrupted run, bit for bit."""
+    fn = str(tmp_path / "archive.bin")
+    sim = _outer(kind)
+    states = {}
+    sim.heartbeat = lambda p: states.__setitem__(p.contents.t, _xv(sim))
+    sim.save_to_file(fn, interval=1000.0, delete_file=True)
+    sim.integrate(1e4)
+    sa = rebound.Simulationarchive(fn)
+    assert len(sa) >= 10
+    for i in (1, len(sa) // 2, len(sa) - 1):
+        snap = sa[i]
+        assert snap.integrator == "hbvm" and np.array_equal(_xv(snap), states[snap.t])
+    for t, mode, eft in ((4321.0, "exact", 1), (4321.0, "close", 0)):
+        got = sa.getSimulation(t, mode=mode)
+        ref = _outer(kind)
+        ref.integrate(t, exact_finish_time=eft)
+        assert got.t == ref.t and np.array_equal(_xv(got), _xv(ref)), mode
+    got = sa.getSimulation(4321.0, mode="snapshot")
+    assert got.t <= 4321.0 and np.array_equal(_xv(got), states[got.t])
+    restart = rebound.Simulation(fn)
+    restart.save_to_file(fn, interval=1000.0)
+    restart.integrate(2e4)
+    sim.integrate(2e4)
+    assert restart.t == sim.t and np.array_equal(_xv(restart), _xv(sim))
+    assert len(rebound.Simulationarchive(fn)) >= 20
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["archive.bin"]
+
+
+@pytest.mark.parametrize("kind", ["fixed", "adaptive"])
+def test_copy_and_pickle_continue_bit_for_bit(kind):
+    sim = _outer(kind)
+    sim.integrate(2345.0)
+    twin, thawed = sim.copy(), pickle.loads(pickle.dumps(sim))
+    for s in (sim, twin, thawed):
+        s.integrate(2e4)
+    assert np.array_equal(_xv(twin), _xv(sim)) and np.array_equal(_xv(thawed), _xv(sim))
+    assert HBVMIntegrator.of(twin).resyncs == 1
+
+
+def test_fresh_process_continues_a_pickled_run_bit_for_bit(tmp_path):
+    """A spawned process that imports hbvm_md (a dask worker does) continues a pickled run."""
+    sim = _outer("adaptive")
+    sim.integrate(3000.0)
+    path = tmp_path / "sim.pkl"
+    path.write_bytes(pickle.dumps(sim))
+    code = textwrap.dedent(f'''
+        import pickle, hbvm_md
+        sim = pickle.loads(open({str(path)!r}, "rb").read())
+        sim.integrate(1e4)
+        print(repr([p.x for p in sim.particles]))
+    ''')
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    sim.integrate(1e4)
+    assert eval(out.stdout.strip()) == [p.x for p in sim.particles]
+
+
+def test_file_opened_without_hbvm_md_is_refused_not_frozen(tmp_path):
+    """REBOUND's own refusal where hbvm_md was not imported: a warning at load and
+    "Integrator not found." at the first integrate (never particles that do not move)."""
+    fn = str(tmp_path / "run.bin")
+    sim = _outer("fixed")
+    sim.integrate(500.0)
+    sim.save_to_file(fn, delete_file=True)
+    code = textwrap.dedent(f'''
+        import warnings, rebound
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            sim = rebound.Simulation({fn!r})
+        print("WARN", [str(x.message) for x in w])
+        try:
+            sim.integrate(1000.0)
+        except RuntimeError as e:
+            print("ERROR", e)
+    ''')
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "corrupted" in out.stdout and "ERROR Integrator not found." in out.stdout
+
+
+# -- collisions (REBOUND's collisions notebook) ---------------------------------------------------
+def _colliding(resolve):
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, r=0.05)
+    sim.add(m=2e-3, a=1.2, e=0.3, f=2.0, r=0.05)       # crosses the first planet's orbit
+    sim.collision = "direct"
+    sim.collision_resolve = resolve
+    sim.integrator = "hbvm"
+    sim.dt = 0.01
+    return sim
+
+
+def _momentum(sim):
+    return sum(np.array([p.m * p.vx, p.m * p.vy, p.m * p.vz]) for p in sim.particles)
+
+
+def test_colliding_planets_merge_with_mass_and_momentum_conserved():
+    sim = _colliding("merge")
+    M0, P0 = sum(p.m for p in sim.particles), _momentum(sim)
+    sim.integrate(100.0)
+    assert sim.N == 2 and sum(p.m for p in sim.particles) == M0
+    assert np.max(np.abs(_momentum(sim) - P0)) < 1e-17
+    assert HBVMIntegrator.of(sim).resyncs == 2        # read afresh once after the merger
+    assert sim.t == 100.0
+
+
+def test_python_resolve_halt_and_hardsphere():
+    calls = []
+
+    def resolve(simp, collision):
+        calls.append((simp.contents.t, collision.p1, collision.p2))
+        return 2                                      # remove p2
+    sim = _colliding(resolve)
+    sim.integrate(100.0)
+    assert calls and sim.N == 2 and sim.t == 100.0
+    halt = _colliding("halt")
+    with pytest.raises(rebound.Collision):
+        halt.integrate(100.0)
+    assert halt.t < 100.0 and halt.N == 3
+    hard = _colliding("hardsphere")
+    E0 = hard.energy()
+    hard.integrate(30.0)
+    assert hard.N == 3 and abs(hard.energy() / E0 - 1) < 1e-3
+
+
+# -- test particles, move_to_com, units (REBOUND's test particles notebook) -----------------------
+def test_test_particles_move_to_com_and_units_as_with_ias15():
+    def scene(integrator):
+        sim = rebound.Simulation()
+        sim.units = ("yr", "AU", "Msun")
+        sim.add(m=1.0)
+        sim.add(m=9.5e-4, a=5.2, e=0.05)
+        sim.add(m=2.9e-4, a=9.5, e=0.05, inc=0.02)
+        sim.N_active = sim.N
+        for i in range(5):
+            sim.add(a=2.5 + 0.3 * i, e=0.1, f=i)       # massless test particles
+        sim.move_to_com()
+        sim.integrator = integrator
+        sim.dt = 0.05
+        return sim
+    a, b = scene("hbvm"), scene("ias15")
+    for s in (a, b):
+        s.integrate(30.0)
+        s.move_to_com()
+        s.remove(5)
+        s.integrate(60.0)
+    assert a.N == b.N == 7 and np.max(np.abs(_xv(a)[:, :3] - _xv(b)[:, :3])) < 1e-9
+    assert HBVMIntegrator.of(a).resyncs >= 2         # the first step, the removal
+
+
+def test_variational_particles_are_refused_at_the_first_step():
+    sim = outer_solar_system().to_rebound()
+    sim.integrator = "hbvm"
+    sim.add_variation()
+    before = _xv(sim)
+    with pytest.raises(ValueError, match=r"variational particles .*remove them or use IAS15"):
+        sim.integrate(100.0)
+    assert sim.t == 0.0 and np.array_equal(_xv(sim), before)
+
+
+def test_warnings_point_at_the_users_line_and_nothing_is_printed(capsys):
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=0.0, a=1.0, e=0.3)
+    sim.N_active = 1
+    HBVMIntegrator(sim, s=6, dt=2 * math.pi / 50)
+    with pytest.warns(RuntimeWarning, match="no energy") as record:
+        sim.integrate(1.0)
+    assert record[0].filename == __file__
+    assert capsys.readouterr().out == ""
+
+
+def test_no_hard_coded_rebound_offset_outside_the_layout_module():
+    """REBOUND's offsets are read from its ctypes structures in hbvm_md/rebound/layout.py only:
+    no other module adds a number to an address, or names the old offset constants."""
+    files = [p for d in ("hbvm_md", "integrators", "systems") for p in (ROOT / d).rglob("*.py")]
+    layout = ROOT / "hbvm_md" / "rebound" / "layout.py"
+    pattern = re.compile(r"from_address\([^)]*\+\s*\d|\b(T_AT|G_AT|STATUS_BYTES|EXTRAS_BYTES|"
+                         r"PARTICLE_DOUBLES|SIM_HEAD)\b|\.offset\s*==\s*\d")
+    bad = [f"{p.relative_to(ROOT)}:{i + 1}" for p in files if p != layout
+           for i, line in enumerate(p.read_text().splitlines()) if pattern.search(line)]
+    assert bad == []
+    text = layout.read_text()
+    assert "offset" in text and not re.search(r"offset\s*[=!]=\s*\d", text)
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("epsilon", 2.0, r"`epsilon` must be a number in \(0, 1\)"),
+    ("max_iter", 0, r"`sim.integrator.max_iter` must be a positive integer \(got 0\)"),
+    ("energy_tol", -1.0, r"`sim.integrator.energy_tol` must be a finite number >= 0"),
+    ("k", 3, r"`k` must be >= `s`"),
+])
+def test_settings_changed_in_sim_integrator_are_checked(field, value, match):
+    sim = outer_solar_system().to_rebound()
+    sim.integrator = "hbvm"
+    sim.integrate(1000.0)
+    before, t = _xv(sim), sim.t
+    setattr(sim.integrator, field, value)
+    with pytest.raises(ValueError, match=match):
+        sim.integrate(2000.0)
+    assert sim.t == t and np.array_equal(_xv(sim), before)
+
+
+def test_particles_changed_inside_a_run_by_callbacks_are_honoured():
+    """A heartbeat that adds a planet and a pre-timestep kick change the particles between two
+    steps of one sim.integrate: HBVM reads them afresh, and the run is the one where the same
+    changes are made between two integrate calls, bit for bit."""
+    def planet(s):
+        s.add(m=3e-6, x=0.0, y=40.0, z=0.0, vx=-0.00272, vy=0.0, vz=0.0)
+
+    def beat(simp):
+        s = simp.contents
+        if s.t >= 5000.0 and s.N == 6:
+            planet(s)
+
+    def kick(simp):
+        s = simp.contents
+        if s.t >= 1000.0 and not kicked:
+            kicked.append(s.t)
+            s.particles[1].vx *= 1.0001
+    kicked = []
+    a, b = (outer_solar_system().to_rebound() for _ in range(2))
+    for s in (a, b):
+        HBVMIntegrator(s, s=6, k=8, dt=100.0)
+    a.heartbeat, a.pre_timestep_modifications = beat, kick
+    a.integrate(8000.0)
+    b.integrate(1000.0)
+    b.particles[1].vx *= 1.0001
+    b.integrate(5000.0)
+    planet(b)
+    b.integrate(8000.0)
+    assert kicked == [1000.0] and a.N == b.N == 7 and np.array_equal(_xv(a), _xv(b))
+    assert HBVMIntegrator.of(a).resyncs == HBVMIntegrator.of(b).resyncs == 3
+
+
+def test_adaptive_step_size_error_leaves_the_state():
+    """An adaptive step that cannot be resolved above min_dt raises StepSizeError naming it,
+    with the particles, t and dt as before (the first step, 87 d, is refused)."""
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, epsilon=1e-15, min_dt=80.0)
+    before, dt = _xv(sim), sim.dt
+    with pytest.raises(StepSizeError, match="min_dt=80"):
+        sim.integrate(1e4)
+    assert sim.t == 0.0 and sim.dt == dt and np.array_equal(_xv(sim), before)
+
+
+def test_a_stop_from_a_heartbeat_and_arguments_are_rebounds():
+    """sim.stop() in a heartbeat ends the run without an exception, at a whole step, as with
+    IAS15; integrate's arguments are converted and refused as REBOUND's own method does."""
+    sim = _outer("fixed")
+    stop_at = [1000.0]
+    sim.heartbeat = lambda p: p.contents.t >= stop_at[0] and sim.stop()
+    sim.integrate(5000.0)
+    assert sim.t == 1000.0
+    ref = _outer("fixed")
+    ref.integrate(1000.0)
+    assert np.array_equal(_xv(sim), _xv(ref))
+    stop_at[0] = math.inf
+    sim.integrate(2000)                                # an int tmax, as REBOUND takes it
+    with pytest.raises(TypeError):
+        sim.integrate(3000.0, exact_finish_time="yes")
+    with pytest.raises(TypeError):
+        sim.integrate("4000")
+    assert sim.t == 2000.0
