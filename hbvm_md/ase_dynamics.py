@@ -17,13 +17,14 @@ from ase import units
 from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
-from integrators import HBVM, ConvergenceError, Stepper
+from integrators import EQUIP, HBVM, ConvergenceError, Stepper
 from integrators.engine import check_step
 from systems.base import SeparableSystem
 
 _log = logging.getLogger(__name__)
 
 # keyword arguments of ASE's thermostats and barostats: HBVMDynamics conserves energy (NVE)
+METHODS = ("hbvm", "equip")      # the integrators' family: integrators.HBVM, integrators.EQUIP
 _ENSEMBLE_KWARGS = ("temperature_K", "temperature", "friction", "taut", "ttime", "pressure_au",
                     "pressure", "taup", "externalstress")
 
@@ -165,12 +166,18 @@ class HBVMDynamics(MolecularDynamics):
         forces, 6N extra force evaluations a step (2 per coordinate), which dominates the
         cost beyond a few atoms.
     nodes : {"gauss", "lobatto"}
+    method : {"hbvm", "equip"}
+        ``"hbvm"`` (default): HBVM(k, s), energy conserving.  ``"equip"``: EQUIP(k, s)
+        (:class:`integrators.EQUIP`), the Gauss method perturbed at each step so that it
+        conserves the energy and stays symplectic, so the total angular momentum of a free
+        cluster is kept to round-off as well; k is then the quadrature of its energy
+        condition (the same default), s >= 2, Gauss nodes.
     trajectory, logfile, loginterval, **kwargs
         As for :class:`ase.md.md.MolecularDynamics`.
 
     Attributes
     ----------
-    method : integrators.HBVM
+    method : integrators.HBVM or integrators.EQUIP
     k, s : int
     stage_evaluations : int
         Force evaluations at stage configurations so far (plus one per step at the final
@@ -195,7 +202,7 @@ class HBVMDynamics(MolecularDynamics):
 
     def __init__(self, atoms, timestep: float, s: int = 2, k: int | None = None,
                  solver: str = "auto", nodes: str = "gauss", trajectory=None, logfile=None,
-                 loginterval: int = 1, **kwargs):
+                 loginterval: int = 1, method: str = "hbvm", **kwargs):
         thermo = [key for key in _ENSEMBLE_KWARGS if key in kwargs]
         if thermo:
             raise TypeError(f"HBVMDynamics is NVE (it conserves the energy) and takes no "
@@ -211,6 +218,13 @@ class HBVMDynamics(MolecularDynamics):
         timestep = check_step(timestep, "timestep")
         if solver not in ("auto", "fixed_point", "newton"):
             raise ValueError(f"`solver` must be 'auto', 'fixed_point' or 'newton' (got solver={solver!r})")
+        if not isinstance(method, str) or method not in METHODS:
+            raise ValueError(f"`method` must be one of {METHODS} (got method={method!r}): "
+                             f"'hbvm' conserves the energy, 'equip' the energy and every "
+                             f"quadratic invariant (angular momentum) too")
+        if method == "equip" and nodes != "gauss":
+            raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}): "
+                             f"EQUIP perturbs the Gauss method")
         if k is None:
             HBVM(s, s, nodes)   # validates s and nodes with their own messages
             nu = getattr(atoms.calc, "polynomial_degree", None)
@@ -219,7 +233,7 @@ class HBVMDynamics(MolecularDynamics):
                    else "chosen: s + 1, the cheapest k for a non-polynomial calculator")
         else:
             why = "given"
-        self.method = HBVM(k, s, nodes)
+        self.method = EQUIP(k, s) if method == "equip" else HBVM(k, s, nodes)
         _log.info("HBVMDynamics: %r, k=%d (%s), s=%d (order %d), solver=%s",
                   self.method, k, why, s, self.method.order, solver)
         self.solver = solver

@@ -195,6 +195,8 @@ def method_arrays(method) -> tuple:
     tn = [tau, tau_lo], ts = [X0, X0_lo], Wp = [W, W_lo], Cp = [C2, C2_lo, I, I_lo] (contiguous,
     read-only, so that every path compiles one signature; see :mod:`integrators.loop`)."""
     hit = _COEF_CACHE.get(method)
+    if hit is None and hasattr(method, "step_arrays"):      # a method that packs its own (EQUIP)
+        hit = _COEF_CACHE[method] = method.step_arrays
     if hit is None:
         def c(a):
             a = np.array(a, dtype=float, order="C")
@@ -354,7 +356,7 @@ class Binding:
         self.u = u
         self.no_newton = (np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
                           np.zeros((0, u, u), dtype=complex))
-        nf, nc = work_sizes(method.n_stages, s, u, self.minv.shape[0], d)
+        nf, nc = work_sizes(getattr(method, "work_rows", method.n_stages), s, u, self.minv.shape[0], d)
         self.work, self.cwork = np.empty(nf), np.empty(nc, dtype=complex)
         self._eig = None
 
@@ -540,7 +542,7 @@ class Stepper(Counted):
         self._gamma = np.zeros((method.s, self.binding.u))
         self._h_prev = None
         self._extrapolation = Extrapolation(method)
-        self._eref = np.full(1, np.nan)
+        self._eref = np.full(3, np.nan)     # [energy, EQUIP's alpha and slope] (integrators.loop)
         self.counters = np.zeros(N_COUNTERS)
         self.binding.watch(self.counters)
         self.solver_option = solver

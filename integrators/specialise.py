@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numba
 
-from . import core, jit as _jitmod, loop, pointers as _pointersmod
+from . import core, equip_core, jit as _jitmod, loop, pointers as _pointersmod
 
 LOOP_FUNCTIONS = ("evaluate", "energy_parts", "run", "advance", "attempt")
 _LOOP_PATH = Path(loop.__file__)
@@ -98,7 +98,8 @@ def _glue(glue):
 
 def _source_hash(refs, glue=None) -> str:
     h = hashlib.sha256()
-    paths = [_LOOP_PATH, Path(core.__file__), Path(_jitmod.__file__), Path(_pointersmod.__file__)]
+    paths = [_LOOP_PATH, Path(core.__file__), Path(equip_core.__file__), Path(_jitmod.__file__),
+             Path(_pointersmod.__file__)]
     if glue is not None:
         paths += [glue[0], *glue[3]]
     for path in paths:
