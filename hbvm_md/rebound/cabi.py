@@ -55,6 +55,24 @@ def call_free(typingctx, fn, addr):
     return types.none(fn, addr), codegen
 
 
+@intrinsic
+def call_megno(typingctx, fn, r, dY, dt):
+    """``((void (*)(void*, double, double)) fn)((void*) r, dY, dt)``: REBOUND's
+    ``reb_tools_megno_update(r, dY, dt_done)``, its address known at run time."""
+    if not all(isinstance(a, types.Integer) for a in (fn, r)) or not all(
+            isinstance(a, types.Float) for a in (dY, dt)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p, f64 = ir.IntType(8).as_pointer(), ir.DoubleType()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, f64, f64])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
+                     [builder.inttoptr(args[1], i8p), args[2], args[3]])
+        return context.get_dummy_value()
+    return types.none(fn, r, dY, dt), codegen
+
+
 @cjit("void(voidptr, voidptr)")
 def dispatch(r, p):
     """REBOUND's step: the compiled step, prepared first when needed; a failure reported."""
