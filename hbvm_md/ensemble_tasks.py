@@ -358,9 +358,7 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
         return np.concatenate([[2 * v[0] - m[0]], m, [2 * v[-1] - m[-1]]])
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), constrained_layout=True)
-    indicator = ((f"MEGNO <Y> (REBOUND, HBVM's variational particles); chaotic: <Y> > "
-                  f"{MEGNO_CHAOTIC:g}") if megno else
-                 "log10 shadow-clone divergence (no threshold)")
+    indicator = "MEGNO <Y>" if megno else "log10 shadow-clone divergence"
     panels = (("div", indicator, "magma"),
               ("err", "log10 max relative energy error", "viridis"),
               ("surv", "survived fraction of the run", "RdYlGn"))
@@ -371,6 +369,11 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
                   {"vmin": 1.5, "vmax": 3 * MEGNO_CHAOTIC} if key == "div" and megno else {})
         pc = ax.pcolormesh(edges(a), edges(e), grids[key], cmap=cmap, shading="flat", **limits)
         bar = fig.colorbar(pc, ax=ax, label=label)
+        if key == "div":
+            ax.set_title(f"chaos indicator: MEGNO <Y> (REBOUND, HBVM's tangents)\nchaotic: "
+                         f"<Y> > {MEGNO_CHAOTIC:g} (cyan contour)" if megno else
+                         "chaos indicator: shadow clone 1e-10 apart\n(no threshold)",
+                         fontsize=9)
         if key == "div" and megno:
             bar.ax.axhline(MEGNO_CHAOTIC, color="c", lw=1.5)
             if a.size > 1 and e.size > 1 and np.isfinite(grids[key]).sum() > 3:
