@@ -98,19 +98,13 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
         errs.append(abs(sims[0].energy() - E0) / abs(E0))
         logd.append(math.log10(distance() / d0) if d0 > 0 else math.nan)
         if r_max is not None:
-            x = positions(sims[0])
-            r = float(np.max(np.linalg.norm(x[watch] - x[0], axis=1)))
-            if r > r_max:
-                stop_reason = f"escaped: distance {r:.4g} > r_max={r_max:g} from body 0"
+            stop_reason = _escaped(positions(sims[0]), watch, r_max)
+            if stop_reason:
                 break
     steps = drv_a.nsteps
-    tt, ee, dd = np.array(t_done), np.array(errs), np.array(logd)
+    dd = np.array(logd)
     return {
-        "t_end": float(t_end), "t_stop": float(tt[-1]) if tt.size else 0.0,
-        "survived": stop_reason is None, "stop_reason": stop_reason or "",
-        "max_rel_energy_error": float(ee.max()) if ee.size else math.nan,
-        "final_rel_energy_error": float(ee[-1]) if ee.size else math.nan,
-        "energy_drift_slope": float(np.polyfit(tt, ee, 1)[0]) if tt.size > 2 else math.nan,
+        **_run_summary(t_end, t_done, errs, stop_reason),
         # log10 of the largest clone distance over the initial one: ~ log10(t / period) on a
         # regular orbit, up to log10(orbit size / d0) on a chaotic one
         "log10_divergence": float(np.nanmax(dd)) if np.isfinite(dd).any() else math.nan,
@@ -150,11 +144,24 @@ def _megno_run(nb, y: np.ndarray, *, t_end: float, dt: float, s: int, k: int | N
         megno, lyapunov = float(sim.megno()), float(sim.lyapunov())
         if r_max is not None:
             sim.serialize_particle_data(xyzvxvyvz=xv)
-            x = xv.reshape(N, 6)[:, :3]
-            r = float(np.max(np.linalg.norm(x[watch] - x[0], axis=1)))
-            if r > r_max:
-                stop_reason = f"escaped: distance {r:.4g} > r_max={r_max:g} from body 0"
+            stop_reason = _escaped(xv.reshape(N, 6)[:, :3], watch, r_max)
+            if stop_reason:
                 break
+    return {
+        **_run_summary(t_end, t_done, errs, stop_reason),
+        "megno": megno, "lyapunov": lyapunov,
+        "k": int(drv.method.k), "s": int(s), "dt": float(dt), "steps": int(drv.nsteps),
+    }
+
+
+def _escaped(x: np.ndarray, watch, r_max: float) -> str | None:
+    """The stop reason when a watched body (positions x (N, 3)) is beyond r_max from body 0."""
+    r = float(np.max(np.linalg.norm(x[watch] - x[0], axis=1)))
+    return f"escaped: distance {r:.4g} > r_max={r_max:g} from body 0" if r > r_max else None
+
+
+def _run_summary(t_end: float, t_done: list, errs: list, stop_reason: str | None) -> dict:
+    """The fields every run of a map records: how far it went, why it stopped, its energy."""
     tt, ee = np.array(t_done), np.array(errs)
     return {
         "t_end": float(t_end), "t_stop": float(tt[-1]) if tt.size else 0.0,
@@ -162,8 +169,6 @@ def _megno_run(nb, y: np.ndarray, *, t_end: float, dt: float, s: int, k: int | N
         "max_rel_energy_error": float(ee.max()) if ee.size else math.nan,
         "final_rel_energy_error": float(ee[-1]) if ee.size else math.nan,
         "energy_drift_slope": float(np.polyfit(tt, ee, 1)[0]) if tt.size > 2 else math.nan,
-        "megno": megno, "lyapunov": lyapunov,
-        "k": int(drv.method.k), "s": int(s), "dt": float(dt), "steps": int(drv.nsteps),
     }
 
 
