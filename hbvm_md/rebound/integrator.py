@@ -41,8 +41,11 @@ class HBVMIntegrator(Counted):
         has an error of order h^2s (at round-off with s = 6 and planetary steps, visible at
         small s or long steps).  ``"equip"``: EQUIP(k, s) (:class:`integrators.EQUIP`), the
         Gauss method perturbed at each step so that it conserves the energy and stays
-        symplectic: energy and angular momentum both at round-off, for 2-4 times HBVM's
-        time a step (README, "What each method keeps").  Saved as
+        symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
+        time a step where the steps resolve the orbits well and 2.5 times near the longest
+        steps (the outer solar system over 1e6 days with the adaptive defaults: s = 8 with
+        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; README, "What each method
+        keeps", ``benchmarks/bench_equip.py --rebound``).  Saved as
         ``sim.integrator.method``.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
