@@ -476,11 +476,13 @@ def _prepare(sim, p: int) -> None:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
     # most one gravitating body, at rest (the restricted problem with a star at rest): then it
-    # stays zero, there is nothing to check, and test particles are not checked.
+    # stays zero and there is nothing to check (the test particles' own check, glue.TP_FLOOR,
+    # still runs on a fixed step).
     check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
     if not check and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
         warnings.warn("HBVM: the gravitating bodies have no energy (a single body at rest), so "
-                      "energy_tol checks nothing here; test particles' steps are not checked",
+                      "energy_tol's energy check checks nothing here; test particles are checked "
+                      "by their own error estimates (fixed steps) or the step control (adaptive)",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
     _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)
