@@ -14,14 +14,18 @@ from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import HBVM
 from integrators.core import C_LASTIT, N_COUNTERS, OK, TOO_SMALL, test_particle_error
-from integrators.engine import DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive
+from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
+                                energy_check)
 from integrators.errors import StepSizeError, UnresolvedStepError, step_error
 from integrators.kchoice import adaptive_k
 from systems.nbody import NBody
 
 NAME = "hbvm"
 DEFAULTS = dict(s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60, adaptive=True,
-                epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None, energy_tol=1e-10)
+                epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None)
+# the engine's one default energy check, for k chosen for a round-off quadrature error (1e-10)
+DEFAULTS["energy_tol"] = energy_check(HBVM(DEFAULTS["k"], DEFAULTS["s"]), None, "auto", None,
+                                      round_off_k=True)
 #: what to do about a failed fixed step, by its cause (after the closest encounter, _encounter)
 _WAY_OUT = ("leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink through "
             "encounters, test particles' too), or use a smaller sim.dt")
@@ -423,8 +427,10 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM:
     bad = [(n, v, want) for n, v, want in (
         ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
         ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
-        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check)"))
-        if not (v >= 1 if n == "max_iter" else 0 <= v < (1 if n == "tol" else math.inf))]
+        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check), or in "
+         "(-1, 0) for the not-a-solution rule"))
+        if not (v >= 1 if n == "max_iter" else
+                0 <= v < 1 if n == "tol" else -1 < v < math.inf)]
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
