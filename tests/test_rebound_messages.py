@@ -103,3 +103,27 @@ def test_fixed_step_test_particles_that_behave_raise_no_alarm():
     HBVMIntegrator(bad, dt=200.0)
     with pytest.raises(UnresolvedStepError, match="test particle 6: its own error estimate"):
         bad.integrate(1e5)
+
+
+def test_fixed_step_that_diverges_at_a_test_particles_pass_names_it():
+    """A massless comet 0.05 AU from Jupiter at relative speed 0.5, a step of 0.2 (twice the
+    time d / v of the pass): the iteration runs away, and the ConvergenceError names the comet
+    and Jupiter (not the Sun, which pulls harder but changes slowly) and says to leave out
+    `dt`; nothing moved."""
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=9.547919e-4, a=5.2)
+    j = sim.particles[1]
+    sim.add(m=0.0, x=j.x - 0.05, y=j.y, z=j.z, vx=j.vx + 0.5, vy=j.vy, vz=j.vz)
+    sim.particles[2].name = "comet"
+    sim.N_active = 2
+    sim.move_to_com()
+    before = _xv(sim)
+    HBVMIntegrator(sim, dt=0.2, k=8)
+    with pytest.raises(ConvergenceError, match=(
+            r"did not converge: .*the closest encounter at the step's start: particle 2 "
+            r"\('comet'\) and particle 1, 0\.05 apart at relative speed 0\.5 \(d / v = 0\.5 "
+            r"steps\); leave out `dt` \(HBVMIntegrator\(sim\) takes adaptive steps.*or use a "
+            r"smaller sim\.dt, or a larger max_iter")):
+        sim.integrate(2.0)
+    assert sim.t == 0.0 and np.array_equal(_xv(sim), before)
