@@ -127,3 +127,39 @@ def test_fixed_step_that_diverges_at_a_test_particles_pass_names_it():
             r"smaller sim\.dt, or a larger max_iter")):
         sim.integrate(2.0)
     assert sim.t == 0.0 and np.array_equal(_xv(sim), before)
+
+
+def test_adaptive_step_size_error_names_the_pair():
+    """Two planets 1e-9 apart: the adaptive steps shrink to min_dt, and the StepSizeError
+    names both (the one with its name) with their distance and relative speed."""
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0)
+    b = sim.particles[1]
+    sim.add(m=1e-3, x=b.x + 1e-9, y=b.y, vx=b.vx, vy=b.vy + 1e-9)
+    sim.particles[1].name = "b"
+    HBVMIntegrator(sim, min_dt=1e-4)
+    with pytest.raises(StepError, match=r"fell below min_dt=0\.0001 without being resolved \(the "
+                                        r"closest encounter at the step's start: particle 1 "
+                                        r"\('b'\) and particle 2, 1e-09 apart at relative speed "
+                                        r"1e-09"):
+        sim.integrate(1.0)
+    assert sim.t == 0.0
+
+
+def test_energy_tol_auto_is_the_engines_shared_check():
+    """k chosen by the host: the strict DEFAULT_ENERGY_TOL (as the registered defaults); a k
+    the user gives: the engine's not-a-solution rule (stored negative); a number: itself."""
+    from integrators.engine import DEFAULT_ENERGY_TOL, NOT_A_SOLUTION
+    sim = outer_solar_system().to_rebound()
+    assert HBVMIntegrator(sim, dt=200.0).energy_tol == DEFAULT_ENERGY_TOL
+    assert HBVMIntegrator(sim).energy_tol == DEFAULT_ENERGY_TOL
+    assert HBVMIntegrator(sim, k=6, dt=200.0).energy_tol == -NOT_A_SOLUTION
+    assert HBVMIntegrator(sim, k=8, dt=200.0, energy_tol=1e-9).energy_tol == 1e-9
+    assert HBVMIntegrator(sim, dt=200.0, tol=1e-12).energy_tol == -NOT_A_SOLUTION
+    fresh = outer_solar_system().to_rebound()
+    fresh.integrator = "hbvm"
+    assert fresh.integrator.energy_tol == DEFAULT_ENERGY_TOL
+    HBVMIntegrator(sim, k=6, dt=200.0)
+    sim.integrate(1e4)                     # the rule runs: k = s = 6 at 200 days is no garbage
+    assert sim.t == 1e4
