@@ -79,7 +79,10 @@ class HBVMIntegrator(Counted):
     This object holds no state: it is a view of ``sim.integrator`` (``HBVMIntegrator.of(sim)``
     makes one for any simulation whose integrator is HBVM, e.g. a copy or a loaded file).  A
     failed step raises ``ConvergenceError``, ``UnresolvedStepError``, ``StepSizeError``, ...
-    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.
+    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.  Its
+    message names the closest encounter at the step's start and the ways out; its attribute
+    ``encounter`` is that pair, dict(i, j, distance, speed, time) (j gravitates; None without
+    one), and a test particle's refusal also has ``particle``, its index.
     """
 
     def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
