@@ -40,6 +40,9 @@ def main() -> None:
         parts["adaptive"] = "\n\n".join(
             f"**{title}**\n\n" + body.strip()
             for title, body in re.findall(r"^## (.*?)$\n(.*?)(?=^## |\Z)", ada.read_text(), re.S | re.M))
+    tp = ROOT / "benchmarks/results/testparticles.md"
+    if tp.exists():        # everything after the title
+        parts["testparticles"] = tp.read_text().split("\n\n", 1)[1].strip()
     dfl = ROOT / "benchmarks/results/defaults.md"
     if dfl.exists():
         text = dfl.read_text()

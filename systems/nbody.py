@@ -18,10 +18,13 @@ With test particles the sources still form this closed Hamiltonian system (nothi
 them) and each test particle follows the restricted problem in their field.  :meth:`energy`
 reports the sources' H, which is what ``rebound.Simulation.energy()`` reports.
 
-Kernel parameters: ``params = [G, N, w_0 .. w_{N-1}, g_0 .. g_{N-1}]`` with w_i the mass in M
-(m_i for a source, 1 for a test particle) and g_i the gravitating mass (m_i for a source, 0
-otherwise).  The force on i from j is G w_i g_j (q_j - q_i) / r^3; for two sources
-w_i g_j = w_j g_i = m_i m_j, so the pair forces cancel exactly.
+Kernel parameters: ``params = [G, N, w_0 .. w_{N-1}, g_0 .. g_{N-1}, f_0 .. f_N]`` (3N + 3,)
+with w_i the mass in M (m_i for a source, 1 for a test particle), g_i the gravitating mass (m_i
+for a source, 0 otherwise), and f_i the first source at or after i (N: none), so that the
+sources are the linked list f_0, f_{f_0 + 1}, ... (:func:`source_links`).  The force on i from
+j is G w_i g_j (q_j - q_i) / r^3; for two sources w_i g_j = w_j g_i = m_i m_j, so the pair
+forces cancel exactly.  The kernels cost O(N_s N) for N_s sources whatever the order of the
+particles: no pair of two test particles is visited.
 """
 from __future__ import annotations
 
@@ -36,15 +39,27 @@ from .base import SeparableSystem
 
 @jit
 def nbody_forces(Q, params, out):
-    """dp/dt at each row of Q (n, 3N) into out; params as in the module docstring.
+    """dp/dt at each row of Q (n, 3N) into out (n, 3N); params as in the module docstring.
 
-    The rows (the stages of a step) go four at a time through the pair loop: four independent
+    O(n N_s N) for N_s sources: the sources' pairs, then each test particle against the sources
+    (the linked list of sources in params), never a pair of two test particles.  Each body sums
+    its terms in increasing index of its partner, as the pair loop over all i < j did before
+    (with a pair of test particles skipped): the same numbers bit for bit, except that a source
+    no longer adds the exact zeros G w_i g_j d / r^3 with g_j = 0 of its test particles (which
+    could only flip the sign of an exactly zero force, or make it nan when a test particle sat
+    on a source).  A term on i from a source k > i, + c (q_k - q_i), and one from a source k < i,
+    - c (q_i - q_k), are the same number, so a test particle's sum runs over its sources in one
+    loop, in registers.  (Measured and not taken: the test particles innermost, in runs between
+    sources, is 20 % faster a particle but made the outer solar system's kernel 3-4 % slower.)
+
+    The rows (the stages of a step) go four at a time through the pair loops: four independent
     square roots and divisions per pair keep the floating-point units busy where one row at a
     time waits on each (measured 19 % faster on the outer solar system, 7 % a step).  A group
     short of four repeats its last row and stores it once.  Each row receives the same
     operations in the same order as alone: the same numbers, bit for bit."""
     G = params[0]
     N = int(params[1])
+    first = int(params[2 + 2 * N])
     n = Q.shape[0]
     for r in range(n):
         for a in range(3 * N):
@@ -53,12 +68,17 @@ def nbody_forces(Q, params, out):
         rb = min(ra + 1, n - 1)
         rc = min(ra + 2, n - 1)
         rd = min(ra + 3, n - 1)
+        # the pairs of sources i < j: a range and a test per index costs O(N_s N) tests, and
+        # the outer solar system's kernel ran 2-10 % slower with any other loop tried (bounds
+        # from the sources' span, the linked list), measured
         for i in range(N):
-            wi = params[2 + i]
             gi = params[2 + N + i]
+            if gi == 0.0:
+                continue
+            wi = params[2 + i]
             for j in range(i + 1, N):
                 gj = params[2 + N + j]
-                if gi == 0.0 and gj == 0.0:
+                if gj == 0.0:
                     continue
                 xa = Q[ra, 3 * j] - Q[ra, 3 * i]
                 ya = Q[ra, 3 * j + 1] - Q[ra, 3 * i + 1]
@@ -89,6 +109,64 @@ def nbody_forces(Q, params, out):
                     _add_pair(out, rc, i, j, wg * ic, gw * ic, xc, yc, zc)
                 if rd > rc:
                     _add_pair(out, rd, i, j, wg * id_, gw * id_, xd, yd, zd)
+        for t in range(N):                          # each test particle from every source
+            if params[2 + N + t] != 0.0:
+                continue
+            wt = params[2 + t]
+            xta, yta, zta = Q[ra, 3 * t], Q[ra, 3 * t + 1], Q[ra, 3 * t + 2]
+            xtb, ytb, ztb = Q[rb, 3 * t], Q[rb, 3 * t + 1], Q[rb, 3 * t + 2]
+            xtc, ytc, ztc = Q[rc, 3 * t], Q[rc, 3 * t + 1], Q[rc, 3 * t + 2]
+            xtd, ytd, ztd = Q[rd, 3 * t], Q[rd, 3 * t + 1], Q[rd, 3 * t + 2]
+            fxa = fya = fza = fxb = fyb = fzb = 0.0
+            fxc = fyc = fzc = fxd = fyd = fzd = 0.0
+            k = first
+            while k < N:
+                xa = Q[ra, 3 * k] - xta
+                ya = Q[ra, 3 * k + 1] - yta
+                za = Q[ra, 3 * k + 2] - zta
+                xb = Q[rb, 3 * k] - xtb
+                yb = Q[rb, 3 * k + 1] - ytb
+                zb = Q[rb, 3 * k + 2] - ztb
+                xc = Q[rc, 3 * k] - xtc
+                yc = Q[rc, 3 * k + 1] - ytc
+                zc = Q[rc, 3 * k + 2] - ztc
+                xd = Q[rd, 3 * k] - xtd
+                yd = Q[rd, 3 * k + 1] - ytd
+                zd = Q[rd, 3 * k + 2] - ztd
+                sa = xa * xa + ya * ya + za * za
+                sb = xb * xb + yb * yb + zb * zb
+                sc = xc * xc + yc * yc + zc * zc
+                sd = xd * xd + yd * yd + zd * zd
+                wg = wt * params[2 + N + k]
+                ca = wg * (G / (sa * np.sqrt(sa)))
+                cb = wg * (G / (sb * np.sqrt(sb)))
+                cc = wg * (G / (sc * np.sqrt(sc)))
+                cd = wg * (G / (sd * np.sqrt(sd)))
+                fxa += ca * xa
+                fya += ca * ya
+                fza += ca * za
+                fxb += cb * xb
+                fyb += cb * yb
+                fzb += cb * zb
+                fxc += cc * xc
+                fyc += cc * yc
+                fzc += cc * zc
+                fxd += cd * xd
+                fyd += cd * yd
+                fzd += cd * zd
+                k = int(params[3 + 2 * N + k])
+            out[ra, 3 * t] = fxa                    # (a repeated row stores the same numbers)
+            out[ra, 3 * t + 1] = fya
+            out[ra, 3 * t + 2] = fza
+            out[rb, 3 * t] = fxb
+            out[rb, 3 * t + 1] = fyb
+            out[rb, 3 * t + 2] = fzb
+            out[rc, 3 * t] = fxc
+            out[rc, 3 * t + 1] = fyc
+            out[rc, 3 * t + 2] = fzc
+            out[rd, 3 * t] = fxd
+            out[rd, 3 * t + 1] = fyd
+            out[rd, 3 * t + 2] = fzd
 
 
 @jit
@@ -128,23 +206,34 @@ def shortest_r3_over_m(x, g):
 
 @jit
 def nbody_potential(q, params):
-    """V(q) of the sources, q (3N,)."""
+    """V(q) of the sources, q (3N,): O(N_s^2) over the sources' linked list (the pairs of
+    sources in the order of the loop over all i < j they replace: the same number)."""
     G = params[0]
     N = int(params[1])
     v = 0.0
-    for i in range(N):
+    i = int(params[2 + 2 * N])
+    while i < N:
         gi = params[2 + N + i]
-        if gi == 0.0:
-            continue
-        for j in range(i + 1, N):
+        j = int(params[3 + 2 * N + i])
+        while j < N:
             gj = params[2 + N + j]
-            if gj == 0.0:
-                continue
             dx = q[3 * j] - q[3 * i]
             dy = q[3 * j + 1] - q[3 * i + 1]
             dz = q[3 * j + 2] - q[3 * i + 2]
             v -= gi * gj / np.sqrt(dx * dx + dy * dy + dz * dz)
+            j = int(params[3 + 2 * N + j])
+        i = int(params[3 + 2 * N + i])
     return G * v
+
+
+def source_links(is_source) -> np.ndarray:
+    """[f_0 .. f_N] (N + 1,) floats, the sources as the kernels walk them (module docstring):
+    f_i the first source at or after i (N for none), so f_0 is the first source and f_{i+1}
+    the source after source i.  is_source: (N,) bool."""
+    is_source = np.asarray(is_source, dtype=bool)
+    N = is_source.size
+    idx = np.where(is_source, np.arange(N), N).astype(float)
+    return np.minimum.accumulate(np.append(idx, float(N))[::-1])[::-1].copy()
 
 
 class NBody(SeparableSystem):
@@ -199,7 +288,8 @@ class NBody(SeparableSystem):
         w = np.where(self.is_source, m, 1.0)
         self.masses = np.repeat(w, 3)
         self.dim = 3 * N
-        self._params = np.concatenate([[self.G, float(N)], w, np.where(self.is_source, m, 0.0)])
+        self._params = np.concatenate([[self.G, float(N)], w, np.where(self.is_source, m, 0.0),
+                                       source_links(self.is_source)])
         self.names = list(names) if names is not None else [f"body{i}" for i in range(N)]
         if len(self.names) != N:
             raise ValueError(f"`names` must have N={N} entries (got {len(self.names)})")
@@ -259,7 +349,7 @@ class NBody(SeparableSystem):
     def _force_numpy(self, Q, out):
         X = Q.reshape(Q.shape[0], self.N, 3)
         w = self._params[2:2 + self.N]
-        g = self._params[2 + self.N:]
+        g = self._params[2 + self.N:2 + 2 * self.N]
         d = X[:, None, :, :] - X[:, :, None, :]          # d[i, j] = x_j - x_i
         r2 = np.sum(d * d, axis=-1)
         idx = np.arange(self.N)

@@ -121,7 +121,11 @@ def test_signal_interrupts_leave_whole_committed_steps():
     interrupted = 0
     old = signal.getsignal(signal.SIGALRM)
     try:
-        for trial in range(40):
+        # until 30 alarms have landed inside a run (a loaded machine lets some fire after the
+        # run ended: those trials only check the run; at most 200 trials)
+        for trial in range(200):
+            if interrupted >= 30:
+                break
             kind = kinds[trial % 2]
 
             def handler(signum, frame, kind=kind):
