@@ -41,6 +41,8 @@ def test_fixed_step_test_particle_failure_names_the_particle_and_the_way_out():
     with pytest.raises(UnresolvedStepError, match="test particle 3"):
         sim.integrate(40.0)
     assert sim.t == t and np.array_equal(_xv(sim), before)
+    drv = HBVMIntegrator.of(sim)           # the refused steps' work is not counted
+    assert drv.nsteps == round(t / (40.0 / 612)) and drv.counters[0] == drv.nsteps
 
 
 def test_fixed_step_test_particle_check_switches_off_with_energy_tol_none():
