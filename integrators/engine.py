@@ -336,7 +336,7 @@ class Binding:
         # fast=False runs the step as Python code: with the system's compiled kernels when it
         # has them (then the numbers and counters equal the compiled run's bit for bit)
         self.step_code = specialise(force, potential, python=fast is False, glue=glue)
-        self.force = force
+        self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"
         if self.full:
@@ -919,7 +919,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
               tol: float | None = None, max_iter: int | None = None, form: str = "auto",
               energy_tol: float | str | None = "auto", *, adaptive: bool = False,
               t_end: float | None = None, epsilon: float = DEFAULT_EPSILON,
-              min_dt: float | None = None, sample_times=None) -> IntegrationResult:
+              min_dt: float | None = None, sample_times=None, variational=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
     ``adaptive=True`` from t0 to ``t_end`` with h the first step.
 
@@ -953,6 +953,9 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         system in about 0.6 of its time (``benchmarks/bench_defaults.py``).
     t_end, sample_times
         Adaptive runs end exactly at t_end and also land exactly on each of sample_times.
+    variational : array_like, shape (2m,) or (nv, 2m), optional
+        Initial tangent vectors, carried by the Jacobian of each step; the result's ``extra``
+        then holds them at the samples and the MEGNO (:mod:`integrators.variational`).
     Other parameters as for :class:`Stepper`.
 
     Raises
@@ -967,6 +970,11 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         (``status`` "failed", or "interrupted" for KeyboardInterrupt and SystemExit).
     """
     h = check_step(h)
+    if variational is not None:
+        from .variational import variational_stepper
+        Stepper_ = variational_stepper(variational)
+    else:
+        Stepper_ = Stepper
     if adaptive:
         if steps is not None:
             raise ValueError("give `t_end` (not `steps`) with adaptive=True: the number of "
@@ -976,11 +984,11 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
                            lambda x: x != t0f)
         epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
         sample_every = check_count("sample_every", sample_every, 1)
-        st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+        st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
         return st.run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
     if steps is None:
         raise ValueError("`steps` is required without adaptive=True")
     steps = check_count("steps", steps, 0)
     sample_every = check_count("sample_every", sample_every, 1)
-    st = Stepper(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+    st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
     return st.run(h, steps, sample_every)

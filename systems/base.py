@@ -52,6 +52,21 @@ engine then iterates on the momentum coefficients only.
     grad H at each row of a stack of states Y (n, 2m) into ``out`` and ``energy`` returning H(y);
     the engine then runs the compiled full form (see :class:`systems.poincare.PoincareKepler`).
 
+For tangent vectors (``integrate(..., variational=V0)``, :mod:`integrators.variational`) the
+engine needs the derivative of the force along a direction, one of (else a TypeError):
+
+``separable_jvp()``
+    Returns a numba ``njit`` kernel ``jvp(Q, dQ, params, out)`` writing (dF/dq)(Q_i) dQ_i for
+    each row of Q, dQ (n, m) into ``out`` (n, m), F = -grad V, with the params of
+    ``separable_kernels()`` (defined at module level, like them: the tangent map is then
+    compiled with the step).  :class:`systems.Kepler` and :class:`systems.NBody` have one.
+``full_jvp()``
+    The same for the full form: ``jvp(Y, dY, params, out)`` writing Hess H(Y_i) dY_i, params
+    of ``full_kernels()``.
+``force_jvp(Q, dQ)`` / ``gradient_jvp(Y, dY)``
+    Python versions returning the (n, m) / (n, 2m) array; or ``hessian(y)`` above, used row
+    by row.
+
 A system without kernels runs the same step as Python code calling ``forces`` / ``gradient``
 and ``potential`` / ``energy`` (slower, the same numbers to round-off).
 

@@ -20,6 +20,20 @@ def _kepler_force(Q, params, out):
 
 
 @jit
+def _kepler_force_jvp(Q, dQ, params, out):
+    """(dF/dq)(Q_i) dQ_i for each row: mu (3 q (q . dq) / r^5 - dq / r^3)."""
+    mu = params[0]
+    for i in range(Q.shape[0]):
+        x, y = Q[i, 0], Q[i, 1]
+        dx, dy = dQ[i, 0], dQ[i, 1]
+        r2 = x * x + y * y
+        f = mu / (r2 * np.sqrt(r2))
+        k = 3.0 * (x * dx + y * dy) / r2
+        out[i, 0] = f * (k * x - dx)
+        out[i, 1] = f * (k * y - dy)
+
+
+@jit
 def _kepler_potential(q, params):
     return -params[0] / np.sqrt(q[0] * q[0] + q[1] * q[1])
 
@@ -89,6 +103,11 @@ class Kepler(SeparableSystem):
 
     def separable_kernels(self):
         return _kepler_force, _kepler_potential, np.array([self.mu])
+
+    def separable_jvp(self):
+        """The force's derivative along a direction (the tangent map, see
+        :mod:`integrators.variational`); params as :meth:`separable_kernels`."""
+        return _kepler_force_jvp
 
     def exact_solution(self, y0, t) -> np.ndarray:
         """The exact flow: the state at time t from the state y0 at time 0 (any bound orbit,

@@ -404,6 +404,12 @@ class NBody(SeparableSystem):
     def separable_kernels(self):
         return nbody_forces, nbody_potential, self._params.copy()
 
+    def separable_jvp(self):
+        """The force's derivative along a direction, for the tangent map
+        (:mod:`integrators.variational`): :func:`nbody_force_jvp`, params as
+        :meth:`separable_kernels`."""
+        return nbody_force_jvp
+
     # -- hosts -------------------------------------------------------------------------
     def to_rebound(self, y=None):
         """A fresh ``rebound.Simulation`` with G, the masses, ``N_active`` and the state y
@@ -434,3 +440,50 @@ class NBody(SeparableSystem):
         n_active = None if sim.N_active < 0 or sim.N_active >= N else int(sim.N_active)
         return cls(m, G=sim.G, n_active=n_active, positions=xv[:, :3], velocities=xv[:, 3:],
                    names=names)
+
+
+@jit
+def nbody_force_jvp(Q, dQ, params, out):
+    """The derivative of :func:`nbody_forces` along dQ, row by row: out[r] = (dF/dq)(Q[r]) dQ[r]
+    (n, 3N), with the kernel's params (module docstring; only G, N, w and g are read).
+
+    The force on i from j, G w_i g_j d / r^3 with d = q_j - q_i, moves along dd = dq_j - dq_i by
+    the tidal tensor G w_i g_j [dd / r^3 - 3 d (d . dd) / r^5]; j feels the opposite with w_j
+    g_i.  As in the force kernel a test particle (g = 0) acts on nobody: a pair is visited only
+    when a source is in it (a source's row and test particles' rows against the sources), so
+    the cost is O(n N_s N) for N_s sources."""
+    G = params[0]
+    N = int(params[1])
+    for r in range(Q.shape[0]):
+        for a in range(3 * N):
+            out[r, a] = 0.0
+        for i in range(N):
+            gi = params[2 + N + i]
+            if gi == 0.0:
+                continue
+            wi = params[2 + i]
+            for j in range(N):
+                gj = params[2 + N + j]
+                # each pair once, from its source (from the smaller index when both are)
+                if j == i or (gj != 0.0 and j < i):
+                    continue
+                dx = Q[r, 3 * j] - Q[r, 3 * i]
+                dy = Q[r, 3 * j + 1] - Q[r, 3 * i + 1]
+                dz = Q[r, 3 * j + 2] - Q[r, 3 * i + 2]
+                ex = dQ[r, 3 * j] - dQ[r, 3 * i]
+                ey = dQ[r, 3 * j + 1] - dQ[r, 3 * i + 1]
+                ez = dQ[r, 3 * j + 2] - dQ[r, 3 * i + 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                inv3 = G / (r2 * np.sqrt(r2))
+                k = 3.0 * (dx * ex + dy * ey + dz * ez) / r2
+                tx = inv3 * (ex - k * dx)
+                ty = inv3 * (ey - k * dy)
+                tz = inv3 * (ez - k * dz)
+                ci = wi * gj                  # on i from j
+                cj = params[2 + j] * gi       # on j from i
+                out[r, 3 * i] += ci * tx
+                out[r, 3 * i + 1] += ci * ty
+                out[r, 3 * i + 2] += ci * tz
+                out[r, 3 * j] -= cj * tx
+                out[r, 3 * j + 1] -= cj * ty
+                out[r, 3 * j + 2] -= cj * tz

@@ -57,6 +57,24 @@ def _failing_run():
                 y0=kep.initial_state(), h=1.0, steps=10)
 
 
+def _kepler_run():
+    """The names the MEGNO fragment uses: Kepler e = 0.3 over 100 periods (regular)."""
+    import numpy as np
+
+    from integrators import HBVM, integrate
+    from systems import Kepler
+
+    kep = Kepler(0.3)
+    return dict(np=np, integrate=integrate, method=HBVM(6, 3), system=kep,
+                y0=kep.initial_state(), h=kep.period / 100, steps=100 * 100)
+
+
+def _check_megno(ns, out):
+    res = ns["res"]
+    assert res.extra["variational"].shape == (len(res.t), 1, 4)
+    assert abs(res.extra["megno"][-1] - 2.0) < 0.1      # a regular orbit
+
+
 def _check_failure(ns, out):
     res = ns["res"]
     assert res.status == "failed" and "did not converge" in res.message
@@ -83,6 +101,7 @@ def _check_restart(ns, out):
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
+    "variational=V0": ((), _kepler_run, _check_megno),
     "class Oscillator": ((), None, _check_oscillator),
     "run_ensemble(task": ((("t_end=1e7", "t_end=1e4"), ("range(16)", "range(4)")), None,
                           _check_ensemble),

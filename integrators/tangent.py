@@ -1,0 +1,273 @@
+"""The tangent map of one HBVM(k, s) step: the Jacobian of the discrete step y1 = Phi_h(y0)
+applied to tangent vectors, and the MEGNO accumulated from it.
+
+Like :mod:`integrators.loop` this file is written once and bound to kernels by
+:mod:`integrators.specialise`: its text is appended to the loop's, with a third kernel,
+``_force_jvp(X, dX, params, out)``, writing for each row the derivative of the force kernel
+along dX (separable form: dF/dq(Q_i) dQ_i; full form: Hess H(Y_i) dY_i).  Compiled kernels give
+a compiled tangent map; anything else runs this same text as Python.
+
+The linearised step.  The step's unknowns are the coefficients gamma (s, u) of the fixed point
+gamma = W f(stages(y0, gamma)) (:mod:`integrators.core`); the stages are affine in (y0, gamma):
+
+* separable: Q_i = q0 + h tau_i v0 + h^2 sum_l C2_il M^-1 gamma_l, and f = F(Q);
+* full: Y_i = y0 + h sum_l I_il gamma_l, and f = J grad H(Y).
+
+Differentiating the fixed point at the step's converged gamma, a tangent vector dy0 gives
+
+    d gamma = W K (dX0 + (stages of d gamma)),   K_i = the force's Jacobian at stage i,
+
+linear in d gamma and contracting exactly as the step's own iteration did (the same matrix
+W K C2 h^2 is the Jacobian of the fixed-point map), and then the commit, itself linear:
+dq1 = dq0 + h M^-1 dp0 + h^2 M^-1 (X_s d gamma)_1, dp1 = dp0 + h d gamma_1 (full form:
+dy1 = dy0 + h d gamma_1).  So every piece of the step is reused as it is, fed with the tangent:
+``core.stage_positions`` / ``full_stages`` with (dy0, 0) for (y0, cy0) give the stages of the
+tangent, ``core.project`` the fixed-point update, ``core.newton_update`` the simplified Newton
+update with the step's own Gauss matrices (when the step used Newton), and ``core.commit_separable`` / ``commit_full`` the commit.  The only new
+operation is the force's derivative.  The result is the derivative of the map the step
+computes (its fixed point solved exactly), to the iteration's round-off: what a central
+difference of two steps converges to as the increment goes to zero.
+
+The initial guess of each tangent's d gamma is the previous step's, extrapolated with the
+step's own matrix E (as the step guesses gamma): a tangent vector changes by O(h) a step, so
+the guess starts as close as the step's own.
+"""
+import numpy as np
+
+from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, ROUNDOFF_ULPS,
+                              STATE_ULPS, all_finite, carve, commit_full, commit_separable, copy1,
+                              copy2, full_stages, full_stages_narrow, guess, guess_narrow, max_abs,
+                              max_abs2, newton_update, project, project_narrow, stage_positions,
+                              stage_positions_narrow, step_constants, symplectic, work_sizes)
+from integrators.pointers import view1
+
+_force_jvp = None    # bound by integrators.specialise
+TANGENT_FAILED = 16  # run_variational's return for a step whose tangent map failed: + status
+# (run_variational calls the loop's advance and energy_parts: this text is appended to the
+# loop's, see integrators.specialise)
+
+
+def evaluate_jvp(full, X, dX, params, dF, dG):
+    """dF <- the derivative of the right-hand side at the stages X along dX: dF/dq dX
+    (separable) or J Hess H dX (full; dG is scratch)."""
+    if full:
+        _force_jvp(X, dX, params, dG)
+        symplectic(dG, dF)
+    else:
+        _force_jvp(X, dX, params, dF)
+
+
+def tangent_converged(delta, scale, dF, hstate, previous):
+    """The stop rule of the linear iteration: 1 converged, 0 iterate, -NOT_FINITE.
+
+    Converged when the increment is within two ulps of the coefficients d gamma, or has stopped
+    decreasing (``previous``: the last increment) at its round-off level: ROUNDOFF_ULPS ulps
+    of the larger of d gamma and the stage derivatives dF, or moving the new tangent by at
+    most STATE_ULPS ulps of its largest component (``hstate``), the levels of the step's own
+    rule (``core.stop_action``).  Unlike the step's rule a rise above round-off is no failure:
+    the linear iteration's matrix is the step's (its spectral radius below one when the step
+    converged), but not normal, and its increments can rise for an iteration before they fall
+    (measured: the full form of Kepler, e = 0.6, h = 0.1, twice in eight iterations); a
+    divergent one is stopped by the iteration cap."""
+    if not np.isfinite(delta):
+        return -NOT_FINITE
+    if delta <= 2.0 * EPS * scale:
+        return 1
+    if delta >= previous and (delta <= ROUNDOFF_ULPS * EPS * max(scale, max_abs2(dF))
+                              or hstate <= STATE_ULPS):
+        return 1
+    return 0
+
+
+def tangent_sizes(n, s, u, m, d):
+    """(float, complex) lengths of the tangent map's work buffers: the step's own
+    (``core.work_sizes``, cut by ``core.carve``: its X holds the converged stages, Xp, F, G the
+    tangent's stages and derivatives, g its d gamma, yt, cyt the new tangent) and d zeros."""
+    nf, nc = work_sizes(n, s, u, m, d)
+    return nf + d, nc
+
+
+def stages(full, narrow, y, cy, minv, g, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2, h2_lo, a, X, R,
+           exact):
+    """X <- the stages of the coefficients g from the double-double state (y, cy): the stage
+    positions (separable) or stage values (full), by the core's pieces as the step picks them."""
+    if full:
+        if narrow:
+            full_stages_narrow(y, cy, g, I, I_lo, h, X, exact)
+        else:
+            full_stages(y, cy, g, I, I_lo, h, X, R, exact)
+    elif narrow:
+        stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, exact)
+    else:
+        stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, exact)
+
+
+def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM, max_iter,
+                V, DG, Vt, DGt, tw, tcw, tcount):
+    """V (nv, d) <- dPhi_h/dy0 V: the tangent vectors carried through the step of size h from
+    the double-double state (y0, cy0) whose converged coefficients are gamma (s, u).
+
+    DG (nv, s, u): each tangent's coefficients d gamma of the previous step (zero: none), the
+    initial guess extrapolated with E, and replaced by this step's.  (NV, NVinv, NM): the
+    step's simplified-Newton matrices, NM of shape (0, u, u) for the fixed-point iteration.
+    Vt, DGt: trial arrays shaped as V, DG; tw, tcw: work buffers (:func:`tangent_sizes`).
+    tcount[0] += iterations, tcount[1] += stage evaluations of the jvp; tcount[2] = the last
+    tangent's iterations.  Returns OK, or DIVERGED / NOT_FINITE with V and DG unchanged."""
+    tn, ts = c1
+    Wp, Cp = c2
+    tau, tau_lo, X0, X0_lo = tn[0], tn[1], ts[0], ts[1]
+    W, C2, C2_lo, I, I_lo = Wp[0], Cp[0], Cp[1], Cp[2], Cp[3]
+    n = tau.shape[0]
+    s, u = gamma.shape
+    m = minv.shape[0]
+    d = y0.shape[0]
+    narrow = u < NARROW
+    newton = NM.shape[0] > 0
+    ht, ht_lo, _, dq, dq_lo, a, pg, dg, X, dF, dG, dX, _, vt, cvt, R, Rt, Z = carve(
+        tw, tcw, n, s, u, m, d)
+    zero = view1(tw, work_sizes(n, s, u, m, d)[0], d)
+    for j in range(d):
+        zero[j] = 0.0
+    h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
+    # the stages at the converged coefficients (as the step's last, compensated evaluation)
+    stages(full, narrow, y0, cy0, minv, gamma, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2, h2_lo, a,
+           X, R, True)
+    for v in range(V.shape[0]):
+        dy = V[v]
+        if narrow:
+            guess_narrow(E, DG[v], dg)
+        else:
+            guess(E, DG[v], dg)
+        previous = np.inf
+        yscale = EPS * max_abs(dy)
+        status = DIVERGED
+        it = 0
+        while it < max_iter:
+            it += 1
+            # the tangent's stages: the step's affine stage map with (dy0, 0) for (y0, cy0)
+            stages(full, narrow, dy, zero, minv, dg, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2,
+                   h2_lo, a, dX, R, False)
+            evaluate_jvp(full, X, dX, params, dF, dG)
+            tcount[1] += n
+            if newton:
+                if narrow:
+                    project_narrow(W, dF, pg)
+                else:
+                    project(W, dF, pg, R)
+                delta, scale = newton_update(dg, pg, NV, NVinv, NM, Rt, Z)
+            else:
+                if narrow:
+                    delta, scale = project_narrow(W, dF, dg)
+                else:
+                    delta, scale = project(W, dF, dg, R)
+            hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
+            action = tangent_converged(delta, scale, dF, hstate, previous)
+            previous = delta
+            if action == 1:
+                status = OK
+                break
+            if action < 0:
+                status = -action
+                break
+        tcount[0] += it
+        tcount[2] = it
+        if status != OK:
+            return status
+        copy1(vt, dy)
+        copy1(cvt, zero)
+        if full:
+            commit_full(vt, cvt, h, dg)
+        else:
+            commit_separable(vt, cvt, minv, h, dg, X0, X0_lo, dq, dq_lo)
+        for j in range(d):
+            Vt[v, j] = vt[j] - cvt[j]
+        if not all_finite(Vt[v]):
+            return NOT_FINITE
+        copy2(DGt[v], dg)
+    for v in range(V.shape[0]):
+        copy1(V[v], Vt[v])
+        copy2(DG[v], DGt[v])
+    return OK
+
+
+def megno_step(mg, t, dy, wv):
+    """Advance the MEGNO accumulator ``mg`` to time t with the tangent dy (d,), its norm
+    |dy|_w = sqrt(sum (wv_j dy_j)^2) (wv: 1 for positions, 1/m for momenta: the (dx, dv) norm
+    REBOUND's variational particles use).
+
+    Cincotta and Simo (2000): Y(t) = (2 / t) int_0^t (delta' . delta / delta . delta) t' dt'
+    and <Y>(t) = (1 / t) int_0^t Y dt', t measured from the start.  The integrand is
+    d ln|delta| / dt' times t', and the discrete tangent gives ln|delta| exactly at the step
+    ends, so over a step the integral is taken as (t_n + t_(n+1)) / 2 (ln|delta_(n+1)| -
+    ln|delta_n|) (exact when ln|delta| is linear over the step, second order otherwise), and
+    <Y> by the trapezoidal rule on Y.  Regular orbits: |delta| ~ t, Y -> 2; chaotic:
+    |delta| ~ exp(lambda t), <Y> ~ lambda t / 2.
+
+    mg = [t0, ln|delta_0|, t_prev, ln|delta_prev|, int (t' d ln|delta|), int Y dt', Y_prev]
+    (:class:`integrators.variational.Megno`)."""
+    acc = 0.0
+    for j in range(dy.shape[0]):
+        x = wv[j] * dy[j]
+        acc += x * x
+    lnd = 0.5 * np.log(acc)
+    tau_prev = mg[2] - mg[0]
+    tau = t - mg[0]
+    mg[4] += 0.5 * (tau_prev + tau) * (lnd - mg[3])
+    y = 2.0 * mg[4] / tau if tau != 0.0 else 0.0
+    mg[5] += 0.5 * (mg[6] + y) * (tau - tau_prev)
+    mg[2] = t
+    mg[3] = lnd
+    mg[6] = y
+
+
+def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM,
+                    max_iter, tol, etol, eref, counters, work, cwork, clock, V, DG, Vt, DGt,
+                    tmax_iter, tw, tcw, tcount, y0, cy0, gsave, snap, mg, wv, nsteps, sample_every,
+                    out_t, out_y, out_e, out_v, out_m):
+    """``nsteps`` steps of :func:`advance` (arguments as for :func:`run`), each followed by the
+    tangent map (:func:`tangent_map`, at most tmax_iter iterations) of the tangent vectors
+    V (nv, d) and, when mg has
+    entries, the MEGNO of V[0] (:func:`megno_step`, weights wv).  y0, cy0 (d), gsave (s, u),
+    snap (>= len(counters)): scratch for the state before a step.  A step whose tangent map
+    fails is taken back: state, clock, coefficients, counters and tangents as before it, its
+    status in counters[C_STATUS], and status + TANGENT_FAILED returned (a failed step: its
+    status).  Samples (none when sample_every is 0) at steps
+    sample_every, 2 sample_every, ... (the caller records step 0): t, y, H, V and the MEGNO
+    <Y> into out_t, out_y, out_e, out_v (n, nv, d) and out_m."""
+    isample = 0
+    for istep in range(nsteps):
+        copy1(y0, y)
+        copy1(cy0, cy)
+        copy2(gsave, gamma)
+        e0 = eref[0]
+        t0, ct0 = clock[0], clock[1]
+        for i in range(counters.shape[0]):
+            snap[i] = counters[i]
+        status = advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM,
+                         max_iter, tol, etol, eref, counters, work, cwork, clock)
+        if status != OK:
+            return status
+        status = tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
+                             tmax_iter, V, DG, Vt, DGt, tw, tcw, tcount)
+        if status != OK:
+            copy1(y, y0)
+            copy1(cy, cy0)
+            copy2(gamma, gsave)
+            eref[0] = e0
+            clock[0] = t0
+            clock[1] = ct0
+            for i in range(counters.shape[0]):
+                counters[i] = snap[i]
+            counters[C_STATUS] = status
+            return status + TANGENT_FAILED
+        if mg.shape[0] > 0:
+            megno_step(mg, clock[0], V[0], wv)
+        if sample_every > 0 and (istep + 1) % sample_every == 0:
+            out_t[isample] = clock[0]
+            copy1(out_y[isample], y)
+            p0, p1 = energy_parts(full, y, kin_w, params)
+            out_e[isample] = p0 + p1
+            copy2(out_v[isample], V)
+            out_m[isample] = mg[5] / (mg[2] - mg[0]) if mg.shape[0] > 0 else np.nan
+            isample += 1
+    return OK
