@@ -47,10 +47,12 @@ How a loaded, copied or new simulation gets its compiled step
 
 How a failed step surfaces
     The core's step works on trial arrays: a failed step (no convergence, non-finite values,
-    an energy change above ``energy_tol``, an adaptive step below ``min_dt``) changes neither
+    an energy change above ``energy_tol``, a fixed step's test particle whose own error
+    estimate is out of bounds, an adaptive step below ``min_dt``) changes neither
     the particles nor ``t`` (REBOUND counts the attempt in ``steps_done``, as it counts IAS15's
     rejected steps).  The dispatcher then calls the host's ``fail`` callback, which builds the
     exception (ConvergenceError, UnresolvedStepError, StepSizeError, ... with their messages),
+    naming the closest encounter at the step's start and the ways out,
     sets REBOUND's status to GENERIC_ERROR and queues the message with REBOUND's
     ``reb_simulation_error``, so REBOUND's own loop stops and a caller of the C library sees the
     error.  REBOUND's Python maps a run's status and messages to its own exceptions inside

@@ -13,20 +13,25 @@ import numpy as np
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
-from integrators.core import N_COUNTERS, OK, TOO_SMALL
-from integrators.engine import DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive
-from integrators.errors import StepSizeError, step_error
+from integrators.core import C_LASTIT, N_COUNTERS, OK, TOO_SMALL, test_particle_error
+from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
+                                energy_check)
+from integrators.errors import StepSizeError, UnresolvedStepError, step_error
 from integrators.kchoice import adaptive_k
 from systems.nbody import NBody
 
 NAME = "hbvm"
 DEFAULTS = dict(method="hbvm", s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60,
-                adaptive=True,
-                epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None, energy_tol=1e-10)
-_HINTS = {"diverged": "try a smaller sim.dt or a larger max_iter",
-          "not_finite": "try a smaller sim.dt, and check for particles at the same position",
-          "unresolved": "use a smaller sim.dt (or IAS15 for close encounters), or pass "
-                        "energy_tol=None to accept such steps"}
+                adaptive=True, epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None)
+# the engine's one default energy check, for k chosen for a round-off quadrature error (1e-10)
+DEFAULTS["energy_tol"] = energy_check(HBVM(DEFAULTS["k"], DEFAULTS["s"]), None, "auto", None,
+                                      round_off_k=True)
+#: what to do about a failed fixed step, by its cause (after the closest encounter, _encounter)
+_WAY_OUT = ("leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink through "
+            "encounters, test particles' too), or use a smaller sim.dt")
+_HINTS = {"diverged": _WAY_OUT + ", or a larger max_iter",
+          "not_finite": _WAY_OUT + "; check for particles at the same position",
+          "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps"}
 _REB_GENERIC_ERROR = 1            # enum REB_STATUS
 _PENDING: dict = {}               # simulation address -> the exception of its failed step
 _REG = None                       # what registration keeps alive (see register)
@@ -278,7 +283,7 @@ def _fail_cb(r: int, p: int) -> int:
         st, sd = _slots(p)
         if int(st[L.SL_STATUS]) != L.PREPARE_FAILED or r not in _PENDING:
             try:
-                _PENDING[r] = _step_failure(st, sd)
+                _PENDING[r] = _step_failure(st, sd, _rebound().Simulation.from_address(r))
             except BaseException as exc:  # noqa: BLE001 - the run must stop with it
                 _PENDING[r] = exc
         msg = _message(_PENDING[r])
@@ -293,8 +298,82 @@ def _message(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}"
 
 
-def _step_failure(st: np.ndarray, sd: np.ndarray):
-    """The exception of a failed step, from what the compiled step recorded."""
+def _name(sim, i: int) -> str:
+    """"particle i", with its name when it has one (REBOUND 5's ``name``, its hash before)."""
+    name = sim.particles[i].name
+    return f"particle {i}" + (f" ({name!r})" if name else "")
+
+
+def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
+    """The closest encounter in ``sim`` as it is (the start of a failed step): of the pairs
+    with a gravitating body (test particles do not meet each other), or of particle ``only``'s
+    pairs, the one that weighs most in a step's error estimate: the largest (s-1)-th
+    derivative of their pull, G (m_i + m_j) / d^2 / tau^(s-1) with the pair's time scale
+    tau = min(d / v, sqrt(d^3 / (G (m_i + m_j)))) (a fast pass of a light body weighs little).
+    dict(i, j, distance, speed, time) (j gravitates), or None when there is no such pair."""
+    N = sim.N
+    x, v, m = np.empty((N, 3)), np.empty((N, 3)), np.empty(N)
+    sim.serialize_particle_data(xyz=x, vxvyvz=v, m=m)
+    na = sim.N_active if 0 <= sim.N_active < N else N
+    src = np.flatnonzero((np.arange(N) < na) & (m > 0))
+    rows = np.arange(N) if only is None else np.array([only])
+    best = None
+    for a in range(0, rows.size, 256):                  # O(N N_sources) in blocks, no N^2 array
+        i = rows[a:a + 256, None]
+        d = np.linalg.norm(x[i] - x[src][None], axis=2)
+        u = np.linalg.norm(v[i] - v[src][None], axis=2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gm = sim.G * (m[i] + m[src][None, :])
+            tau = np.fmin(d / u, np.sqrt(d ** 3 / gm))
+            weight = gm / d ** 2 / tau ** (s - 1)
+        weight[(i == src[None, :]) | np.isnan(weight)] = -1.0
+        k = np.unravel_index(np.argmax(weight), weight.shape)
+        if weight[k] >= 0 and (best is None or weight[k] > best["weight"]):
+            best = dict(i=int(i[k[0], 0]), j=int(src[k[1]]), distance=float(d[k]),
+                        speed=float(u[k]), time=float(tau[k]), weight=float(weight[k]))
+    return best
+
+
+def _encounter_text(sim, enc: dict | None, h: float) -> str:
+    if enc is None:
+        return ""
+    return (f"the closest encounter at the step's start: {_name(sim, enc['i'])} and "
+            f"{_name(sim, enc['j'])}, {enc['distance']:.3g} apart at relative speed "
+            f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} steps); ")
+
+
+def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> UnresolvedStepError:
+    """A fixed step refused for its test particle (the glue's check, layout.TEST_PARTICLE)."""
+    from hbvm_md.rebound.glue import TP_FACTOR, TP_FLOOR
+    i, err, s = int(sd[L.SL_CAUSE_STATUS]), float(sd[L.SL_CAUSE_ERR]), int(st[L.SL_S])
+    ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st[L.SL_CTX])), np.int64)
+    m = int(ctx[L.D_M])
+    gammat = _doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
+    minv, kin_w = _doubles(int(ctx[L.A_MINV]), m), _doubles(int(ctx[L.A_KINW]), m)
+    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR)
+    # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
+    h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
+    enc = _encounter(sim, only=i, s=s)
+    where = (f"passes {_name(sim, enc['j'])} {enc['distance']:.3g} away at relative speed "
+             f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} "
+             "steps); " if enc else "")
+    hint = (f"{where}leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink "
+            f"through the test particles' encounters too), or use a smaller sim.dt (about "
+            f"{h_ok:.2g} or less here), or pass energy_tol=None to accept such steps")
+    exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, hint)
+    where_t = f"HBVM step of size h={h:.6g} at t={t:.17g}"
+    RuntimeError.__init__(exc, (
+        f"{where_t} does not resolve test {_name(sim, i)}: its own error estimate {err:.3e} "
+        f"(the weight of the last Legendre coefficient of its acceleration over the step) "
+        f"exceeds {bound:.3g} (the larger of {TP_FLOOR:g} and {TP_FACTOR:g} times the "
+        f"gravitating bodies' estimate), so its orbit leaves the run's accuracy; it {hint}"))
+    exc.particle, exc.encounter = i, enc
+    return exc
+
+
+def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
+    """The exception of a failed step, from what the compiled step recorded (``sim``: the
+    simulation, as before the step: the particles a message names)."""
     status = int(st[L.SL_STATUS])
     if status == L.BAD_DT:
         return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
@@ -309,14 +388,22 @@ def _step_failure(st: np.ndarray, sd: np.ndarray):
     counters = _doubles(int(st[L.SL_COUNTERS]), N_COUNTERS)
     h, t = float(sd[L.SL_H_FAIL]), float(sd[L.SL_T_FAIL])
     etol = float(sd[L.SL_ETOL])
+    if status == L.TEST_PARTICLE:
+        return _test_particle_failure(sim, st, sd, h, t, counters)
+    enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
+    near = _encounter_text(sim, enc, h)
     if status == TOO_SMALL:
         cause_status = int(sd[L.SL_CAUSE_STATUS])
         cause = (f"error estimate {sd[L.SL_CAUSE_ERR]:.3e} > epsilon={sd[L.SL_EPSILON]:.3e}"
                  if cause_status == OK else
                  str(step_error(cause_status, h, t, counters, "fixed_point", energy_tol=etol,
-                                hints=_HINTS)))
-        return StepSizeError(h, float(sd[L.SL_MIN_DT]), t, cause)
-    return step_error(status, h, t, counters, "fixed_point", energy_tol=etol, hints=_HINTS)
+                                hints={k: "a smaller step" for k in _HINTS})))
+        exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
+    else:
+        exc = step_error(status, h, t, counters, "fixed_point", energy_tol=etol,
+                         hints={k: near + v for k, v in _HINTS.items()})
+    exc.encounter = enc
+    return exc
 
 
 def _python_core(r: int, p: int) -> int:
@@ -356,8 +443,10 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     bad = [(n, v, want) for n, v, want in (
         ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
         ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
-        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check)"))
-        if not (v >= 1 if n == "max_iter" else 0 <= v < (1 if n == "tol" else math.inf))]
+        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check), or in "
+         "(-1, 0) for the not-a-solution rule"))
+        if not (v >= 1 if n == "max_iter" else
+                0 <= v < 1 if n == "tol" else -1 < v < math.inf)]
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
@@ -410,11 +499,13 @@ def _prepare(sim, p: int) -> None:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
     # most one gravitating body, at rest (the restricted problem with a star at rest): then it
-    # stays zero, there is nothing to check, and test particles are not checked.
+    # stays zero and there is nothing to check (the test particles' own check, glue.TP_FLOOR,
+    # still runs on a fixed step).
     check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
     if not check and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
         warnings.warn("HBVM: the gravitating bodies have no energy (a single body at rest), so "
-                      "energy_tol checks nothing here; test particles' steps are not checked",
+                      "energy_tol's energy check checks nothing here; test particles are checked "
+                      "by their own error estimates (fixed steps) or the step control (adaptive)",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
     _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)

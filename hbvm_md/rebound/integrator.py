@@ -12,7 +12,7 @@ from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_si
 from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
 from integrators import EQUIP, HBVM
 from integrators.core import N_COUNTERS
-from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive
+from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive, energy_check
 from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
@@ -67,12 +67,19 @@ class HBVMIntegrator(Counted):
     min_dt : float
         Smallest step the adaptive control may take; below it a step that cannot be resolved
         raises :class:`integrators.StepSizeError`.
-    energy_tol : float or None
+    energy_tol : float, "auto" or None
         A step that changes the energy of the gravitating bodies by more than this, relative to
         |T| + |V|, is refused with :class:`integrators.UnresolvedStepError` (nothing committed).
         HBVM at round-off k changes it by about 1e-16 a step; a step that does not resolve the
-        motion changes it visibly.  The check costs one potential evaluation a step.  None
-        disables it.
+        motion changes it visibly.  The check costs one potential evaluation a step.  "auto"
+        (default): the engine's shared default, :func:`integrators.engine.energy_check`:
+        ``DEFAULT_ENERGY_TOL`` (1e-10) when k is chosen here (for a round-off quadrature error)
+        and ``tol`` is None, else its not-a-solution rule (a change above ``NOT_A_SOLUTION``
+        that also exceeds the energy the step moved; :attr:`energy_tol` then reads
+        -NOT_A_SOLUTION).  While it is on, a fixed step also checks its test particles: one
+        whose own error estimate (the weight of its last Legendre coefficient) exceeds
+        max(1e-2, 10 x the gravitating bodies') is refused with UnresolvedStepError naming it.
+        None disables both.
 
     Attributes
     ----------
@@ -86,12 +93,15 @@ class HBVMIntegrator(Counted):
     This object holds no state: it is a view of ``sim.integrator`` (``HBVMIntegrator.of(sim)``
     makes one for any simulation whose integrator is HBVM, e.g. a copy or a loaded file).  A
     failed step raises ``ConvergenceError``, ``UnresolvedStepError``, ``StepSizeError``, ...
-    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.
+    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.  Its
+    message names the closest encounter at the step's start and the ways out; its attribute
+    ``encounter`` is that pair, dict(i, j, distance, speed, time) (j gravitates; None without
+    one), and a test particle's refusal also has ``particle``, its index.
     """
 
     def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
                  max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
-                 energy_tol: float | None = 1e-10, adaptive: bool | None = None,
+                 energy_tol: float | str | None = "auto", adaptive: bool | None = None,
                  epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0, method: str = "hbvm"):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
@@ -116,8 +126,9 @@ class HBVMIntegrator(Counted):
             raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
         if tol is not None and not 0 < _real("tol", tol) < 1:
             raise ValueError(f"`tol` must be None (round-off) or in (0, 1) (got tol={tol!r})")
-        if energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
-            raise ValueError(f"`energy_tol` must be a positive number or None (got "
+        auto = isinstance(energy_tol, str) and energy_tol == "auto"
+        if not auto and energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
+            raise ValueError(f"`energy_tol` must be a positive number or None, or 'auto' (got "
                              f"energy_tol={energy_tol!r}); None switches the energy check off")
         if adaptive is None:
             adaptive = dt is None      # like IAS15: no step to choose unless one is given
@@ -146,6 +157,10 @@ class HBVMIntegrator(Counted):
             check_particles(y0, nb)
             steps = period_steps(shortest_period(nb), h)
             method = build(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k)
+        # the engine's one default check; k chosen here is chosen for a round-off quadrature
+        # error, so "auto" is its strict DEFAULT_ENERGY_TOL (gravity is not polynomial: a k the
+        # user gives gets the not-a-solution rule)
+        etol = energy_check(method, None, energy_tol, tol, round_off_k=k is None)
         self._prev_integrator = str(sim.integrator)
         self.sim = sim
         sim.integrator = NAME
@@ -155,7 +170,7 @@ class HBVMIntegrator(Counted):
             L.METHODS.index("equip" if family is EQUIP else "hbvm"), method.s, method.k,
             L.NODES.index(method.nodes), int(max_iter), int(adaptive))
         sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL]] = (
-            float(epsilon), float(min_dt), float(tol or 0.0), float(energy_tol or 0.0))
+            float(epsilon), float(min_dt), float(tol or 0.0), etol)
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":
@@ -220,7 +235,8 @@ class HBVMIntegrator(Counted):
 
     @property
     def energy_tol(self) -> float | None:
-        """The energy check's tolerance (None: off); settable between runs."""
+        """The energy check's tolerance (None: off; negative: the not-a-solution rule with
+        its absolute value, :func:`integrators.engine.energy_check`); settable between runs."""
         return self._get(L.SL_ETOL) or None
 
     @energy_tol.setter

@@ -40,6 +40,8 @@ RESYNC = -1           # the particles are not what the last step wrote: the host
 PREPARE_FAILED = -2   # the host refused the simulation (its exception is pending)
 BAD_DT = -3           # sim.dt is zero or not finite
 BAD_SETTINGS = -4     # a setting in sim.integrator is out of its range (host.check_settings)
+TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error estimate is
+                      # above its bound (glue.TP_FLOOR, TP_FACTOR): nothing committed
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
@@ -79,7 +81,9 @@ SAVED = (
      "be resolved raises StepSizeError."),
     ("tol", SL_TOL, _DOUBLE, None, "Relative tolerance of the iteration (0: round-off)."),
     ("energy_tol", SL_ETOL, _DOUBLE, None, "A step changing the energy by more than this "
-     "(relative) is refused with UnresolvedStepError (0: no check)."),
+     "(relative) is refused with UnresolvedStepError (0: no check; negative: the engine's "
+     "not-a-solution rule with |energy_tol|); also switches on the fixed step's check of its "
+     "test particles."),
     ("h_prev", SL_H_PREV, _DOUBLE, None, ""),
     ("eref", SL_EREF, _DOUBLE, None, ""),
     ("alpha", SL_ALPHA, _DOUBLE, None, ""),
