@@ -9,7 +9,9 @@ reads the addresses, sizes and REBOUND's offsets from the context block the host
 (else RESYNC: the host reads them afresh), takes the core's step on trial arrays (adaptive
 steps retried smaller inside it) and commits state, particles, ``t``, ``dt_last_done``, the
 proposed ``dt`` and the counts together.  A failed step changes nothing and records its step
-size, start and cause in the state.  No numerics here.
+size, start and cause in the state.  No numerics here.  HBVM and EQUIP differ only in the
+method's packed arrays (their shapes in the context block's header) and in the length of eref
+(the energy, EQUIP's alpha and slope: all of it committed with the step).
 
 :func:`step_arrays` is the same step on arrays: the compiled :func:`core_step` views the memory
 and calls it; with ``NUMBA_DISABLE_JIT`` the host calls it as Python.
@@ -23,12 +25,13 @@ from integrators.pointers import address_of, complex128_pointer, float64_pointer
 from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
-    BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_K, D_M, D_N, D_NC, D_NF, D_NODES, D_P, D_PTR, D_S,
-    N_CFG, N_HEADER, N_HOST, N_RES, N_SLOTS, RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
+    BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
+    D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
+    RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
     R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
     SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
-    SL_K, SL_MAX_ITER, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES, SL_S, SL_TOL,
-    SL_T_FAIL, SL_Y, TEST_PARTICLE)
+    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES, SL_S,
+    SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
 
 GLUE_FUNCTIONS = ("particles_match", "settings_ok", "step_arrays")
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
@@ -124,6 +127,11 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
         copy2(gamma, gammat)
         sd[SL_H_PREV] = h_done
     eref[0] = ereft[0]
+    if not sliver:
+        # EQUIP's alpha and dE/dalpha (warm starts of its energy condition), as gamma: a
+        # sliver's slope, of the order of its h, would misguide the next regular step
+        for i in range(1, eref.shape[0]):
+            eref[i] = ereft[i]
     m = minv.shape[0]
     for i in range(view.shape[0]):
         for c in range(3):
@@ -152,12 +160,13 @@ def core_step(r, p):
     N = ctx[D_N]
     if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
         return RESYNC
-    if st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]:
+    if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
+            or st[SL_METHOD] != ctx[D_METHOD]):
         return RESYNC                              # the method was changed between runs
     for i in range(N_CFG):
         if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
             return RESYNC                          # a setting HBVM checks was changed
-    s, k, m = ctx[D_S], ctx[D_K], ctx[D_M]
+    s, m, kk = ctx[D_S], ctx[D_M], ctx[D_KK]
 
     def f(slot, n):
         return carray(float64_pointer(ctx[slot]), n)
@@ -173,14 +182,14 @@ def core_step(r, p):
 
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
     return step_arrays(
-        simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_EREF), 1),
+        simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_EREF), N_EREF),
         carray(float64_pointer(pa + 8 * SL_RES), N_RES), carray(float64_pointer(st[SL_Y]), 2 * m),
         carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
         carray(float64_pointer(st[SL_GAMMA]), (s, m)),
         carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS), f(A_YT, 2 * m), f(A_CYT, 2 * m),
-        f2(A_GAMMAT, s, m), f(A_EREFT, 1), f2(A_WRITTEN, N, 7), f(A_MINV, m), f(A_KINW, m),
-        f(A_PARAMS, ctx[D_P]), f(A_HOST, N_HOST), f2(A_TN, 2, k), f2(A_TS, 2, s),
-        f3(A_WP, 2, s, k), f3(A_CP, 4, k, s), z2(A_NV, s, s), z2(A_NVINV, s, s),
+        f2(A_GAMMAT, s, m), f(A_EREFT, N_EREF), f2(A_WRITTEN, N, 7), f(A_MINV, m), f(A_KINW, m),
+        f(A_PARAMS, ctx[D_P]), f(A_HOST, N_HOST), f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s),
+        f3(A_WP, ctx[D_WPP], s, kk), f3(A_CP, ctx[D_CPP], kk, s), z2(A_NV, s, s), z2(A_NVINV, s, s),
         carray(complex128_pointer(ctx[A_NM]), (0, m, m)), f(A_WORK, ctx[D_NF]),
         carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]), f(A_CLOCK, 2), f2(A_E1, s, s),
         f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s))

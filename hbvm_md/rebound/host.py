@@ -12,7 +12,7 @@ import numpy as np
 
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
-from integrators import HBVM
+from integrators import EQUIP, HBVM
 from integrators.core import C_LASTIT, N_COUNTERS, OK, TOO_SMALL, test_particle_error
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
@@ -21,8 +21,8 @@ from integrators.kchoice import adaptive_k
 from systems.nbody import NBody
 
 NAME = "hbvm"
-DEFAULTS = dict(s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60, adaptive=True,
-                epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None)
+DEFAULTS = dict(method="hbvm", s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60,
+                adaptive=True, epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None)
 # the engine's one default energy check, for k chosen for a round-off quadrature error (1e-10)
 DEFAULTS["energy_tol"] = energy_check(HBVM(DEFAULTS["k"], DEFAULTS["s"]), None, "auto", None,
                                       round_off_k=True)
@@ -95,9 +95,11 @@ def register() -> None:
     from rebound.binarydata_field_descriptor import BinarydataFieldDescriptor, EnumDescriptor
     from rebound.integrator import Integrator
     from hbvm_md.rebound import cabi
-    enums = (EnumDescriptor * (len(L.NODES) + 1))()
-    for j, n in enumerate(L.NODES):
-        enums[j].value, enums[j].name = j, n.encode()
+    enums = {}
+    for field, names in L.ENUMS.items():
+        enums[field] = (EnumDescriptor * (len(names) + 1))()
+        for j, n in enumerate(names):
+            enums[field][j].value, enums[field][j].name = j, n.encode()
     fds = (BinarydataFieldDescriptor * (len(L.SAVED) + 1))()
     docs = []
     for j, (name, slot, dtype, slot_n, doc) in enumerate(L.SAVED):
@@ -107,8 +109,8 @@ def register() -> None:
         fd.dtype, fd.name, fd.offset = dtype, name.encode(), 8 * slot
         fd.offset_N = 8 * slot_n if slot_n is not None else 0
         fd.element_size = 8 if dtype == L._POINTER else 0
-        if name == "nodes":
-            fd.enum_descriptor_list = ctypes.cast(enums, type(fd.enum_descriptor_list))
+        if name in enums:
+            fd.enum_descriptor_list = ctypes.cast(enums[name], type(fd.enum_descriptor_list))
     create = ctypes.CFUNCTYPE(ctypes.c_void_p)(_create)
     prepare = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_prepare_cb)
     fail = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_fail_cb)
@@ -116,7 +118,10 @@ def register() -> None:
     doc = ctypes.create_string_buffer(
         b"HBVM(k, s) (Brugnano, Iavernaro, Trigiante: Hamiltonian Boundary Value Methods), "
         b"registered by the hbvm_md package: energy-conserving implicit Runge-Kutta steps of "
-        b"order 2s, adaptive by default.  Configure with hbvm_md.HBVMIntegrator(sim, ...).")
+        b"order 2s, adaptive by default; with method = 'equip', EQUIP(k, s) (Brugnano, "
+        b"Iavernaro, Trigiante: energy- and quadratic-invariants-preserving methods), which "
+        b"keeps the angular momentum to round-off too.  Configure with "
+        b"hbvm_md.HBVMIntegrator(sim, ...).")
     integ = Integrator()
     integ.documentation = ctypes.cast(doc, ctypes.c_char_p)
     integ.step = cabi.dispatch.address
@@ -149,6 +154,7 @@ def _self_check(rebound) -> None:
     st, sd = _slots(p) if p else (None, None)
     ok = (p == sim.integrator.state and st[L.SL_PREPARE] == _REG["prepare"]
           and int(sim.integrator.s) == DEFAULTS["s"] and str(sim.integrator.nodes) == "gauss"
+          and str(sim.integrator.method) == DEFAULTS["method"]
           and float(sim.integrator.epsilon) == DEFAULTS["epsilon"]
           and ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["step_at"]).value
           == _REG["dispatch"])
@@ -166,10 +172,12 @@ def _create() -> int:
         return 0
     st, sd = _slots(p)
     d = DEFAULTS
-    st[[L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
-        d["s"], d["k"], L.NODES.index(d["nodes"]), d["max_iter"], int(d["adaptive"]))
-    sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV, L.SL_EREF]] = (
-        d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan, np.nan)
+    st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
+        L.METHODS.index(d["method"]), d["s"], d["k"], L.NODES.index(d["nodes"]), d["max_iter"],
+        int(d["adaptive"]))
+    sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV]] = (
+        d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan)
+    sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, EQUIP's alpha and slope: unknown
     st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
     return p
 
@@ -412,15 +420,23 @@ _PYTHON_STEPS: dict = {}
 
 
 # -- prepare: the model, the compiled step and the context block from the particles ----------------
-def method_of(st: np.ndarray) -> HBVM:
-    """The HBVM(k, s) a state's settings name (ValueError naming a bad one)."""
-    nodes = int(st[L.SL_NODES])
+def method_of(st: np.ndarray) -> HBVM | EQUIP:
+    """The HBVM(k, s) or EQUIP(k, s) a state's settings name (ValueError naming a bad one)."""
+    nodes, which = int(st[L.SL_NODES]), int(st[L.SL_METHOD])
+    if not 0 <= which < len(L.METHODS):
+        raise ValueError(f"`sim.integrator.method` must be one of {L.METHODS} (got {which}): "
+                         "'hbvm' conserves the energy, 'equip' the energy and the angular momentum")
     if not 0 <= nodes < len(L.NODES):
         raise ValueError(f"`sim.integrator.nodes` must be 'gauss' or 'lobatto' (got {nodes})")
+    if L.METHODS[which] == "equip":
+        if L.NODES[nodes] != "gauss":
+            raise ValueError(f"`sim.integrator.nodes` must be 'gauss' with method='equip' (got "
+                             f"{L.NODES[nodes]!r}): EQUIP perturbs the Gauss method")
+        return EQUIP(int(st[L.SL_K]), int(st[L.SL_S]))
     return HBVM(int(st[L.SL_K]), int(st[L.SL_S]), nodes=L.NODES[nodes])
 
 
-def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM:
+def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     """Check the settings in ``sim.integrator`` (a user may change them between runs; the
     compiled step checks the same ranges, ``glue.settings_ok``); returns the method."""
     method = method_of(st)
@@ -476,7 +492,8 @@ def _prepare(sim, p: int) -> None:
         y[:] = 0.0
         y[:dim], y[dim:2 * dim] = q0, p0
         _array(st, L.SL_GAMMA, L.SL_NGAMMA, s * dim)[:] = 0.0
-        sd[L.SL_H_PREV] = sd[L.SL_EREF] = np.nan
+        sd[L.SL_H_PREV] = np.nan
+        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha and slope
         st[L.SL_RESYNCS] += 1
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
@@ -523,7 +540,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     written[:, 6] = view[:, im]
     host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
     arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, m)),
-              L.A_EREFT: np.zeros(1), L.A_WRITTEN: written, L.A_MINV: binding.minv,
+              L.A_EREFT: np.zeros(L.N_EREF), L.A_WRITTEN: written, L.A_MINV: binding.minv,
               L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
               L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
               L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
@@ -546,9 +563,13 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
             dst[:] = np.ascontiguousarray(a).reshape(-1)
         at += sizes[k]
     header[[L.D_S, L.D_K, L.D_NODES, L.D_M, L.D_N, L.D_P, L.D_NF, L.D_NC, L.D_PTR]] = (
-        s, method.n_stages, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
+        s, method.k, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
         binding.work.shape[0],
         binding.cwork.shape[0], ptr)
+    header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
+    # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
+    header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
+        tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
     header[L.R_T:L.R_M + 1] = _REG["offsets"]
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
@@ -570,9 +591,12 @@ def _python_step(code, st):
         N = int(ctx[L.D_N])
         if simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N or any(
                 st_[a] != ctx[b] for a, b in ((L.SL_S, L.D_S), (L.SL_K, L.D_K),
-                                               (L.SL_NODES, L.D_NODES))):
+                                               (L.SL_NODES, L.D_NODES),
+                                               (L.SL_METHOD, L.D_METHOD))):
             return L.RESYNC
-        s, k, m = (int(ctx[i]) for i in (L.D_S, L.D_K, L.D_M))
+        s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
+        tnc, tsr, wpp, cpp, kk = (int(ctx[i]) for i in (L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP,
+                                                         L.D_KK))
 
         def f(slot, shape, dtype=np.float64):
             n = int(np.prod(shape))
@@ -584,13 +608,14 @@ def _python_step(code, st):
         y = _doubles(int(st_[L.SL_Y]), 4 * m)
         view = _doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
         return int(code.step_arrays(
-            simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + 1],
+            simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + L.N_EREF],
             sd[L.SL_RES:L.SL_RES + L.N_RES], y[:2 * m], y[2 * m:],
             _doubles(int(st_[L.SL_GAMMA]), s * m).reshape(s, m),
             _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS), f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m),
-            f(L.A_GAMMAT, (s, m)), f(L.A_EREFT, 1), f(L.A_WRITTEN, (N, 7)), f(L.A_MINV, m),
-            f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
-            f(L.A_TN, (2, k)), f(L.A_TS, (2, s)), f(L.A_WP, (2, s, k)), f(L.A_CP, (4, k, s)),
+            f(L.A_GAMMAT, (s, m)), f(L.A_EREFT, L.N_EREF), f(L.A_WRITTEN, (N, 7)),
+            f(L.A_MINV, m), f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
+            f(L.A_TN, (2, tnc)), f(L.A_TS, (tsr, s)), f(L.A_WP, (wpp, s, kk)),
+            f(L.A_CP, (cpp, kk, s)),
             f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
             f(L.A_NM, (0, m, m), complex), f(L.A_WORK, int(ctx[L.D_NF])),
             f(L.A_CWORK, int(ctx[L.D_NC]), complex), f(L.A_CLOCK, 2), f(L.A_E1, (s, s)),

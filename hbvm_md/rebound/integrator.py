@@ -10,7 +10,7 @@ from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
                                     shortest_period)
 from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
-from integrators import HBVM
+from integrators import EQUIP, HBVM
 from integrators.core import N_COUNTERS
 from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive, energy_check
 from integrators.kchoice import adaptive_k, choose_k, period_steps
@@ -18,8 +18,9 @@ from systems.nbody import NBody
 
 
 class HBVMIntegrator(Counted):
-    """Select and configure HBVM(k, s) on a ``rebound.Simulation``: ``sim.integrator = "hbvm"``
-    with these settings (checked), and k measured on the scene when not given.
+    """Select and configure HBVM(k, s) or EQUIP(k, s) on a ``rebound.Simulation``:
+    ``sim.integrator = "hbvm"`` with these settings (checked), and k measured on the scene when
+    not given.
 
     Parameters
     ----------
@@ -28,11 +29,24 @@ class HBVMIntegrator(Counted):
         'basic' or 'compensated'); test particles (``N_active``, ``testparticle_type = 0``) and
         REBOUND's collision detection and resolve functions are honoured.
     s : int
-        Degree of the method (order 2s).
+        Degree of the method (order 2s; EQUIP needs s >= 2).
     k : int, optional
-        Quadrature nodes (k >= s).  None: measured on the scene at attach time for ``sim.dt``
+        Quadrature nodes (k >= s) of the line integral (EQUIP: of its energy condition, the
+        same k-point discrete line integral, so the same k keeps the energy to round-off).
+        None: measured on the scene at attach time for ``sim.dt``
         (:func:`integrators.kchoice.choose_k` over one shortest orbital period) with a fixed
         step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive steps.
+    method : {"hbvm", "equip"}
+        ``"hbvm"`` (default): HBVM(k, s), which conserves the energy; its angular momentum
+        has an error of order h^2s (at round-off with s = 6 and planetary steps, visible at
+        small s or long steps).  ``"equip"``: EQUIP(k, s) (:class:`integrators.EQUIP`), the
+        Gauss method perturbed at each step so that it conserves the energy and stays
+        symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
+        time a step where the steps resolve the orbits well and 2.5 times near the longest
+        steps (the outer solar system over 1e6 days with the adaptive defaults: s = 8 with
+        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; README, "What each method
+        keeps", ``benchmarks/bench_equip.py --rebound``).  Saved as
+        ``sim.integrator.method``.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
     max_iter : int
@@ -69,7 +83,7 @@ class HBVMIntegrator(Counted):
 
     Attributes
     ----------
-    method : HBVM
+    method : integrators.HBVM or integrators.EQUIP
     nsteps, nfev, niter, rejected, resyncs : int
         Steps, force evaluations, fixed-point iterations, rejected adaptive trials and reads of
         the state afresh from the particles, as saved with the simulation.
@@ -88,14 +102,25 @@ class HBVMIntegrator(Counted):
     def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
                  max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
                  energy_tol: float | str | None = "auto", adaptive: bool | None = None,
-                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0):
+                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0, method: str = "hbvm"):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
             raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
         L.check_version(rebound)
         register()
-        method = HBVM(s if k is None else k, s, nodes=nodes)    # checks s, k and nodes
+        if not isinstance(method, str) or method not in L.METHODS:
+            raise ValueError(f"`method` must be one of {L.METHODS} (got method={method!r}): "
+                             "'hbvm' conserves the energy, 'equip' the energy and every "
+                             "quadratic invariant (angular momentum) too")
+        if method == "equip" and nodes != "gauss":
+            raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}):"
+                             " EQUIP perturbs the Gauss method")
+        family = EQUIP if method == "equip" else HBVM
+
+        def build(k_):
+            return EQUIP(k_, s) if family is EQUIP else HBVM(k_, s, nodes=nodes)
+        method = build(s if k is None else k)     # checks s, k and nodes (EQUIP: s >= 2)
         if (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
                 or max_iter < 1):
             raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
@@ -123,14 +148,15 @@ class HBVMIntegrator(Counted):
             h = _step_size("sim.dt", sim.dt)
         if k is None and adaptive:
             # the steps vary (pericentres, encounters): no single step to probe k on
-            method = HBVM(adaptive_k(method.s, epsilon), method.s, nodes=nodes)
+            method = build(adaptive_k(method.s, epsilon))
         elif k is None and sim.N > 1:
+            # HBVM's round-off k: EQUIP's energy condition is the same k-point line integral
+            # along the same degree-s path, so its quadrature error is HBVM(k, s)'s
             nb = NBody.from_rebound(sim)
             y0 = nb.initial_state()
             check_particles(y0, nb)
             steps = period_steps(shortest_period(nb), h)
-            method = HBVM(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k,
-                          method.s, nodes=nodes)
+            method = build(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k)
         # the engine's one default check; k chosen here is chosen for a round-off quadrature
         # error, so "auto" is its strict DEFAULT_ENERGY_TOL (gravity is not polynomial: a k the
         # user gives gets the not-a-solution rule)
@@ -140,8 +166,9 @@ class HBVMIntegrator(Counted):
         sim.integrator = NAME
         sim.dt = h
         st, sd = self._slots()
-        st[[L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
-            method.s, method.k, L.NODES.index(method.nodes), int(max_iter), int(adaptive))
+        st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
+            L.METHODS.index("equip" if family is EQUIP else "hbvm"), method.s, method.k,
+            L.NODES.index(method.nodes), int(max_iter), int(adaptive))
         sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL]] = (
             float(epsilon), float(min_dt), float(tol or 0.0), etol)
 
@@ -167,7 +194,7 @@ class HBVMIntegrator(Counted):
         return int(st[slot]) if slot in L.INT_SLOTS else float(sd[slot])
 
     @property
-    def method(self) -> HBVM:
+    def method(self) -> HBVM | EQUIP:
         return method_of(self._slots()[0])
 
     @property
