@@ -745,6 +745,48 @@ def step_error(gamma, w):
 
 
 @jit
+def test_particle_error(gamma, w, kin_w, floor, factor):
+    """A fixed step's check of its test particles, from its own coefficients (no evaluation).
+
+    Each test particle's own estimate, :func:`step_error` over its three coordinates (its
+    accelerations: a comet's encounter is invisible against the sources' maxima), against
+    ``max(floor, factor * e)``, e the sources' :func:`step_error` (weights w) of the same step:
+    a test particle resolved far worse than the bodies it moves among.  gamma: (s, 3N); w, kin_w:
+    (3N,), kin_w 0 for the test particles.  Returns (the worst offending particle's index, or
+    -1, its estimate, the bound)."""
+    s, u = gamma.shape
+    cw = monomial_weight(s - 1)
+    top = 0.0
+    low = 0.0
+    for j in range(u):
+        if kin_w[j] != 0.0:
+            if abs(w[j] * gamma[s - 1, j]) > top:
+                top = abs(w[j] * gamma[s - 1, j])
+            if abs(w[j] * gamma[0, j]) > low:
+                low = abs(w[j] * gamma[0, j])
+    bound = floor
+    if low > 0.0 and factor * top / (cw * low) > bound:
+        bound = factor * top / (cw * low)
+    worst = -1
+    worst_err = 0.0
+    for i in range(u // 3):
+        if kin_w[3 * i] != 0.0:
+            continue
+        t = 0.0
+        lo = 0.0
+        for c in range(3 * i, 3 * i + 3):
+            if abs(gamma[s - 1, c]) > t:
+                t = abs(gamma[s - 1, c])
+            if abs(gamma[0, c]) > lo:
+                lo = abs(gamma[0, c])
+        err = t / (cw * lo) if lo > 0.0 else (np.inf if t > 0.0 else 0.0)
+        if err > bound and err > worst_err:
+            worst = i
+            worst_err = err
+    return worst, worst_err, bound
+
+
+@jit
 def extrapolation_matrix(r, t, w, E):
     """E_ij = int_0^1 P_i(x) P_j(1 + r x) dx by the s-point Gauss rule (t, w) on [0, 1], exact
     for these degrees: the previous step's polynomial continued over a step r times as long.

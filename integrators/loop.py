@@ -218,7 +218,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 _force(Xk, params, Fk)
                 counters[C_NFEV] += K
                 project_compensated(Wp[eq.WP_PATH], Wp[eq.WP_PATH_LO], Fk, rho, R)
-                e_res, e_scale, e_weight = eq.energy_residual(full, y, minv, g, rho, h, es[0],
+                e_res, e_scale, e_weight = eq.energy_residual(full, y, minv, kin_w, g, rho, h, es[0],
                                                               Cp[eq.CP_X], Cp[eq.CP_X_LO],
                                                               ts[eq.TS_S0])
                 answer = eq.update_alpha(es, e_res, e_scale,

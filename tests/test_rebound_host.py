@@ -16,7 +16,7 @@ import rebound
 
 import hbvm_md
 from hbvm_md import HBVMIntegrator
-from integrators import StepSizeError
+from integrators import EQUIP, HBVM, StepSizeError
 from integrators.engine import DEFAULT_EPSILON
 from integrators.kchoice import adaptive_k
 from systems import outer_solar_system
@@ -32,6 +32,10 @@ def _outer(kind):
     sim = outer_solar_system().to_rebound()
     if kind == "fixed":
         HBVMIntegrator(sim, s=6, k=8, dt=100.0)
+    elif kind == "equip-fixed":
+        HBVMIntegrator(sim, s=4, k=6, dt=100.0, method="equip")
+    elif kind == "equip-adaptive":
+        HBVMIntegrator(sim, method="equip")
     else:
         sim.integrator = "hbvm"          # HBVM's defaults: adaptive steps
         sim.dt = 50.0
@@ -79,7 +83,7 @@ def test_sim_integrator_hbvm_conserves_energy_like_hbvmintegrator():
 
 
 # -- REBOUND's Simulationarchive notebook ----------------------------------------------------------
-@pytest.mark.parametrize("kind", ["fixed", "adaptive"])
+@pytest.mark.parametrize("kind", ["fixed", "adaptive", "equip-fixed", "equip-adaptive"])
 def test_simulationarchive_three_modes_and_restart_pattern(tmp_path, kind):
     """An archive written during an HBVM run: every snapshot is the run's state at its time bit
     for bit; "close" and "exact" are the uninterrupted run to the same time bit for bit; the
@@ -104,6 +108,8 @@ def test_simulationarchive_three_modes_and_restart_pattern(tmp_path, kind):
     got = sa.getSimulation(4321.0, mode="snapshot")
     assert got.t <= 4321.0 and np.array_equal(_xv(got), states[got.t])
     restart = rebound.Simulation(fn)
+    assert str(restart.integrator.method) == ("equip" if "equip" in kind else "hbvm")
+    assert HBVMIntegrator.of(restart).method == HBVMIntegrator.of(sim).method
     restart.save_to_file(fn, interval=1000.0)
     restart.integrate(2e4)
     sim.integrate(2e4)
@@ -112,7 +118,7 @@ def test_simulationarchive_three_modes_and_restart_pattern(tmp_path, kind):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["archive.bin"]
 
 
-@pytest.mark.parametrize("kind", ["fixed", "adaptive"])
+@pytest.mark.parametrize("kind", ["fixed", "adaptive", "equip-fixed", "equip-adaptive"])
 def test_copy_and_pickle_continue_bit_for_bit(kind):
     sim = _outer(kind)
     sim.integrate(2345.0)
@@ -286,6 +292,7 @@ def test_no_hard_coded_rebound_offset_outside_the_layout_module():
     ("max_iter", 0, r"`sim.integrator.max_iter` must be a positive integer \(got 0\)"),
     ("energy_tol", -1.0, r"`sim.integrator.energy_tol` must be a finite number >= 0"),
     ("k", 3, r"`k` must be >= `s`"),
+    ("method", 7, r"`sim.integrator.method` must be one of \('hbvm', 'equip'\) \(got 7\)"),
 ])
 def test_settings_changed_in_sim_integrator_are_checked(field, value, match):
     sim = outer_solar_system().to_rebound()
@@ -359,3 +366,103 @@ def test_a_stop_from_a_heartbeat_and_arguments_are_rebounds():
     with pytest.raises(TypeError):
         sim.integrate("4000")
     assert sim.t == 2000.0
+
+
+# -- EQUIP through REBOUND (issue 26) ---------------------------------------------------------------
+def _outer_perturbed(r):
+    """The outer solar system with the planets' positions scaled by 1 + r 1e-13."""
+    nb = outer_solar_system()
+    sim = nb.to_rebound()
+    for p in sim.particles[1:]:
+        p.x, p.y, p.z = (c * (1 + r * 1e-13) for c in (p.x, p.y, p.z))
+    sim.move_to_com()
+    return sim
+
+
+def _invariant_errors(sim, t_end, n=100):
+    """Largest relative change of the energy and of |L - L0| / |L0| over n outputs."""
+    E0, L0 = sim.energy(), np.array(sim.angular_momentum())
+    e = l = 0.0
+    for t in np.linspace(0.0, t_end, n + 1)[1:]:
+        sim.integrate(t)
+        e = max(e, abs(sim.energy() / E0 - 1))
+        l = max(l, np.linalg.norm(np.array(sim.angular_momentum()) - L0) / np.linalg.norm(L0))
+    return e, l
+
+
+def test_equip_keeps_energy_and_angular_momentum_where_hbvm_loses_it():
+    """Outer solar system, s = 2, k = 8, dt = 50 d over 1e5 days (medians of 3 starts): HBVM(8,
+    2) keeps the energy and loses L at its order (1.3e-8); EQUIP(8, 2) keeps both at round-off,
+    and its adaptive defaults too."""
+    runs = {}
+    for r in range(3):
+        for name, kw in (("hbvm", dict(s=2, k=8, dt=50.0)), ("equip", dict(s=2, k=8, dt=50.0)),
+                         ("equip-defaults", {})):
+            sim = _outer_perturbed(r)
+            d = HBVMIntegrator(sim, method=name.split("-")[0], **kw)
+            runs.setdefault(name, []).append(_invariant_errors(sim, 1e5))
+            assert d.nsteps == sim.steps_done                 # no step failed
+    med = {k: np.median(np.array(v), axis=0) for k, v in runs.items()}
+    assert med["hbvm"][0] <= 1e-14 and med["hbvm"][1] > 1e-10
+    for name in ("equip", "equip-defaults"):
+        assert med[name][0] <= 1e-14 and med[name][1] <= 1e-14, (name, med[name])
+
+
+def test_equip_is_a_setting_saved_with_the_run_and_k_is_hbvms():
+    """``method="equip"`` selects EQUIP(k, s) with the k HBVM would take (the energy
+    condition is HBVM's line integral): adaptive_k for adaptive steps, choose_k's for a fixed
+    step; ``sim.integrator.method`` shows it, and switching it between runs switches the
+    method (the run continues from the same particles, L kept from then on)."""
+    sim = outer_solar_system().to_rebound()
+    d = HBVMIntegrator(sim, method="equip")
+    assert d.method == EQUIP(adaptive_k(6, DEFAULT_EPSILON), 6) and str(sim.integrator.method) == "equip"
+    a, b = outer_solar_system().to_rebound(), outer_solar_system().to_rebound()
+    ka = HBVMIntegrator(a, s=4, dt=200.0).method
+    kb = HBVMIntegrator(b, s=4, dt=200.0, method="equip").method
+    assert isinstance(ka, HBVM) and kb == EQUIP(ka.k, 4)
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, s=2, k=8, dt=50.0)
+    sim.integrate(2e4)
+    L0 = np.array(sim.angular_momentum())
+    sim.integrator.method = "equip"
+    sim.integrate(6e4)
+    assert HBVMIntegrator.of(sim).method == EQUIP(8, 2)
+    assert np.linalg.norm(np.array(sim.angular_momentum()) - L0) / np.linalg.norm(L0) < 1e-14
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(method="gauss"), ValueError,
+     r"`method` must be one of \('hbvm', 'equip'\) \(got method='gauss'\)"),
+    (dict(method=None), ValueError, r"`method` must be one of .* \(got method=None\)"),
+    (dict(method="equip", nodes="lobatto"), ValueError,
+     r"`nodes` must be 'gauss' with method='equip' \(got nodes='lobatto'\)"),
+    (dict(method="equip", s=1, k=2), ValueError, r"`s` must be >= 2 for EQUIP \(got s=1\)"),
+    (dict(method="equip", s=4, k=3), ValueError, r"`k` must be >= `s` \(got k=3, s=4\)"),
+])
+def test_bad_method_is_refused_naming_it_and_leaves_the_simulation(kwargs, error, match):
+    sim = outer_solar_system().to_rebound()
+    with pytest.raises(error, match=match):
+        HBVMIntegrator(sim, **kwargs)
+    assert str(sim.integrator) == "ias15"
+    sim.integrator = "hbvm"
+    with pytest.raises(AttributeError, match="hbvm, equip"):      # REBOUND's enum refusal
+        sim.integrator.method = "gauss"
+
+
+def test_equip_with_test_particles_conserves_the_sources_energy():
+    """Test particles (N_active) are outside H: EQUIP's energy condition leaves them out (with
+    them alpha conserved H plus their own energies, and the sources' energy drifted to 1.9e-11
+    over 1e5 days); they still move as under HBVM."""
+    sims = []
+    for method in ("equip", "hbvm"):
+        sim = outer_solar_system().to_rebound()
+        sim.N_active = sim.N
+        sim.add(m=0.0, a=7.0, e=0.1, primary=sim.particles[0])
+        sim.add(m=0.0, a=12.0, e=0.05, inc=0.1, primary=sim.particles[0])
+        HBVMIntegrator(sim, s=4, k=6, dt=100.0, method=method)
+        sims.append(sim)
+    sim, ref = sims
+    e, l = _invariant_errors(sim, 1e5, n=50)
+    ref.integrate(1e5)
+    assert e <= 1e-14 and l <= 1e-14, (e, l)
+    assert np.max(np.abs(_xv(sim)[-2:, :3] - _xv(ref)[-2:, :3])) < 1e-8

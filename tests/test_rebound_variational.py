@@ -133,3 +133,13 @@ def test_save_and_load_continue_the_variational_run(tmp_path):
     v_w, v_l = _xv(whole.particles_var), _xv(loaded.particles_var)
     assert np.max(np.abs(v_l - v_w)) / np.max(np.abs(v_w)) < 1e-9
     assert abs(loaded.megno() - whole.megno()) < 1e-9
+
+
+def test_variational_particles_with_equip_are_refused():
+    sim = _two_planets("ias15")
+    HBVMIntegrator(sim, s=6, k=8, dt=0.3, adaptive=False, method="equip")
+    before = _xv(sim.particles_var)
+    with pytest.raises(ValueError, match=r"3 variational particles with method='equip'.*use "
+                                         r"method='hbvm'"):
+        sim.integrate(1.0)
+    assert sim.t == 0.0 and np.array_equal(_xv(sim.particles_var), before)

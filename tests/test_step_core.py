@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 import pytest
 
-from integrators import (HBVM, ConvergenceError, NonFiniteError, StepError, Stepper,
+from integrators import (EQUIP, HBVM, ConvergenceError, NonFiniteError, StepError, Stepper,
                          UnresolvedStepError, integrate)
 from systems import HamiltonianSystem, NBody, outer_solar_system
 from systems.poincare import PoincareKepler
@@ -312,18 +312,24 @@ def test_everything_runs_with_numba_disabled():
         sim = nb.to_rebound()
         HBVMIntegrator(sim, s=6, k=7, dt=250.0)
         sim.steps(4)
-        print(repr(r.y[-1].tolist()), r.path, sim.particles[1].x)
+        eq = nb.to_rebound()
+        HBVMIntegrator(eq, s=2, k=8, dt=200.0, method="equip")   # alpha 1e-3: not Gauss's
+        eq.steps(4)
+        print(repr(r.y[-1].tolist()), r.path, sim.particles[1].x, eq.particles[1].x)
     ''')
     env = dict(os.environ, NUMBA_DISABLE_JIT="1", PYTHONPATH=ROOT)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    y_txt, path, x1 = out.stdout.rsplit(" ", 2)
+    y_txt, path, x1, x1_equip = out.stdout.rsplit(" ", 3)
     nb = outer_solar_system()
     ref = integrate(HBVM(7, 6), nb, nb.initial_state(), 250.0, 4, sample_every=4)
     assert path == "python-separable"
     assert np.max(np.abs(np.array(eval(y_txt)) - ref.y[-1])) <= 1e-12
     assert abs(float(x1) - ref.y[-1, 3]) <= 1e-12
+    # EQUIP through REBOUND as Python (the host's views of its packed arrays and eref)
+    ref = integrate(EQUIP(8, 2), nb, nb.initial_state(), 200.0, 4, sample_every=4)
+    assert abs(float(x1_equip) - ref.y[-1, 3]) <= 1e-12
 
 
 def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():

@@ -8,6 +8,12 @@ dt=..., ...)`` selects it with checked settings (and k measured on the scene for
 times, ``steps_done``, heartbeats, pre- and post-timestep callbacks, collisions (its search and
 resolve functions run after each step), SIGINT, simulation archives, ``save_to_file``,
 ``copy`` and pickling.  This package holds the glue only; the step is :mod:`integrators.loop`.
+``HBVMIntegrator(sim, method="equip", ...)`` (or ``sim.integrator.method = "equip"``, a saved
+field like ``s`` and ``k``) runs EQUIP(k, s) (:class:`integrators.EQUIP`) in the same step:
+the host passes its packed arrays (their shapes in the context block), sizes the work buffers
+for its ``work_rows``, and keeps its alpha and slope (warm starts of the energy condition)
+beside the reference energy in the saved state, so a copy, a file or an archive of an EQUIP run
+continues bit for bit.
 
 Modules: :mod:`~hbvm_md.rebound.layout` (every memory layout: HBVM's state, the step's context
 block, REBOUND's offsets read from its ctypes structures), :mod:`~hbvm_md.rebound.cabi` (the
@@ -41,10 +47,12 @@ How a loaded, copied or new simulation gets its compiled step
 
 How a failed step surfaces
     The core's step works on trial arrays: a failed step (no convergence, non-finite values,
-    an energy change above ``energy_tol``, an adaptive step below ``min_dt``) changes neither
+    an energy change above ``energy_tol``, a fixed step's test particle whose own error
+    estimate is out of bounds, an adaptive step below ``min_dt``) changes neither
     the particles nor ``t`` (REBOUND counts the attempt in ``steps_done``, as it counts IAS15's
     rejected steps).  The dispatcher then calls the host's ``fail`` callback, which builds the
     exception (ConvergenceError, UnresolvedStepError, StepSizeError, ... with their messages),
+    naming the closest encounter at the step's start and the ways out,
     sets REBOUND's status to GENERIC_ERROR and queues the message with REBOUND's
     ``reb_simulation_error``, so REBOUND's own loop stops and a caller of the C library sees the
     error.  REBOUND's Python maps a run's status and messages to its own exceptions inside

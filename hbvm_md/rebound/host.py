@@ -12,21 +12,28 @@ import numpy as np
 
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
-from integrators import HBVM
-from integrators.core import N_COUNTERS, NOT_FINITE, OK, TOO_SMALL
-from integrators.engine import DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive
-from integrators.errors import ConvergenceError, NonFiniteError, StepSizeError, step_error
+from integrators import EQUIP, HBVM
+from integrators.core import C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error
+from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
+                                energy_check)
+from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
+                                UnresolvedStepError, step_error)
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
 
 NAME = "hbvm"
-DEFAULTS = dict(s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60, adaptive=True,
-                epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None, energy_tol=1e-10)
-_HINTS = {"diverged": "try a smaller sim.dt or a larger max_iter",
-          "not_finite": "try a smaller sim.dt, and check for particles at the same position",
-          "unresolved": "use a smaller sim.dt (or IAS15 for close encounters), or pass "
-                        "energy_tol=None to accept such steps"}
+DEFAULTS = dict(method="hbvm", s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60,
+                adaptive=True, epsilon=DEFAULT_EPSILON, min_dt=0.0, tol=None)
+# the engine's one default energy check, for k chosen for a round-off quadrature error (1e-10)
+DEFAULTS["energy_tol"] = energy_check(HBVM(DEFAULTS["k"], DEFAULTS["s"]), None, "auto", None,
+                                      round_off_k=True)
+#: what to do about a failed fixed step, by its cause (after the closest encounter, _encounter)
+_WAY_OUT = ("leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink through "
+            "encounters, test particles' too), or use a smaller sim.dt")
+_HINTS = {"diverged": _WAY_OUT + ", or a larger max_iter",
+          "not_finite": _WAY_OUT + "; check for particles at the same position",
+          "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps"}
 _REB_GENERIC_ERROR = 1            # enum REB_STATUS
 _PENDING: dict = {}               # simulation address -> the exception of its failed step
 _REG = None                       # what registration keeps alive (see register)
@@ -90,9 +97,11 @@ def register() -> None:
     from rebound.binarydata_field_descriptor import BinarydataFieldDescriptor, EnumDescriptor
     from rebound.integrator import Integrator
     from hbvm_md.rebound import cabi
-    enums = (EnumDescriptor * (len(L.NODES) + 1))()
-    for j, n in enumerate(L.NODES):
-        enums[j].value, enums[j].name = j, n.encode()
+    enums = {}
+    for field, names in L.ENUMS.items():
+        enums[field] = (EnumDescriptor * (len(names) + 1))()
+        for j, n in enumerate(names):
+            enums[field][j].value, enums[field][j].name = j, n.encode()
     fds = (BinarydataFieldDescriptor * (len(L.SAVED) + 1))()
     docs = []
     for j, (name, slot, dtype, slot_n, doc) in enumerate(L.SAVED):
@@ -102,8 +111,8 @@ def register() -> None:
         fd.dtype, fd.name, fd.offset = dtype, name.encode(), 8 * slot
         fd.offset_N = 8 * slot_n if slot_n is not None else 0
         fd.element_size = 8 if dtype == L._POINTER else 0
-        if name == "nodes":
-            fd.enum_descriptor_list = ctypes.cast(enums, type(fd.enum_descriptor_list))
+        if name in enums:
+            fd.enum_descriptor_list = ctypes.cast(enums[name], type(fd.enum_descriptor_list))
     create = ctypes.CFUNCTYPE(ctypes.c_void_p)(_create)
     prepare = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_prepare_cb)
     fail = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_fail_cb)
@@ -111,7 +120,10 @@ def register() -> None:
     doc = ctypes.create_string_buffer(
         b"HBVM(k, s) (Brugnano, Iavernaro, Trigiante: Hamiltonian Boundary Value Methods), "
         b"registered by the hbvm_md package: energy-conserving implicit Runge-Kutta steps of "
-        b"order 2s, adaptive by default.  Configure with hbvm_md.HBVMIntegrator(sim, ...).")
+        b"order 2s, adaptive by default; with method = 'equip', EQUIP(k, s) (Brugnano, "
+        b"Iavernaro, Trigiante: energy- and quadratic-invariants-preserving methods), which "
+        b"keeps the angular momentum to round-off too.  Configure with "
+        b"hbvm_md.HBVMIntegrator(sim, ...).")
     integ = Integrator()
     integ.documentation = ctypes.cast(doc, ctypes.c_char_p)
     integ.step = cabi.dispatch.address
@@ -146,6 +158,7 @@ def _self_check(rebound) -> None:
     st, sd = _slots(p) if p else (None, None)
     ok = (p == sim.integrator.state and st[L.SL_PREPARE] == _REG["prepare"]
           and int(sim.integrator.s) == DEFAULTS["s"] and str(sim.integrator.nodes) == "gauss"
+          and str(sim.integrator.method) == DEFAULTS["method"]
           and float(sim.integrator.epsilon) == DEFAULTS["epsilon"]
           and ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["step_at"]).value
           == _REG["dispatch"])
@@ -163,10 +176,12 @@ def _create() -> int:
         return 0
     st, sd = _slots(p)
     d = DEFAULTS
-    st[[L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
-        d["s"], d["k"], L.NODES.index(d["nodes"]), d["max_iter"], int(d["adaptive"]))
-    sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV, L.SL_EREF]] = (
-        d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan, np.nan)
+    st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
+        L.METHODS.index(d["method"]), d["s"], d["k"], L.NODES.index(d["nodes"]), d["max_iter"],
+        int(d["adaptive"]))
+    sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV]] = (
+        d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan)
+    sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, EQUIP's alpha and slope: unknown
     st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
     return p
 
@@ -272,7 +287,7 @@ def _fail_cb(r: int, p: int) -> int:
         st, sd = _slots(p)
         if int(st[L.SL_STATUS]) != L.PREPARE_FAILED or r not in _PENDING:
             try:
-                _PENDING[r] = _step_failure(st, sd)
+                _PENDING[r] = _step_failure(st, sd, _rebound().Simulation.from_address(r))
             except BaseException as exc:  # noqa: BLE001 - the run must stop with it
                 _PENDING[r] = exc
         msg = _message(_PENDING[r])
@@ -287,8 +302,82 @@ def _message(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}"
 
 
-def _step_failure(st: np.ndarray, sd: np.ndarray):
-    """The exception of a failed step, from what the compiled step recorded."""
+def _name(sim, i: int) -> str:
+    """"particle i", with its name when it has one (REBOUND 5's ``name``, its hash before)."""
+    name = sim.particles[i].name
+    return f"particle {i}" + (f" ({name!r})" if name else "")
+
+
+def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
+    """The closest encounter in ``sim`` as it is (the start of a failed step): of the pairs
+    with a gravitating body (test particles do not meet each other), or of particle ``only``'s
+    pairs, the one that weighs most in a step's error estimate: the largest (s-1)-th
+    derivative of their pull, G (m_i + m_j) / d^2 / tau^(s-1) with the pair's time scale
+    tau = min(d / v, sqrt(d^3 / (G (m_i + m_j)))) (a fast pass of a light body weighs little).
+    dict(i, j, distance, speed, time) (j gravitates), or None when there is no such pair."""
+    N = sim.N
+    x, v, m = np.empty((N, 3)), np.empty((N, 3)), np.empty(N)
+    sim.serialize_particle_data(xyz=x, vxvyvz=v, m=m)
+    na = sim.N_active if 0 <= sim.N_active < N else N
+    src = np.flatnonzero((np.arange(N) < na) & (m > 0))
+    rows = np.arange(N) if only is None else np.array([only])
+    best = None
+    for a in range(0, rows.size, 256):                  # O(N N_sources) in blocks, no N^2 array
+        i = rows[a:a + 256, None]
+        d = np.linalg.norm(x[i] - x[src][None], axis=2)
+        u = np.linalg.norm(v[i] - v[src][None], axis=2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gm = sim.G * (m[i] + m[src][None, :])
+            tau = np.fmin(d / u, np.sqrt(d ** 3 / gm))
+            weight = gm / d ** 2 / tau ** (s - 1)
+        weight[(i == src[None, :]) | np.isnan(weight)] = -1.0
+        k = np.unravel_index(np.argmax(weight), weight.shape)
+        if weight[k] >= 0 and (best is None or weight[k] > best["weight"]):
+            best = dict(i=int(i[k[0], 0]), j=int(src[k[1]]), distance=float(d[k]),
+                        speed=float(u[k]), time=float(tau[k]), weight=float(weight[k]))
+    return best
+
+
+def _encounter_text(sim, enc: dict | None, h: float) -> str:
+    if enc is None:
+        return ""
+    return (f"the closest encounter at the step's start: {_name(sim, enc['i'])} and "
+            f"{_name(sim, enc['j'])}, {enc['distance']:.3g} apart at relative speed "
+            f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} steps); ")
+
+
+def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> UnresolvedStepError:
+    """A fixed step refused for its test particle (the glue's check, layout.TEST_PARTICLE)."""
+    from hbvm_md.rebound.glue import TP_FACTOR, TP_FLOOR
+    i, err, s = int(sd[L.SL_CAUSE_STATUS]), float(sd[L.SL_CAUSE_ERR]), int(st[L.SL_S])
+    ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st[L.SL_CTX])), np.int64)
+    m = int(ctx[L.D_M])
+    gammat = _doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
+    minv, kin_w = _doubles(int(ctx[L.A_MINV]), m), _doubles(int(ctx[L.A_KINW]), m)
+    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR)
+    # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
+    h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
+    enc = _encounter(sim, only=i, s=s)
+    where = (f"passes {_name(sim, enc['j'])} {enc['distance']:.3g} away at relative speed "
+             f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} "
+             "steps); " if enc else "")
+    hint = (f"{where}leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink "
+            f"through the test particles' encounters too), or use a smaller sim.dt (about "
+            f"{h_ok:.2g} or less here), or pass energy_tol=None to accept such steps")
+    exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, hint)
+    where_t = f"HBVM step of size h={h:.6g} at t={t:.17g}"
+    RuntimeError.__init__(exc, (
+        f"{where_t} does not resolve test {_name(sim, i)}: its own error estimate {err:.3e} "
+        f"(the weight of the last Legendre coefficient of its acceleration over the step) "
+        f"exceeds {bound:.3g} (the larger of {TP_FLOOR:g} and {TP_FACTOR:g} times the "
+        f"gravitating bodies' estimate), so its orbit leaves the run's accuracy; it {hint}"))
+    exc.particle, exc.encounter = i, enc
+    return exc
+
+
+def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
+    """The exception of a failed step, from what the compiled step recorded (``sim``: the
+    simulation, as before the step: the particles a message names)."""
     status = int(st[L.SL_STATUS])
     if status == L.BAD_DT:
         return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
@@ -310,14 +399,22 @@ def _step_failure(st: np.ndarray, sd: np.ndarray):
         if status - TANGENT_FAILED == NOT_FINITE:
             return NonFiniteError(h, it, "tangent map", t, hint)
         return ConvergenceError(h, math.nan, it, "tangent map", t, hint)
+    if status == L.TEST_PARTICLE:
+        return _test_particle_failure(sim, st, sd, h, t, counters)
+    enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
+    near = _encounter_text(sim, enc, h)
     if status == TOO_SMALL:
         cause_status = int(sd[L.SL_CAUSE_STATUS])
         cause = (f"error estimate {sd[L.SL_CAUSE_ERR]:.3e} > epsilon={sd[L.SL_EPSILON]:.3e}"
                  if cause_status == OK else
                  str(step_error(cause_status, h, t, counters, "fixed_point", energy_tol=etol,
-                                hints=_HINTS)))
-        return StepSizeError(h, float(sd[L.SL_MIN_DT]), t, cause)
-    return step_error(status, h, t, counters, "fixed_point", energy_tol=etol, hints=_HINTS)
+                                hints={k: "a smaller step" for k in _HINTS})))
+        exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
+    else:
+        exc = step_error(status, h, t, counters, "fixed_point", energy_tol=etol,
+                         hints={k: near + v for k, v in _HINTS.items()})
+    exc.encounter = enc
+    return exc
 
 
 def _python_core(r: int, p: int) -> int:
@@ -334,23 +431,33 @@ _PYTHON_STEPS: dict = {}
 
 
 # -- prepare: the model, the compiled step and the context block from the particles ----------------
-def method_of(st: np.ndarray) -> HBVM:
-    """The HBVM(k, s) a state's settings name (ValueError naming a bad one)."""
-    nodes = int(st[L.SL_NODES])
+def method_of(st: np.ndarray) -> HBVM | EQUIP:
+    """The HBVM(k, s) or EQUIP(k, s) a state's settings name (ValueError naming a bad one)."""
+    nodes, which = int(st[L.SL_NODES]), int(st[L.SL_METHOD])
+    if not 0 <= which < len(L.METHODS):
+        raise ValueError(f"`sim.integrator.method` must be one of {L.METHODS} (got {which}): "
+                         "'hbvm' conserves the energy, 'equip' the energy and the angular momentum")
     if not 0 <= nodes < len(L.NODES):
         raise ValueError(f"`sim.integrator.nodes` must be 'gauss' or 'lobatto' (got {nodes})")
+    if L.METHODS[which] == "equip":
+        if L.NODES[nodes] != "gauss":
+            raise ValueError(f"`sim.integrator.nodes` must be 'gauss' with method='equip' (got "
+                             f"{L.NODES[nodes]!r}): EQUIP perturbs the Gauss method")
+        return EQUIP(int(st[L.SL_K]), int(st[L.SL_S]))
     return HBVM(int(st[L.SL_K]), int(st[L.SL_S]), nodes=L.NODES[nodes])
 
 
-def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM:
+def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     """Check the settings in ``sim.integrator`` (a user may change them between runs; the
     compiled step checks the same ranges, ``glue.settings_ok``); returns the method."""
     method = method_of(st)
     bad = [(n, v, want) for n, v, want in (
         ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
         ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
-        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check)"))
-        if not (v >= 1 if n == "max_iter" else 0 <= v < (1 if n == "tol" else math.inf))]
+        ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check), or in "
+         "(-1, 0) for the not-a-solution rule"))
+        if not (v >= 1 if n == "max_iter" else
+                0 <= v < 1 if n == "tol" else -1 < v < math.inf)]
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
@@ -382,6 +489,10 @@ def _prepare(sim, p: int) -> None:
     nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
     x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     dim, s = nb.dim, method.s
+    if isinstance(method, EQUIP) and sim.N_var > 0:
+        raise ValueError(f"{sim.N_var} variational particles with method='equip': the tangent "
+                         "map is the derivative of the HBVM step, and EQUIP's step adds a "
+                         "correction whose derivative it does not take; use method='hbvm'")
     # the step is always built with its tangent map: one compiled module serves simulations
     # with and without variational particles
     binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue",
@@ -399,17 +510,20 @@ def _prepare(sim, p: int) -> None:
         y[:] = 0.0
         y[:dim], y[dim:2 * dim] = q0, p0
         _array(st, L.SL_GAMMA, L.SL_NGAMMA, s * dim)[:] = 0.0
-        sd[L.SL_H_PREV] = sd[L.SL_EREF] = np.nan
+        sd[L.SL_H_PREV] = np.nan
+        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha and slope
         st[L.SL_RESYNCS] += 1
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
     # most one gravitating body, at rest (the restricted problem with a star at rest): then it
-    # stays zero, there is nothing to check, and test particles are not checked.
+    # stays zero and there is nothing to check (the test particles' own check, glue.TP_FLOOR,
+    # still runs on a fixed step).
     check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
     if not check and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
         warnings.warn("HBVM: the gravitating bodies have no energy (a single body at rest), so "
-                      "energy_tol checks nothing here; test particles' steps are not checked",
+                      "energy_tol's energy check checks nothing here; test particles are checked "
+                      "by their own error estimates (fixed steps) or the step control (adaptive)",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
     _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)
@@ -447,7 +561,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     written[:, 6] = view[:, im]
     host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
     arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, m)),
-              L.A_EREFT: np.zeros(1), L.A_WRITTEN: written, L.A_MINV: binding.minv,
+              L.A_EREFT: np.zeros(L.N_EREF), L.A_WRITTEN: written, L.A_MINV: binding.minv,
               L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
               L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
               L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
@@ -456,7 +570,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     # refused any other kind): one row per set, starting at var_config[j].index
     nv = int(sim.N_var_config) if sim.N_var > 0 else 0
     vidx = np.array([float(sim.var_config[j].index) for j in range(nv)])
-    nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m)
+    nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m) if nv else (0, 0)
     arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
                    L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
@@ -479,13 +593,17 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
             dst[:] = np.ascontiguousarray(a).reshape(-1)
         at += sizes[k]
     header[[L.D_S, L.D_K, L.D_NODES, L.D_M, L.D_N, L.D_P, L.D_NF, L.D_NC, L.D_PTR]] = (
-        s, method.n_stages, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
+        s, method.k, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
         binding.work.shape[0],
         binding.cwork.shape[0], ptr)
+    header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
+    # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
+    header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
+        tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
     header[L.R_T:L.R_M + 1] = _REG["offsets"]
     pvar_at, megno_at, t0_at = _REG["variational"]
     pvar = ctypes.c_void_p.from_address(ctypes.addressof(sim) + 8 * pvar_at).value or 0
-    header[[L.D_NV, L.D_TNF, L.D_TNC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
+    header[[L.D_NV, L.D_TGF, L.D_TGC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
             L.R_MEGNO_T0]] = (nv, nf, nc, pvar, _REG["megno_update"], pvar_at,
                               megno_at, t0_at)
     header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1)
@@ -509,10 +627,13 @@ def _python_step(code, st):
         N = int(ctx[L.D_N])
         if simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N or any(
                 st_[a] != ctx[b] for a, b in ((L.SL_S, L.D_S), (L.SL_K, L.D_K),
-                                               (L.SL_NODES, L.D_NODES))):
+                                               (L.SL_NODES, L.D_NODES),
+                                               (L.SL_METHOD, L.D_METHOD))):
             return L.RESYNC
-        s, k, m = (int(ctx[i]) for i in (L.D_S, L.D_K, L.D_M))
+        s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
         nv = int(ctx[L.D_NV])
+        tnc, tsr, wpp, cpp, kk = (int(ctx[i]) for i in (L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP,
+                                                         L.D_KK))
 
         def f(slot, shape, dtype=np.float64):
             n = int(np.prod(shape))
@@ -524,19 +645,20 @@ def _python_step(code, st):
         y = _doubles(int(st_[L.SL_Y]), 4 * m)
         view = _doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
         return int(code.step_arrays(
-            simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + 1],
+            simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + L.N_EREF],
             sd[L.SL_RES:L.SL_RES + L.N_RES], y[:2 * m], y[2 * m:],
             _doubles(int(st_[L.SL_GAMMA]), s * m).reshape(s, m),
             _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS), f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m),
-            f(L.A_GAMMAT, (s, m)), f(L.A_EREFT, 1), f(L.A_WRITTEN, (N, 7)), f(L.A_MINV, m),
-            f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
-            f(L.A_TN, (2, k)), f(L.A_TS, (2, s)), f(L.A_WP, (2, s, k)), f(L.A_CP, (4, k, s)),
+            f(L.A_GAMMAT, (s, m)), f(L.A_EREFT, L.N_EREF), f(L.A_WRITTEN, (N, 7)),
+            f(L.A_MINV, m), f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
+            f(L.A_TN, (2, tnc)), f(L.A_TS, (tsr, s)), f(L.A_WP, (wpp, s, kk)),
+            f(L.A_CP, (cpp, kk, s)),
             f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
             f(L.A_NM, (0, m, m), complex), f(L.A_WORK, int(ctx[L.D_NF])),
             f(L.A_CWORK, int(ctx[L.D_NC]), complex), f(L.A_CLOCK, 2), f(L.A_E1, (s, s)),
             f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)), f(L.A_EZERO, (s, s)), r,
             f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1)),
             f(L.A_V, (nv, 2 * m)), f(L.A_VT, (nv, 2 * m)), f(L.A_DG, (nv, s, m)),
-            f(L.A_DGT, (nv, s, m)), f(L.A_DGS, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TNF])),
-            f(L.A_TCW, int(ctx[L.D_TNC]), complex), f(L.A_TCOUNT, 3), f(L.A_VIDX, nv)))
+            f(L.A_DGT, (nv, s, m)), f(L.A_DGS, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
+            f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3), f(L.A_VIDX, nv)))
     return step

@@ -10,16 +10,17 @@ from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
                                     shortest_period)
 from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
-from integrators import HBVM
+from integrators import EQUIP, HBVM
 from integrators.core import N_COUNTERS
-from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive
+from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive, energy_check
 from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
 
 class HBVMIntegrator(Counted):
-    """Select and configure HBVM(k, s) on a ``rebound.Simulation``: ``sim.integrator = "hbvm"``
-    with these settings (checked), and k measured on the scene when not given.
+    """Select and configure HBVM(k, s) or EQUIP(k, s) on a ``rebound.Simulation``:
+    ``sim.integrator = "hbvm"`` with these settings (checked), and k measured on the scene when
+    not given.
 
     Parameters
     ----------
@@ -28,11 +29,24 @@ class HBVMIntegrator(Counted):
         'basic' or 'compensated'); test particles (``N_active``, ``testparticle_type = 0``) and
         REBOUND's collision detection and resolve functions are honoured.
     s : int
-        Degree of the method (order 2s).
+        Degree of the method (order 2s; EQUIP needs s >= 2).
     k : int, optional
-        Quadrature nodes (k >= s).  None: measured on the scene at attach time for ``sim.dt``
+        Quadrature nodes (k >= s) of the line integral (EQUIP: of its energy condition, the
+        same k-point discrete line integral, so the same k keeps the energy to round-off).
+        None: measured on the scene at attach time for ``sim.dt``
         (:func:`integrators.kchoice.choose_k` over one shortest orbital period) with a fixed
         step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive steps.
+    method : {"hbvm", "equip"}
+        ``"hbvm"`` (default): HBVM(k, s), which conserves the energy; its angular momentum
+        has an error of order h^2s (at round-off with s = 6 and planetary steps, visible at
+        small s or long steps).  ``"equip"``: EQUIP(k, s) (:class:`integrators.EQUIP`), the
+        Gauss method perturbed at each step so that it conserves the energy and stays
+        symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
+        time a step where the steps resolve the orbits well and 2.5 times near the longest
+        steps (the outer solar system over 1e6 days with the adaptive defaults: s = 8 with
+        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; README, "What each method
+        keeps", ``benchmarks/bench_equip.py --rebound``).  Saved as
+        ``sim.integrator.method``.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
     max_iter : int
@@ -53,16 +67,23 @@ class HBVMIntegrator(Counted):
     min_dt : float
         Smallest step the adaptive control may take; below it a step that cannot be resolved
         raises :class:`integrators.StepSizeError`.
-    energy_tol : float or None
+    energy_tol : float, "auto" or None
         A step that changes the energy of the gravitating bodies by more than this, relative to
         |T| + |V|, is refused with :class:`integrators.UnresolvedStepError` (nothing committed).
         HBVM at round-off k changes it by about 1e-16 a step; a step that does not resolve the
-        motion changes it visibly.  The check costs one potential evaluation a step.  None
-        disables it.
+        motion changes it visibly.  The check costs one potential evaluation a step.  "auto"
+        (default): the engine's shared default, :func:`integrators.engine.energy_check`:
+        ``DEFAULT_ENERGY_TOL`` (1e-10) when k is chosen here (for a round-off quadrature error)
+        and ``tol`` is None, else its not-a-solution rule (a change above ``NOT_A_SOLUTION``
+        that also exceeds the energy the step moved; :attr:`energy_tol` then reads
+        -NOT_A_SOLUTION).  While it is on, a fixed step also checks its test particles: one
+        whose own error estimate (the weight of its last Legendre coefficient) exceeds
+        max(1e-2, 10 x the gravitating bodies') is refused with UnresolvedStepError naming it.
+        None disables both.
 
     Attributes
     ----------
-    method : HBVM
+    method : integrators.HBVM or integrators.EQUIP
     nsteps, nfev, niter, rejected, resyncs : int
         Steps, force evaluations, fixed-point iterations, rejected adaptive trials and reads of
         the state afresh from the particles, as saved with the simulation.
@@ -72,27 +93,42 @@ class HBVMIntegrator(Counted):
     This object holds no state: it is a view of ``sim.integrator`` (``HBVMIntegrator.of(sim)``
     makes one for any simulation whose integrator is HBVM, e.g. a copy or a loaded file).  A
     failed step raises ``ConvergenceError``, ``UnresolvedStepError``, ``StepSizeError``, ...
-    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.
+    from ``sim.integrate`` / ``sim.steps`` with the particles and ``sim.t`` as before it.  Its
+    message names the closest encounter at the step's start and the ways out; its attribute
+    ``encounter`` is that pair, dict(i, j, distance, speed, time) (j gravitates; None without
+    one), and a test particle's refusal also has ``particle``, its index.
     """
 
     def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
                  max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
-                 energy_tol: float | None = 1e-10, adaptive: bool | None = None,
-                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0):
+                 energy_tol: float | str | None = "auto", adaptive: bool | None = None,
+                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0, method: str = "hbvm"):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
             raise TypeError(f"`sim` must be a rebound.Simulation (got {type(sim).__name__})")
         L.check_version(rebound)
         register()
-        method = HBVM(s if k is None else k, s, nodes=nodes)    # checks s, k and nodes
+        if not isinstance(method, str) or method not in L.METHODS:
+            raise ValueError(f"`method` must be one of {L.METHODS} (got method={method!r}): "
+                             "'hbvm' conserves the energy, 'equip' the energy and every "
+                             "quadratic invariant (angular momentum) too")
+        if method == "equip" and nodes != "gauss":
+            raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}):"
+                             " EQUIP perturbs the Gauss method")
+        family = EQUIP if method == "equip" else HBVM
+
+        def build(k_):
+            return EQUIP(k_, s) if family is EQUIP else HBVM(k_, s, nodes=nodes)
+        method = build(s if k is None else k)     # checks s, k and nodes (EQUIP: s >= 2)
         if (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
                 or max_iter < 1):
             raise ValueError(f"`max_iter` must be a positive integer (got max_iter={max_iter!r})")
         if tol is not None and not 0 < _real("tol", tol) < 1:
             raise ValueError(f"`tol` must be None (round-off) or in (0, 1) (got tol={tol!r})")
-        if energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
-            raise ValueError(f"`energy_tol` must be a positive number or None (got "
+        auto = isinstance(energy_tol, str) and energy_tol == "auto"
+        if not auto and energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
+            raise ValueError(f"`energy_tol` must be a positive number or None, or 'auto' (got "
                              f"energy_tol={energy_tol!r}); None switches the energy check off")
         if adaptive is None:
             adaptive = dt is None      # like IAS15: no step to choose unless one is given
@@ -112,23 +148,29 @@ class HBVMIntegrator(Counted):
             h = _step_size("sim.dt", sim.dt)
         if k is None and adaptive:
             # the steps vary (pericentres, encounters): no single step to probe k on
-            method = HBVM(adaptive_k(method.s, epsilon), method.s, nodes=nodes)
+            method = build(adaptive_k(method.s, epsilon))
         elif k is None and sim.N > 1:
+            # HBVM's round-off k: EQUIP's energy condition is the same k-point line integral
+            # along the same degree-s path, so its quadrature error is HBVM(k, s)'s
             nb = NBody.from_rebound(sim)
             y0 = nb.initial_state()
             check_particles(y0, nb)
             steps = period_steps(shortest_period(nb), h)
-            method = HBVM(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k,
-                          method.s, nodes=nodes)
+            method = build(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k)
+        # the engine's one default check; k chosen here is chosen for a round-off quadrature
+        # error, so "auto" is its strict DEFAULT_ENERGY_TOL (gravity is not polynomial: a k the
+        # user gives gets the not-a-solution rule)
+        etol = energy_check(method, None, energy_tol, tol, round_off_k=k is None)
         self._prev_integrator = str(sim.integrator)
         self.sim = sim
         sim.integrator = NAME
         sim.dt = h
         st, sd = self._slots()
-        st[[L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
-            method.s, method.k, L.NODES.index(method.nodes), int(max_iter), int(adaptive))
+        st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
+            L.METHODS.index("equip" if family is EQUIP else "hbvm"), method.s, method.k,
+            L.NODES.index(method.nodes), int(max_iter), int(adaptive))
         sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL]] = (
-            float(epsilon), float(min_dt), float(tol or 0.0), float(energy_tol or 0.0))
+            float(epsilon), float(min_dt), float(tol or 0.0), etol)
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":
@@ -152,7 +194,7 @@ class HBVMIntegrator(Counted):
         return int(st[slot]) if slot in L.INT_SLOTS else float(sd[slot])
 
     @property
-    def method(self) -> HBVM:
+    def method(self) -> HBVM | EQUIP:
         return method_of(self._slots()[0])
 
     @property
@@ -193,7 +235,8 @@ class HBVMIntegrator(Counted):
 
     @property
     def energy_tol(self) -> float | None:
-        """The energy check's tolerance (None: off); settable between runs."""
+        """The energy check's tolerance (None: off; negative: the not-a-solution rule with
+        its absolute value, :func:`integrators.engine.energy_check`); settable between runs."""
         return self._get(L.SL_ETOL) or None
 
     @energy_tol.setter

@@ -8,8 +8,9 @@ HBVM's state
 slots (int64 or float64 by slot), so that the compiled code and the field descriptors share
 one table of slot numbers and no struct offset is written twice.  The slots in
 :data:`SAVED` are described to REBOUND by field descriptors (``integrator.hbvm.<name>`` in its
-binary format): settings, the proposed next step lives in ``sim.dt``, the previous step size,
-the reference energy, the counts, and three arrays REBOUND allocates, saves and restores itself
+binary format): settings (the method among them: HBVM or EQUIP), the proposed next step lives
+in ``sim.dt``, the previous step size, the reference energy (and EQUIP's alpha and slope, its
+warm starts), the counts, and three arrays REBOUND allocates, saves and restores itself
 (the double-double state, the last step's coefficients gamma, the core's counters).  The other
 slots hold this process's function addresses, the context block and a failed step's record;
 REBOUND neither saves nor copies them (a loaded or copied state starts with them zero, and the
@@ -39,27 +40,39 @@ RESYNC = -1           # the particles are not what the last step wrote: the host
 PREPARE_FAILED = -2   # the host refused the simulation (its exception is pending)
 BAD_DT = -3           # sim.dt is zero or not finite
 BAD_SETTINGS = -4     # a setting in sim.integrator is out of its range (host.check_settings)
+TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error estimate is
+                      # above its bound (glue.TP_FLOOR, TP_FACTOR): nothing committed
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
- SL_H_PREV, SL_EREF, SL_NSTEPS, SL_REJECTED, SL_RESYNCS,
+ SL_H_PREV, SL_EREF, SL_ALPHA, SL_SLOPE, SL_METHOD, SL_NSTEPS, SL_REJECTED, SL_RESYNCS,
  SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS, SL_NCOUNTERS,
  # not saved: this process's addresses, and what a failed step recorded
  SL_CORE, SL_CTX, SL_PREPARE, SL_FAIL, SL_FREE, SL_ECHECK,
- SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(32)
+ SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(35)
 N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, its status
 N_SLOTS = SL_RES + N_RES
+#: the step's eref (integrators.loop): the energy, and EQUIP's alpha and dE/dalpha (its warm
+#: starts), in the consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE (integrators.equip_core's
+#: EREF_EQUIP entries; HBVM reads the first only)
+N_EREF = 3
+assert (SL_ALPHA, SL_SLOPE) == (SL_EREF + 1, SL_EREF + 2)   # one array of N_EREF
 
 NODES = ("gauss", "lobatto")
+#: the integrators' family (``sim.integrator.method``): integrators.HBVM, integrators.EQUIP
+METHODS = ("hbvm", "equip")
 
 # REBOUND's dtype ids (enum REB_BINARYDATA_DTYPE; rebound.binarydata_field_descriptor maps them)
 _DOUBLE, _INT64, _POINTER = 1, 5, 10
 
 #: (name, slot, dtype, slot of the element count or None, documentation) of every saved slot
 SAVED = (
-    ("s", SL_S, _INT64, None, "Degree of the method: HBVM(k, s) has order 2s."),
-    ("k", SL_K, _INT64, None, "Quadrature nodes of the line integral (k >= s)."),
-    ("nodes", SL_NODES, _INT64, None, "Quadrature: 'gauss' or 'lobatto'."),
+    ("method", SL_METHOD, _INT64, None, "'hbvm': HBVM(k, s), energy conserving; 'equip': "
+     "EQUIP(k, s), energy and every quadratic invariant (angular momentum) conserving."),
+    ("s", SL_S, _INT64, None, "Degree of the method: HBVM(k, s) and EQUIP(k, s) have order 2s."),
+    ("k", SL_K, _INT64, None, "Quadrature nodes of the line integral (k >= s; EQUIP: of its "
+     "energy condition)."),
+    ("nodes", SL_NODES, _INT64, None, "Quadrature: 'gauss' or 'lobatto' (EQUIP: 'gauss')."),
     ("max_iter", SL_MAX_ITER, _INT64, None, "Fixed-point iterations allowed per step."),
     ("adaptive", SL_ADAPTIVE, _INT64, None, "1: adaptive steps (sim.dt shows the next step "
      "proposed); 0: fixed steps of sim.dt."),
@@ -68,9 +81,13 @@ SAVED = (
      "be resolved raises StepSizeError."),
     ("tol", SL_TOL, _DOUBLE, None, "Relative tolerance of the iteration (0: round-off)."),
     ("energy_tol", SL_ETOL, _DOUBLE, None, "A step changing the energy by more than this "
-     "(relative) is refused with UnresolvedStepError (0: no check)."),
+     "(relative) is refused with UnresolvedStepError (0: no check; negative: the engine's "
+     "not-a-solution rule with |energy_tol|); also switches on the fixed step's check of its "
+     "test particles."),
     ("h_prev", SL_H_PREV, _DOUBLE, None, ""),
     ("eref", SL_EREF, _DOUBLE, None, ""),
+    ("alpha", SL_ALPHA, _DOUBLE, None, ""),
+    ("slope", SL_SLOPE, _DOUBLE, None, ""),
     ("nsteps", SL_NSTEPS, _INT64, None, "Steps committed."),
     ("rejected", SL_REJECTED, _INT64, None, "Adaptive trial steps rejected and retried smaller."),
     ("resyncs", SL_RESYNCS, _INT64, None, "Times the state was read afresh from the particles."),
@@ -79,21 +96,26 @@ SAVED = (
     ("counters", SL_COUNTERS, _POINTER, SL_NCOUNTERS, ""),
 )
 INT_SLOTS = frozenset(slot for _, slot, dtype, _, _ in SAVED if dtype == _INT64)
+#: the saved fields REBOUND shows by name (its enum descriptors): field -> names by value
+ENUMS = {"method": METHODS, "nodes": NODES}
 
 # ---- the context block: int64 header (addresses, sizes, REBOUND's offsets), then the arrays --
 (A_YT, A_CYT, A_GAMMAT, A_EREFT, A_WRITTEN, A_MINV, A_KINW, A_PARAMS, A_TN, A_TS, A_WP, A_CP,
  A_NV, A_NVINV, A_NM, A_WORK, A_CWORK, A_CLOCK, A_E1, A_ET, A_EW, A_EBUF, A_EZERO, A_HOST,
- D_S, D_K, D_NODES, D_M, D_N, D_P, D_NF, D_NC, D_PTR,
+ D_S, D_K, D_NODES, D_M, D_N, D_P, D_NF, D_NC, D_PTR, D_METHOD,
+ # the shapes of the method's packed arrays (integrators.engine.method_arrays: HBVM's and
+ # EQUIP's differ): tn (2, D_TNC), ts (D_TSR, s), Wp (D_WPP, s, D_KK), Cp (D_CPP, D_KK, s)
+ D_TNC, D_TSR, D_WPP, D_CPP, D_KK,
  # REBOUND's offsets in doubles: reb_simulation's fields, then reb_particle's size and fields
  R_T, R_G, R_DT, R_DTL, R_N, R_PARTICLES, R_NACTIVE, R_HEAD, R_STRIDE, R_X, R_VX, R_M,
- ) = range(45)
+ ) = range(51)
 #: settings HBVM checks (host.check_simulation): the 8-byte words of reb_simulation holding
 #: them, and their values when the step was prepared, follow; a changed word makes the step
 #: answer RESYNC, and the host checks the settings again (a neighbour's change costs only that)
 CONFIG_FIELDS = ("softening", "N_var", "testparticle_type", "_gravity", "_boundary",
                  "_N_odes", "_additional_forces")
 N_CFG = len(CONFIG_FIELDS)
-C_WORDS = 45
+C_WORDS = R_M + 1
 C_VALUES = C_WORDS + N_CFG
 #: the variational part of the header (REBOUND's first-order variational particles, carried by
 #: the tangent map of the step, :mod:`integrators.tangent`): the arrays (tangents V (nv, 2u)
@@ -103,7 +125,7 @@ C_VALUES = C_WORDS + N_CFG
 #: ``reb_tools_megno_update``, and REBOUND's offsets of ``_particles_var`` (doubles),
 #: ``_calculate_megno`` (bytes: an int) and ``_megno_initial_t`` (doubles)
 (A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX,
- D_NV, D_TNF, D_TNC, D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0
+ D_NV, D_TGF, D_TGC, D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0
  ) = range(C_VALUES + N_CFG, C_VALUES + N_CFG + 17)
 N_HEADER = R_MEGNO_T0 + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for

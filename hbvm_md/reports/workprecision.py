@@ -27,6 +27,7 @@ period of the scene's fastest motion; Gauss-Legendre is HBVM(s, s).
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import time
 from pathlib import Path
@@ -243,7 +244,7 @@ def _heyoka_rows(scene, nb, y0, T, tols, q_ref, samples=100):
     try:
         import_heyoka()
     except ImportError:
-        print(f"scene {scene}: {HEYOKA_MISSING}")
+        logging.getLogger(__name__).warning("scene %s: %s", scene, HEYOKA_MISSING)
         return []
     rows = []
     for tol in tols:
