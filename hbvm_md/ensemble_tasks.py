@@ -337,7 +337,8 @@ def stability_table(records: list[dict]) -> list[dict]:
 def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
     """Three panels over (a, e): the chaos indicator (MEGNO <Y>, with the contour <Y> =
     :data:`MEGNO_CHAOTIC` and the indicator and threshold in its label; or the log10 clone
-    divergence), log10 max energy error, survival time.
+    divergence), log10 max energy error, survival time.  A MEGNO run that stopped (an
+    escape, an unresolved encounter) is drawn as the top of the colour scale: unstable.
 
     Grey cells: no sample (the run stopped before its first sample, or the member failed)."""
     import matplotlib
@@ -351,7 +352,10 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
     megno = kinds != {"clone"} and any(np.isfinite(r.get("megno", math.nan)) for r in rows)
     for r in rows:
         i, j = int(np.searchsorted(e, r["e"])), int(np.searchsorted(a, r["a"]))
-        grids["div"][i, j] = r["megno"] if megno else r["log10_divergence"]
+        grids["div"][i, j] = r["log10_divergence"] if not megno else (
+            # a run that stopped (escape, unresolved encounter) is unstable: drawn as the
+            # colour bar's top, whatever <Y> it had reached
+            1e3 if r["survived"] is not True and r["t_stop"] > 0 else r["megno"])
         grids["err"][i, j] = np.log10(max(r["max_rel_energy_error"], 1e-17))   # nan stays nan
         t_end = r.get("t_end") or max(x["t_stop"] for x in rows) or 1.0
         grids["surv"][i, j] = r["t_stop"] / t_end if r["survived"] is not True else 1.0
@@ -378,11 +382,12 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
             ax.set_title(f"chaos indicator: MEGNO <Y> (REBOUND, HBVM's tangents)\nchaotic: "
                          f"<Y> > {MEGNO_CHAOTIC:g} (cyan contour)" if megno else
                          "chaos indicator: shadow clone 1e-10 apart\n(no threshold)",
-                         fontsize=9)
+                         fontsize=9, pad=14)
         if key == "div" and megno:
             bar.ax.axhline(MEGNO_CHAOTIC, color="c", lw=1.5)
             if a.size > 1 and e.size > 1 and np.isfinite(grids[key]).sum() > 3:
-                ax.contour(a, e, np.nan_to_num(grids[key], nan=0.0), levels=[MEGNO_CHAOTIC],
+                shown = np.nan_to_num(grids[key], nan=0.0)
+                ax.contour(a, e, shown, levels=[MEGNO_CHAOTIC],
                            colors="c", linewidths=1.0)
         for x, name in ((5.2, "J"), (9.55, "S"), (19.2, "U"), (30.1, "N")):
             if edges(a)[0] <= x <= edges(a)[-1]:
