@@ -143,3 +143,20 @@ def test_variational_particles_with_equip_are_refused():
                                          r"method='hbvm'"):
         sim.integrate(1.0)
     assert sim.t == 0.0 and np.array_equal(_xv(sim.particles_var), before)
+
+
+def test_a_users_edit_of_the_variational_particles_is_carried_on():
+    """Tangents are linear: doubling the variational particles between two runs doubles them
+    at the end (the edit is read, not overwritten by the step's own copy)."""
+    out = []
+    for scale in (1.0, 2.0):
+        sim = _two_planets("hbvm", megno=False)
+        var = sim.add_variation()
+        var.particles[1].x, var.particles[2].vy = 1.0, 0.5
+        sim.integrate(50.0)
+        for p in sim.particles_var:
+            p.x, p.y, p.z = scale * p.x, scale * p.y, scale * p.z
+            p.vx, p.vy, p.vz = scale * p.vx, scale * p.vy, scale * p.vz
+        sim.integrate(100.0)
+        out.append(_xv(sim.particles_var))
+    assert np.max(np.abs(out[1] - 2 * out[0])) / np.max(np.abs(out[1])) < 1e-12

@@ -75,17 +75,30 @@ def settings_ok(st, sd):
     return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
 
 
-def read_tangents(pv, vidx, N, ix, ivx, minv, V):
+def read_tangents(pv, vidx, N, ix, ivx, minv, V, DG):
     """V (nv, 2u) <- REBOUND's first-order variational particles (pv: (N_var, stride) doubles
     over ``particles_var``; set v's rows vidx[v] .. vidx[v] + N): dq = dx and dp = dv / minv
-    (the momenta's variation: m dv for a gravitating body, dv for a test particle)."""
+    (the momenta's variation: m dv for a gravitating body, dv for a test particle).
+
+    V holds the tangents as the last step wrote them: a set that differs (edited by the user,
+    rescaled by REBOUND) gets its previous coefficients DG[v] (the tangent map's initial
+    guess, which belongs to the tangent it was computed for) zeroed."""
     m = minv.shape[0]
     for v in range(V.shape[0]):
         i0 = int(vidx[v])
+        same = True
         for i in range(N):
             for c in range(3):
-                V[v, 3 * i + c] = pv[i0 + i, ix + c]
-                V[v, m + 3 * i + c] = pv[i0 + i, ivx + c] / minv[3 * i + c]
+                dx, dv = pv[i0 + i, ix + c], pv[i0 + i, ivx + c]
+                # (as write_tangents wrote them)
+                if dx != V[v, 3 * i + c] or dv != V[v, m + 3 * i + c] * minv[3 * i + c]:
+                    same = False
+                V[v, 3 * i + c] = dx
+                V[v, m + 3 * i + c] = dv / minv[3 * i + c]
+        if not same:
+            for j in range(DG.shape[1]):
+                for u in range(DG.shape[2]):
+                    DG[v, j, u] = 0.0
 
 
 def write_tangents(pv, vidx, N, ix, ivx, minv, V):
@@ -144,7 +157,7 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     N = view.shape[0]
     nv = V.shape[0]
     if nv > 0:
-        read_tangents(pv, vidx, N, ix, ivx, minv, V)
+        read_tangents(pv, vidx, N, ix, ivx, minv, V, DG)
     res[2] = 0.0
     # a fixed step's test-particle check may refuse a converged step: its work then comes out
     # of the counters and the clock, as the core takes a failed step's out
