@@ -61,13 +61,15 @@ def jit(fn=None, *, nogil: bool = False):
         return njit(**options)(fn)
 
 
-def cjit(signature):
+def cjit(signature, cache: bool = True):
     """``numba.cfunc(signature, cache=True, error_model="numpy")``: a C callback (its
     ``.address`` goes where a C library expects a function pointer), compiled like :func:`jit`
-    (in memory when no cache can be written)."""
+    (in memory when no cache can be written, or when ``cache`` is False)."""
     from numba import cfunc
 
     def deco(fn):
+        if not cache:
+            return cfunc(signature, error_model="numpy")(fn)
         try:
             return cfunc(signature, cache=True, error_model="numpy")(fn)
         except RuntimeError as exc:

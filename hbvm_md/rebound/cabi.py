@@ -17,13 +17,27 @@ Python runs only in those rare events; a normal step is two compiled calls.
 """
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
+
 from numba import carray, types
 from numba.extending import intrinsic
 
 from integrators.jit import cjit
 from integrators.pointers import address_of, int64_pointer
+from hbvm_md.rebound import layout as _layout
 from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COUNTERS, SL_FAIL,
                                     SL_FREE, SL_GAMMA, SL_PREPARE, SL_STATUS, SL_Y)
+
+#: The first 16 hex digits of the SHA-256 of ``layout.py`` these functions were written for.
+#: numba's disk cache compiles the slot numbers in and is invalidated only when *this* file
+#: changes, so a ``layout.py`` edited alone (a ``git pull`` over an editable install) would
+#: load code that indexes the state with the old slots: a crash at the first ``free``
+#: (measured: ``import hbvm_md`` segfaulted after a layout change).  When layout.py is not the
+#: one named here, the two functions are compiled in memory instead of loaded from the cache;
+#: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with layout.py.
+LAYOUT_DIGEST = "9cb453e25b0010ba"
+_CACHE = hashlib.sha256(Path(_layout.__file__).read_bytes()).hexdigest()[:16] == LAYOUT_DIGEST
 
 
 @intrinsic
@@ -73,7 +87,7 @@ def call_megno(typingctx, fn, r, dY, dt):
     return types.none(fn, r, dY, dt), codegen
 
 
-@cjit("void(voidptr, voidptr)")
+@cjit("void(voidptr, voidptr)", cache=_CACHE)
 def dispatch(r, p):
     """REBOUND's step: the compiled step, prepared first when needed; a failure reported."""
     st = carray(int64_pointer(address_of(p)), N_SLOTS)
@@ -89,7 +103,7 @@ def dispatch(r, p):
         call_status(st[SL_FAIL], r, p)
 
 
-@cjit("void(voidptr)")
+@cjit("void(voidptr)", cache=_CACHE)
 def release(p):
     """REBOUND's ``free``: the arrays REBOUND or the host allocated, then the state."""
     st = carray(int64_pointer(address_of(p)), N_SLOTS)
