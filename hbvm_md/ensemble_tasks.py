@@ -8,8 +8,9 @@ compiled code once per worker.
   :class:`hbvm_md.HBVMIntegrator`: energy-error statistics and the divergence of a nearby
   shadow clone (a chaos indicator).
 * :func:`stability_member` -- a test planet at (a, e) added to the outer solar system: whether it
-  survives, the divergence of its shadow clone and the energy error; :func:`stability_grid`
-  makes the parameters of a map and :func:`plot_stability_map` draws it.
+  survives, its chaos indicator (MEGNO by default, or the divergence of a shadow clone) and
+  the energy error; :func:`stability_grid` makes the parameters of a map and
+  :func:`plot_stability_map` draws it.
 * :func:`md_replica` -- an ASE scene (the polynomial-pair cluster of
   :func:`hbvm_md.reports.md_comparison.default_cluster`) with seeded Maxwell-Boltzmann velocities
   through :class:`hbvm_md.HBVMDynamics`.
@@ -17,8 +18,12 @@ compiled code once per worker.
 The divergence of two clones started ``delta`` apart (relative, in position) is the classic
 two-particle chaos indicator: it grows about linearly in time on a regular orbit and
 exponentially on a chaotic one, until it saturates at the size of the orbit (Benettin, Galgani,
-Strelcyn, *Phys. Rev. A* 14 (1976)).  MEGNO would need REBOUND's variational particles, which
-HBVMIntegrator does not integrate.
+Strelcyn, *Phys. Rev. A* 14 (1976)).  The field's indicator is MEGNO (Cincotta and Simo,
+*Simple tools to study global dynamics in non-axisymmetric galactic potentials - I*, A&AS 147,
+2000), computed by REBOUND from its first-order variational particles, which HBVM integrates by
+the tangent map of its own step (:mod:`hbvm_md.rebound`): <Y> tends to 2 on a regular orbit and
+grows like lambda t / 2 on a chaotic one; a map calls a point chaotic when <Y> exceeds
+:data:`MEGNO_CHAOTIC`.
 """
 from __future__ import annotations
 
@@ -30,12 +35,17 @@ import numpy as np
 from integrators import StepError
 
 __all__ = ["solar_clone", "stability_member", "stability_grid", "stability_table",
-           "plot_stability_map", "md_replica"]
+           "plot_stability_map", "md_replica", "MEGNO_CHAOTIC"]
 
 #: Distance from the Sun (AU) beyond which a planet of a stability map counts as escaped.
 _R_MAX = 100.0
 #: Default mass of a stability map's planet (solar masses): about one Earth mass.
 PLANET_MASS = 3.0e-6
+#: A map's threshold: a point whose MEGNO <Y> exceeds it is called chaotic (a regular orbit's
+#: <Y> tends to 2; over a run of a few hundred orbits a regular one stays well below this).
+MEGNO_CHAOTIC = 4.0
+#: The chaos indicators of :func:`stability_member`.
+INDICATORS = ("megno", "clone")
 
 
 def _perturbed(y: np.ndarray, scale: float, rng: np.random.Generator, mask=None) -> np.ndarray:
@@ -57,12 +67,7 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
     """
     from .rebound import HBVMIntegrator
 
-    if not (np.isfinite(t_end) and t_end > 0):
-        raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")
-    if not (np.isfinite(dt) and 0 < dt <= t_end):
-        raise ValueError(f"`dt` must be in (0, t_end={t_end!r}] (got dt={dt!r})")
-    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
-        raise ValueError(f"`n_samples` must be an integer >= 2 (got n_samples={n_samples!r})")
+    _check_run(t_end, dt, n_samples)
     sims = [nb.to_rebound(y_a), nb.to_rebound(y_b)]
     drv_a = HBVMIntegrator(sims[0], s=s, k=k, dt=dt)
     drv_b = HBVMIntegrator(sims[1], s=s, k=drv_a.method.k, dt=dt)     # the same method for both
@@ -93,24 +98,87 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
         errs.append(abs(sims[0].energy() - E0) / abs(E0))
         logd.append(math.log10(distance() / d0) if d0 > 0 else math.nan)
         if r_max is not None:
-            x = positions(sims[0])
-            r = float(np.max(np.linalg.norm(x[watch] - x[0], axis=1)))
-            if r > r_max:
-                stop_reason = f"escaped: distance {r:.4g} > r_max={r_max:g} from body 0"
+            stop_reason = _escaped(positions(sims[0]), watch, r_max)
+            if stop_reason:
                 break
     steps = drv_a.nsteps
-    tt, ee, dd = np.array(t_done), np.array(errs), np.array(logd)
+    dd = np.array(logd)
+    return {
+        **_run_summary(t_end, t_done, errs, stop_reason),
+        # log10 of the largest clone distance over the initial one: ~ log10(t / period) on a
+        # regular orbit, up to log10(orbit size / d0) on a chaotic one
+        "log10_divergence": float(np.nanmax(dd)) if np.isfinite(dd).any() else math.nan,
+        "k": int(drv_a.method.k), "s": int(s), "dt": float(dt), "steps": int(steps),
+    }
+
+
+def _megno_run(nb, y: np.ndarray, *, t_end: float, dt: float, s: int, k: int | None,
+               n_samples: int, watch, r_max: float | None = None) -> dict:
+    """Integrate the scene ``nb`` from y with HBVMIntegrator and REBOUND's MEGNO
+    (``sim.init_megno(seed=0)``: one tangent of the whole system, random and seeded).
+
+    ``watch`` and ``r_max`` as for :func:`_clone_pair`: an escape or a step HBVM refuses ends
+    the run, and the record says when and why."""
+    from .rebound import HBVMIntegrator
+
+    _check_run(t_end, dt, n_samples)
+    sim = nb.to_rebound(y)
+    drv = HBVMIntegrator(sim, s=s, k=k, dt=dt)
+    sim.init_megno(seed=0)
+    watch = np.asarray(watch)
+    N = nb.N
+    xv = np.zeros(6 * N)
+    E0 = sim.energy()
+    ts = np.linspace(0.0, t_end, n_samples + 1)[1:]
+    t_done, errs = [], []
+    stop_reason = None
+    megno = lyapunov = math.nan
+    for t in ts:
+        try:
+            sim.integrate(t)
+        except StepError as exc:
+            stop_reason = f"{type(exc).__name__}: {exc}"
+            break
+        t_done.append(t)
+        errs.append(abs(sim.energy() - E0) / abs(E0))
+        megno, lyapunov = float(sim.megno()), float(sim.lyapunov())
+        if r_max is not None:
+            sim.serialize_particle_data(xyzvxvyvz=xv)
+            stop_reason = _escaped(xv.reshape(N, 6)[:, :3], watch, r_max)
+            if stop_reason:
+                break
+    return {
+        **_run_summary(t_end, t_done, errs, stop_reason),
+        "megno": megno, "lyapunov": lyapunov,
+        "k": int(drv.method.k), "s": int(s), "dt": float(dt), "steps": int(drv.nsteps),
+    }
+
+
+def _escaped(x: np.ndarray, watch, r_max: float) -> str | None:
+    """The stop reason when a watched body (positions x (N, 3)) is beyond r_max from body 0."""
+    r = float(np.max(np.linalg.norm(x[watch] - x[0], axis=1)))
+    return f"escaped: distance {r:.4g} > r_max={r_max:g} from body 0" if r > r_max else None
+
+
+def _run_summary(t_end: float, t_done: list, errs: list, stop_reason: str | None) -> dict:
+    """The fields every run of a map records: how far it went, why it stopped, its energy."""
+    tt, ee = np.array(t_done), np.array(errs)
     return {
         "t_end": float(t_end), "t_stop": float(tt[-1]) if tt.size else 0.0,
         "survived": stop_reason is None, "stop_reason": stop_reason or "",
         "max_rel_energy_error": float(ee.max()) if ee.size else math.nan,
         "final_rel_energy_error": float(ee[-1]) if ee.size else math.nan,
         "energy_drift_slope": float(np.polyfit(tt, ee, 1)[0]) if tt.size > 2 else math.nan,
-        # log10 of the largest clone distance over the initial one: ~ log10(t / period) on a
-        # regular orbit, up to log10(orbit size / d0) on a chaotic one
-        "log10_divergence": float(np.nanmax(dd)) if np.isfinite(dd).any() else math.nan,
-        "k": int(drv_a.method.k), "s": int(s), "dt": float(dt), "steps": int(steps),
     }
+
+
+def _check_run(t_end, dt, n_samples) -> None:
+    if not (np.isfinite(t_end) and t_end > 0):
+        raise ValueError(f"`t_end` must be a positive number (got t_end={t_end!r})")
+    if not (np.isfinite(dt) and 0 < dt <= t_end):
+        raise ValueError(f"`dt` must be in (0, t_end={t_end!r}] (got dt={dt!r})")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
+        raise ValueError(f"`n_samples` must be an integer >= 2 (got n_samples={n_samples!r})")
 
 
 def _warm_rebound() -> None:
@@ -180,7 +248,8 @@ def _with_planet(a: float, e: float, mass: float):
 
 def stability_member(param, *, t_end: float = 1e6, dt: float = 250.0, s: int = 6,
                      k: int | None = None, mass: float = PLANET_MASS, delta: float = 1e-10,
-                     n_samples: int = 100, r_max: float = _R_MAX) -> dict:
+                     n_samples: int = 100, r_max: float = _R_MAX,
+                     indicator: str = "megno") -> dict:
     """One point of a stability map: a planet at (a, e) in the outer solar system.
 
     Parameters
@@ -193,28 +262,39 @@ def stability_member(param, *, t_end: float = 1e6, dt: float = 250.0, s: int = 6
         The planet's mass in solar masses (default about one Earth mass: it enters the energy,
         so an unresolved close encounter shows as an energy error).  0 makes it a test particle.
     delta : float
-        Relative displacement of the shadow clone's planet (position only).
+        Relative displacement of the shadow clone's planet (position only; indicator "clone").
     r_max : float
         The planet has escaped when farther than this from the Sun (AU).
+    indicator : {"megno", "clone"}
+        "megno": REBOUND's MEGNO <Y> and Lyapunov estimate from HBVM's variational particles
+        (``sim.init_megno(seed=0)``); "clone": the divergence of a shadow clone ``delta``
+        apart (two runs).
 
     Returns
     -------
     dict
-        a, e and the fields of the clone-pair run: survived, t_stop, stop_reason,
-        max_rel_energy_error, log10_divergence (of the planet), ...
+        a, e, the indicator and the fields of the run: survived, t_stop, stop_reason,
+        max_rel_energy_error, megno and lyapunov (MEGNO) or log10_divergence (of the planet;
+        clone), ...
     """
+    if indicator not in INDICATORS:
+        raise ValueError(f"`indicator` must be one of {INDICATORS} (got {indicator!r})")
     a, e = (param["a"], param["e"]) if isinstance(param, dict) else param
     a, e = float(a), float(e)
     if not (np.isfinite(a) and a > 0 and 0 <= e < 1):
         raise ValueError(f"a planet needs a > 0 and 0 <= e < 1 (got a={a!r}, e={e!r})")
     nb = _with_planet(a, e, mass)
     y_a = nb.initial_state()
+    if indicator == "megno":
+        out = _megno_run(nb, y_a, t_end=t_end, dt=dt, s=s, k=k, n_samples=n_samples,
+                         watch=[nb.N - 1], r_max=r_max)
+        return {"a": a, "e": e, "indicator": indicator, **out}
     mask = np.zeros(y_a.size, bool)
     mask[3 * (nb.N - 1):3 * nb.N] = True
     y_b = _perturbed(y_a, delta, np.random.default_rng(0), mask=mask)
     out = _clone_pair(nb, y_a, y_b, t_end=t_end, dt=dt, s=s, k=k, n_samples=n_samples,
                       watch=[nb.N - 1], r_max=r_max)
-    return {"a": a, "e": e, **out}
+    return {"a": a, "e": e, "indicator": indicator, **out}
 
 
 stability_member.warmup = _warm_rebound
@@ -233,8 +313,9 @@ def stability_grid(a_range=(6.0, 36.0), e_range=(0.0, 0.5), shape=(20, 20)) -> l
             for e in np.linspace(e0, e1, n_e)]
 
 
-_MAP_COLUMNS = ("a", "e", "survived", "t_stop", "log10_divergence", "max_rel_energy_error", "k",
-                "steps", "wall_time_s", "status", "stop_reason")
+_MAP_COLUMNS = ("a", "e", "indicator", "survived", "t_stop", "megno", "lyapunov",
+                "log10_divergence", "max_rel_energy_error", "k", "steps", "wall_time_s", "status",
+                "stop_reason")
 
 
 def stability_table(records: list[dict]) -> list[dict]:
@@ -254,7 +335,10 @@ def stability_table(records: list[dict]) -> list[dict]:
 
 
 def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
-    """Three panels over (a, e): log10 clone divergence, log10 max energy error, survival time.
+    """Three panels over (a, e): the chaos indicator (MEGNO <Y>, with the contour <Y> =
+    :data:`MEGNO_CHAOTIC` and the indicator and threshold in its label; or the log10 clone
+    divergence), log10 max energy error, survival time.  A MEGNO run that stopped (an
+    escape, an unresolved encounter) is drawn as the top of the colour scale: unstable.
 
     Grey cells: no sample (the run stopped before its first sample, or the member failed)."""
     import matplotlib
@@ -264,9 +348,14 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
     a = np.array(sorted({r["a"] for r in rows}))
     e = np.array(sorted({r["e"] for r in rows}))
     grids = {name: np.full((e.size, a.size), np.nan) for name in ("div", "err", "surv")}
+    kinds = {r.get("indicator") for r in rows if r.get("status", "ok") == "ok"} - {None, ""}
+    megno = kinds != {"clone"} and any(np.isfinite(r.get("megno", math.nan)) for r in rows)
     for r in rows:
         i, j = int(np.searchsorted(e, r["e"])), int(np.searchsorted(a, r["a"]))
-        grids["div"][i, j] = r["log10_divergence"]
+        grids["div"][i, j] = r["log10_divergence"] if not megno else (
+            # a run that stopped (escape, unresolved encounter) is unstable: drawn as the
+            # colour bar's top, whatever <Y> it had reached
+            1e3 if r["survived"] is not True and r["t_stop"] > 0 else r["megno"])
         grids["err"][i, j] = np.log10(max(r["max_rel_energy_error"], 1e-17))   # nan stays nan
         t_end = r.get("t_end") or max(x["t_stop"] for x in rows) or 1.0
         grids["surv"][i, j] = r["t_stop"] / t_end if r["survived"] is not True else 1.0
@@ -278,15 +367,28 @@ def plot_stability_map(rows: list[dict], path, title: str = "") -> Path:
         return np.concatenate([[2 * v[0] - m[0]], m, [2 * v[-1] - m[-1]]])
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), constrained_layout=True)
-    panels = (("div", "log10 clone divergence", "magma"),
+    indicator = "MEGNO <Y>" if megno else "log10 shadow-clone divergence"
+    panels = (("div", indicator, "magma"),
               ("err", "log10 max relative energy error", "viridis"),
               ("surv", "survived fraction of the run", "RdYlGn"))
     for ax, (key, label, cmap) in zip(axes, panels):
         # grey: stopped before the first sample, or failed
         cmap = matplotlib.colormaps[cmap].with_extremes(bad="0.75")
-        pc = ax.pcolormesh(edges(a), edges(e), grids[key], cmap=cmap, shading="flat",
-                           **({"vmin": 0.0, "vmax": 1.0} if key == "surv" else {}))
-        fig.colorbar(pc, ax=ax, label=label)
+        limits = ({"vmin": 0.0, "vmax": 1.0} if key == "surv" else
+                  {"vmin": 1.5, "vmax": 3 * MEGNO_CHAOTIC} if key == "div" and megno else {})
+        pc = ax.pcolormesh(edges(a), edges(e), grids[key], cmap=cmap, shading="flat", **limits)
+        bar = fig.colorbar(pc, ax=ax, label=label)
+        if key == "div":
+            ax.set_title(f"chaos indicator: MEGNO <Y> (REBOUND, HBVM's tangents)\nchaotic: "
+                         f"<Y> > {MEGNO_CHAOTIC:g} (cyan contour)" if megno else
+                         "chaos indicator: shadow clone 1e-10 apart\n(no threshold)",
+                         fontsize=9, pad=14)
+        if key == "div" and megno:
+            bar.ax.axhline(MEGNO_CHAOTIC, color="c", lw=1.5)
+            if a.size > 1 and e.size > 1 and np.isfinite(grids[key]).sum() > 3:
+                shown = np.nan_to_num(grids[key], nan=0.0)
+                ax.contour(a, e, shown, levels=[MEGNO_CHAOTIC],
+                           colors="c", linewidths=1.0)
         for x, name in ((5.2, "J"), (9.55, "S"), (19.2, "U"), (30.1, "N")):
             if edges(a)[0] <= x <= edges(a)[-1]:
                 ax.axvline(x, color="w", lw=0.8, ls=":")

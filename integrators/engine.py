@@ -310,10 +310,13 @@ class Binding:
         the system has kernels.
     glue : str, optional
         A host's glue module compiled with the step (:func:`integrators.specialise.specialise`).
+    jvp : callable, optional
+        The force kernel's derivative ``jvp(X, dX, params, out)``: the tangent map is bound
+        with the step (:mod:`integrators.variational`), for a glue that calls it.
     """
 
     def __init__(self, method, system, form: str = "auto", fast: bool | None = None,
-                 glue: str | None = None):
+                 glue: str | None = None, jvp=None):
         if form == "separable" and not _is_separable(system):
             raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
                              "`potential`; use form='full'")
@@ -335,7 +338,7 @@ class Binding:
         self.params = np.ascontiguousarray(params, dtype=float)
         # fast=False runs the step as Python code: with the system's compiled kernels when it
         # has them (then the numbers and counters equal the compiled run's bit for bit)
-        self.step_code = specialise(force, potential, python=fast is False, glue=glue)
+        self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp)
         self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"

@@ -426,3 +426,18 @@ def test_cli_rejects_workers_with_scheduler(capsys):
     with pytest.raises(SystemExit):
         main(["ensemble", "stability-map", "--timeout", "0"])
     assert "--timeout: expected a positive number, got '0'" in capsys.readouterr().err
+
+
+def test_stability_member_uses_megno_by_default_and_keeps_the_clone_indicator():
+    """A regular point (a planet at 26 AU, circular): REBOUND's MEGNO from HBVM's variational
+    particles by default, near 2 once it has settled; the shadow clone on request; a bad
+    indicator is refused by name."""
+    megno = stability_member((26.0, 0.0), t_end=2e5, n_samples=4)
+    assert megno["indicator"] == "megno" and megno["survived"]
+    assert 1.5 < megno["megno"] < 2.5 and abs(megno["lyapunov"]) < 1e-5
+    assert "log10_divergence" not in megno
+    clone = stability_member((26.0, 0.0), t_end=3000.0, n_samples=3, indicator="clone")
+    assert clone["indicator"] == "clone" and np.isfinite(clone["log10_divergence"])
+    with pytest.raises(ValueError, match=r"`indicator` must be one of \('megno', 'clone'\) "
+                                         r"\(got 'fli'\)"):
+        stability_member((26.0, 0.0), indicator="fli")

@@ -138,7 +138,8 @@ def test_particles_added_between_calls():
     (lambda s: (setattr(s, "testparticle_type", 1), setattr(s, "N_active", 3)),
      "testparticle_type=1"),
     (lambda s: setattr(s, "gravity", "none"), "gravity='none'"),
-    (lambda s: s.add_variation(), "variational particles"),
+    (lambda s: s.add_variation(order=2, first_order=s.add_variation()),
+     "second-order variational particles are not supported by HBVM; use IAS15"),
     (lambda s: setattr(s, "additional_forces", lambda p: None), "additional_forces"),
 ])
 def test_refusals_at_attach_and_first_step(setting, match):

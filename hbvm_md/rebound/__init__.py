@@ -71,8 +71,20 @@ How a file refuses to run where ``hbvm_md`` is not imported
     load and ``RuntimeError: Integrator not found.`` at the first ``integrate``.  Import
     ``hbvm_md`` before loading (``tests/test_rebound_host.py`` checks both).
 
+How variational particles and MEGNO work
+    REBOUND's first-order variational particles of the whole system (``sim.add_variation()``,
+    ``sim.init_megno()``) are tangent vectors: each step carries them by the derivative of the
+    step it took (:func:`integrators.tangent.tangent_map`, the linearised stage equations
+    solved at the step's converged stages), committed with the step or not at all (a failed
+    step leaves them unchanged).  With ``calculate_megno`` set the step hands REBOUND's
+    ``reb_tools_megno_update`` the increment of its MEGNO integral as IAS15 does, so
+    ``sim.megno()`` and ``sim.lyapunov()`` are REBOUND's own bookkeeping.  The tangents'
+    previous coefficients (an initial guess only) are not saved: a loaded run starts them at
+    zero.
+
 What HBVM cannot honour
-    Variational particles, softening, additional forces, non-direct gravity, boundaries, user
+    Second-order variational particles, the variation of one particle (testparticle >= 0),
+    softening, additional forces, non-direct gravity, boundaries, user
     ODEs and ``testparticle_type = 1`` are refused with the reason and the fix: at
     :class:`HBVMIntegrator`, or at the first step after ``sim.integrator = "hbvm"`` (REBOUND's
     ``create`` is not given the simulation).

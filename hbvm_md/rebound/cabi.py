@@ -36,7 +36,7 @@ from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COU
 #: (measured: ``import hbvm_md`` segfaulted after a layout change).  When layout.py is not the
 #: one named here, the two functions are compiled in memory instead of loaded from the cache;
 #: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with layout.py.
-LAYOUT_DIGEST = "ed335eda6c7283b7"
+LAYOUT_DIGEST = "9cb453e25b0010ba"
 _CACHE = hashlib.sha256(Path(_layout.__file__).read_bytes()).hexdigest()[:16] == LAYOUT_DIGEST
 
 
@@ -67,6 +67,24 @@ def call_free(typingctx, fn, addr):
         builder.call(builder.inttoptr(args[0], fnty.as_pointer()), [builder.inttoptr(args[1], i8p)])
         return context.get_dummy_value()
     return types.none(fn, addr), codegen
+
+
+@intrinsic
+def call_megno(typingctx, fn, r, dY, dt):
+    """``((void (*)(void*, double, double)) fn)((void*) r, dY, dt)``: REBOUND's
+    ``reb_tools_megno_update(r, dY, dt_done)``, its address known at run time."""
+    if not all(isinstance(a, types.Integer) for a in (fn, r)) or not all(
+            isinstance(a, types.Float) for a in (dY, dt)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p, f64 = ir.IntType(8).as_pointer(), ir.DoubleType()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, f64, f64])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
+                     [builder.inttoptr(args[1], i8p), args[2], args[3]])
+        return context.get_dummy_value()
+    return types.none(fn, r, dY, dt), codegen
 
 
 @cjit("void(voidptr, voidptr)", cache=_CACHE)

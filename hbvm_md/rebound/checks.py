@@ -19,9 +19,17 @@ def check_simulation(sim) -> None:
     if bool(sim._additional_forces):
         problems.append("additional_forces is set (not part of the separable Hamiltonian; "
                         "remove it or use a REBOUND integrator)")
-    if sim.N_var > 0:
-        problems.append(f"{sim.N_var} variational particles (HBVM does not integrate the "
-                        "variational equations yet; remove them or use IAS15 or WHFast)")
+    for j in range(int(sim.N_var_config) if sim.N_var > 0 else 0):
+        vc = sim.var_config[j]
+        if vc.order != 1:
+            problems.append("second-order variational particles are not supported by HBVM; "
+                            "use IAS15")
+            break
+        if vc.testparticle >= 0:
+            problems.append(f"variational particles of one particle (testparticle="
+                            f"{vc.testparticle}) are not supported by HBVM; add the variation "
+                            "of the whole system with sim.add_variation() (testparticle=-1)")
+            break
     if sim.gravity not in ("basic", "compensated"):
         problems.append(f"gravity={sim.gravity!r} (only direct summation 'basic' or "
                         "'compensated' is honoured)")

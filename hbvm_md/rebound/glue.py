@@ -20,11 +20,15 @@ import numpy as np
 from numba import carray
 
 from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, N_COUNTERS, OK, TINY_RATIO,
-                              copy1, copy2, test_particle_error)
+                              copy1, copy2, select_extrapolation, test_particle_error)
+from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
+from hbvm_md.rebound.cabi import call_megno
 from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
+    A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
@@ -33,9 +37,10 @@ from hbvm_md.rebound.layout import (
     SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
 
-GLUE_FUNCTIONS = ("particles_match", "settings_ok", "step_arrays")
+GLUE_FUNCTIONS = ("particles_match", "settings_ok", "read_tangents", "write_tangents",
+                  "delta2", "step_arrays")
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
-GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout")
+GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.cabi")
 
 #: A fixed step (with the energy check on) refuses a test particle whose own error estimate
 #: (``core.test_particle_error``) exceeds max(TP_FLOOR, TP_FACTOR x the sources' estimate).
@@ -70,12 +75,70 @@ def settings_ok(st, sd):
     return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
 
 
+def read_tangents(pv, vidx, N, ix, ivx, minv, V, DG):
+    """V (nv, 2u) <- REBOUND's first-order variational particles (pv: (N_var, stride) doubles
+    over ``particles_var``; set v's rows vidx[v] .. vidx[v] + N): dq = dx and dp = dv / minv
+    (the momenta's variation: m dv for a gravitating body, dv for a test particle).
+
+    V holds the tangents as the last step wrote them: a set that differs (edited by the user,
+    rescaled by REBOUND) gets its previous coefficients DG[v] (the tangent map's initial
+    guess, which belongs to the tangent it was computed for) zeroed."""
+    m = minv.shape[0]
+    for v in range(V.shape[0]):
+        i0 = int(vidx[v])
+        same = True
+        for i in range(N):
+            for c in range(3):
+                dx, dv = pv[i0 + i, ix + c], pv[i0 + i, ivx + c]
+                # (as write_tangents wrote them)
+                if dx != V[v, 3 * i + c] or dv != V[v, m + 3 * i + c] * minv[3 * i + c]:
+                    same = False
+                V[v, 3 * i + c] = dx
+                V[v, m + 3 * i + c] = dv / minv[3 * i + c]
+        if not same:
+            for j in range(DG.shape[1]):
+                for u in range(DG.shape[2]):
+                    DG[v, j, u] = 0.0
+
+
+def write_tangents(pv, vidx, N, ix, ivx, minv, V):
+    """REBOUND's variational particles <- V (the inverse of :func:`read_tangents`)."""
+    m = minv.shape[0]
+    for v in range(V.shape[0]):
+        i0 = int(vidx[v])
+        for i in range(N):
+            for c in range(3):
+                pv[i0 + i, ix + c] = V[v, 3 * i + c]
+                pv[i0 + i, ivx + c] = V[v, m + 3 * i + c] * minv[3 * i + c]
+
+
+def delta2(pv, N, ix, ivx):
+    """|delta|^2 = sum of dx^2 + dv^2 over variational particles 0 .. N-1: the tangent whose
+    growth REBOUND's MEGNO measures (``reb_tools_megno_deltad_delta`` reads these rows)."""
+    acc = 0.0
+    for i in range(N):
+        for c in range(3):
+            acc += pv[i, ix + c] * pv[i, ix + c] + pv[i, ivx + c] * pv[i, ivx + c]
+    return acc
+
+
 def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters, yt, cyt,
                 gammat, ereft, written, minv, kin_w, params, host, tn, ts, Wp, Cp, NV, NVinv, NM,
-                work, cwork, clock, E1, Et, Ew, Ebuf, Ezero):
+                work, cwork, clock, E1, Et, Ew, Ebuf, Ezero, r, pv, V, Vt, DG, DGt, DGs, tw,
+                tcw, tcount, vidx):
     """One REBOUND step of sim.dt (simd/simi: the simulation's head as float64/int64, view its
-    particles; st/sd: HBVM's state as int64/float64; the rest: the context block's arrays).
-    Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause recorded)."""
+    particles; st/sd: HBVM's state as int64/float64; the rest: the context block's arrays; r:
+    the simulation's address; pv: its variational particles (N_var, stride), V ... vidx: the
+    tangents' arrays, :mod:`hbvm_md.rebound.layout`).
+    Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause recorded).
+
+    With variational particles the tangents advance by the derivative of the step taken
+    (:func:`integrators.tangent.tangent_map` from the state before the step, with its accepted
+    coefficients and size), committed with the state or not at all; when REBOUND computes
+    MEGNO the step hands it dY = 2 int t' d ln|delta| over the step (t' from
+    ``megno_initial_t``), as IAS15 does (its dt_done sum_i w_i t_i (delta'.delta/delta^2)(t_i)
+    is a quadrature of the same integral): here the discrete tangent gives ln|delta| exactly
+    at both ends, and the integral is taken as (t'_0 + t'_1) / 2 (ln|delta_1| - ln|delta_0|)."""
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
@@ -91,6 +154,10 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     adaptive = st[SL_ADAPTIVE] != 0
     epsilon = sd[SL_EPSILON] if adaptive else 0.0
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
+    N = view.shape[0]
+    nv = V.shape[0]
+    if nv > 0:
+        read_tangents(pv, vidx, N, ix, ivx, minv, V, DG)
     res[2] = 0.0
     # a fixed step's test-particle check may refuse a converged step: its work then comes out
     # of the counters and the clock, as the core takes a failed step's out
@@ -121,6 +188,25 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     # exact_finish_time's sliver of a step (1e-16): the next step extrapolates from the last
     # regular one, whose gamma is kept
     sliver = not np.isnan(hp) and abs(h_done) < TINY_RATIO * abs(hp)
+    d2_0 = 0.0
+    if nv > 0:
+        # the previous d gamma extrapolated as the step's gamma was (a sliver's are not kept)
+        E = select_extrapolation(h_done, hp, E1, Et, Ew, Ebuf, Ezero)
+        dg = DG
+        if sliver:
+            for v in range(nv):
+                copy2(DGs[v], DG[v])
+            dg = DGs
+        tstatus = tangent_map(False, y, cy, minv, gammat, h_done, E, (tn, ts),  # noqa: F821
+                              (Wp, Cp), params, NV, NVinv, NM, 2 * st[SL_MAX_ITER], V, dg, Vt,
+                              DGt, tw, tcw, tcount)
+        if tstatus != OK:
+            sd[SL_H_FAIL] = h_done
+            sd[SL_T_FAIL] = t_start
+            sd[SL_CAUSE_ERR] = tcount[2]
+            sd[SL_CAUSE_STATUS] = tstatus
+            return TANGENT_FAILED + tstatus
+        d2_0 = delta2(pv, N, ix, ivx)
     copy1(y, yt)
     copy1(cy, cyt)
     if not sliver:
@@ -143,6 +229,13 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     simd[ctx[R_DTL]] = h_done
     if adaptive:
         simd[ctx[R_DT]] = res[1]               # the next step proposed
+    if nv > 0:
+        write_tangents(pv, vidx, N, ix, ivx, minv, V)
+        if (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0:
+            t0 = simd[ctx[R_MEGNO_T0]]
+            dY = (t_start - t0 + (t_start + h_done - t0)) * 0.5 * (
+                np.log(delta2(pv, N, ix, ivx)) - np.log(d2_0))
+            call_megno(ctx[D_MEGNO_FN], r, dY, h_done)
     st[SL_NSTEPS] += 1
     return OK
 
@@ -180,7 +273,11 @@ def core_step(r, p):
     def z2(slot, a, b):
         return carray(complex128_pointer(ctx[slot]), (a, b))
 
+    if simi[ctx[R_PVAR]] != ctx[D_PVAR]:
+        return RESYNC                              # the variational particles moved
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
+    nv = ctx[D_NV]
+    pv = carray(float64_pointer(ctx[D_PVAR]), (N * nv, ctx[R_STRIDE]))
     return step_arrays(
         simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_EREF), N_EREF),
         carray(float64_pointer(pa + 8 * SL_RES), N_RES), carray(float64_pointer(st[SL_Y]), 2 * m),
@@ -192,4 +289,7 @@ def core_step(r, p):
         f3(A_WP, ctx[D_WPP], s, kk), f3(A_CP, ctx[D_CPP], kk, s), z2(A_NV, s, s), z2(A_NVINV, s, s),
         carray(complex128_pointer(ctx[A_NM]), (0, m, m)), f(A_WORK, ctx[D_NF]),
         carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]), f(A_CLOCK, 2), f2(A_E1, s, s),
-        f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s))
+        f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s), ra, pv, f2(A_V, nv, 2 * m),
+        f2(A_VT, nv, 2 * m), f3(A_DG, nv, s, m), f3(A_DGT, nv, s, m), f3(A_DGS, nv, s, m),
+        f(A_TW, ctx[D_TGF]), carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
+        f(A_VIDX, nv))

@@ -13,12 +13,14 @@ import numpy as np
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
-from integrators.core import C_LASTIT, N_COUNTERS, OK, TOO_SMALL, test_particle_error
+from integrators.core import C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
-from integrators.errors import StepSizeError, UnresolvedStepError, step_error
+from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
+                                UnresolvedStepError, step_error)
 from integrators.kchoice import adaptive_k
-from systems.nbody import NBody
+from integrators.tangent import TANGENT_FAILED, tangent_sizes
+from systems.nbody import NBody, nbody_force_jvp
 
 NAME = "hbvm"
 DEFAULTS = dict(method="hbvm", s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60,
@@ -135,7 +137,9 @@ def register() -> None:
                python_core=ctypes.cast(python_core, ctypes.c_void_p).value,
                free=ctypes.cast(_LIBC.free, ctypes.c_void_p).value,
                step_at=step_at, state_at=state_at, offsets=L.rebound_offsets(rebound),
-               config_words=L.config_words(rebound), **L.run_offsets(rebound))
+               config_words=L.config_words(rebound), **L.run_offsets(rebound),
+               variational=L.variational_offsets(rebound),
+               megno_update=ctypes.cast(lib.reb_tools_megno_update, ctypes.c_void_p).value)
     lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
     _REG = reg                    # (create reads it)
     lib.reb_integrator_register(integ, NAME.encode())
@@ -388,6 +392,13 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
     counters = _doubles(int(st[L.SL_COUNTERS]), N_COUNTERS)
     h, t = float(sd[L.SL_H_FAIL]), float(sd[L.SL_T_FAIL])
     etol = float(sd[L.SL_ETOL])
+    if status > TANGENT_FAILED:
+        it = int(sd[L.SL_CAUSE_ERR])
+        hint = ("the step of the particles converged but the tangent map of the variational "
+                "particles did not; nothing was changed: try a smaller sim.dt or epsilon")
+        if status - TANGENT_FAILED == NOT_FINITE:
+            return NonFiniteError(h, it, "tangent map", t, hint)
+        return ConvergenceError(h, math.nan, it, "tangent map", t, hint)
     if status == L.TEST_PARTICLE:
         return _test_particle_failure(sim, st, sd, h, t, counters)
     enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
@@ -478,7 +489,14 @@ def _prepare(sim, p: int) -> None:
     nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
     x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     dim, s = nb.dim, method.s
-    binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue")
+    if isinstance(method, EQUIP) and sim.N_var > 0:
+        raise ValueError(f"{sim.N_var} variational particles with method='equip': the tangent "
+                         "map is the derivative of the HBVM step, and EQUIP's step adds a "
+                         "correction whose derivative it does not take; use method='hbvm'")
+    # the step is always built with its tangent map: one compiled module serves simulations
+    # with and without variational particles
+    binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue",
+                      jvp=nbody_force_jvp)
     minv = binding.minv
     y, g, c = (_doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
@@ -510,6 +528,9 @@ def _prepare(sim, p: int) -> None:
     st[L.SL_ECHECK] = 1 if check else -1
     _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)
     code = binding.step_code
+    if code.kind != "compiled" and sim.N_var > 0 and sim._calculate_megno:
+        raise ValueError("HBVM hands MEGNO to REBOUND from its compiled step only; unset "
+                         "NUMBA_DISABLE_JIT to compute MEGNO with HBVM")
     if code.kind == "compiled":
         st[L.SL_CORE] = code.core_step.address
     else:
@@ -545,6 +566,15 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
               L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
               L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
               L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
+    # the tangents of REBOUND's first-order variational particles (checks.check_simulation
+    # refused any other kind): one row per set, starting at var_config[j].index
+    nv = int(sim.N_var_config) if sim.N_var > 0 else 0
+    vidx = np.array([float(sim.var_config[j].index) for j in range(nv)])
+    nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m) if nv else (0, 0)
+    arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
+                   L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
+                   L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
+                   L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx})
     sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
     head = 8 * L.N_HEADER
     total = head + sum(sizes.values())
@@ -571,11 +601,17 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
     header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
         tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
     header[L.R_T:L.R_M + 1] = _REG["offsets"]
+    pvar_at, megno_at, t0_at = _REG["variational"]
+    pvar = ctypes.c_void_p.from_address(ctypes.addressof(sim) + 8 * pvar_at).value or 0
+    header[[L.D_NV, L.D_TGF, L.D_TGC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
+            L.R_MEGNO_T0]] = (nv, nf, nc, pvar, _REG["megno_update"], pvar_at,
+                              megno_at, t0_at)
+    header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1)
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
     sim_words = np.frombuffer(
         (ctypes.c_int64 * (max(words) + 1)).from_address(ctypes.addressof(sim)), np.int64)
-    header[L.C_VALUES:L.N_HEADER] = sim_words[words]
+    header[L.C_VALUES:L.C_VALUES + L.N_CFG] = sim_words[words]
     st[L.SL_CTX] = base
 
 
@@ -595,6 +631,7 @@ def _python_step(code, st):
                                                (L.SL_METHOD, L.D_METHOD))):
             return L.RESYNC
         s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
+        nv = int(ctx[L.D_NV])
         tnc, tsr, wpp, cpp, kk = (int(ctx[i]) for i in (L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP,
                                                          L.D_KK))
 
@@ -619,5 +656,9 @@ def _python_step(code, st):
             f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
             f(L.A_NM, (0, m, m), complex), f(L.A_WORK, int(ctx[L.D_NF])),
             f(L.A_CWORK, int(ctx[L.D_NC]), complex), f(L.A_CLOCK, 2), f(L.A_E1, (s, s)),
-            f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)), f(L.A_EZERO, (s, s))))
+            f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)), f(L.A_EZERO, (s, s)), r,
+            f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1)),
+            f(L.A_V, (nv, 2 * m)), f(L.A_VT, (nv, 2 * m)), f(L.A_DG, (nv, s, m)),
+            f(L.A_DGT, (nv, s, m)), f(L.A_DGS, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
+            f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3), f(L.A_VIDX, nv)))
     return step

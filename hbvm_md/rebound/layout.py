@@ -117,7 +117,17 @@ CONFIG_FIELDS = ("softening", "N_var", "testparticle_type", "_gravity", "_bounda
 N_CFG = len(CONFIG_FIELDS)
 C_WORDS = R_M + 1
 C_VALUES = C_WORDS + N_CFG
-N_HEADER = C_VALUES + N_CFG
+#: the variational part of the header (REBOUND's first-order variational particles, carried by
+#: the tangent map of the step, :mod:`integrators.tangent`): the arrays (tangents V (nv, 2u)
+#: and their trial copy, the tangents' coefficients d gamma (nv, s, u), their trial copy and a
+#: scratch copy for a sliver of a step, the tangent map's work buffers and counts, each set's
+#: first row in ``particles_var``), their count and sizes, the address of REBOUND's
+#: ``reb_tools_megno_update``, and REBOUND's offsets of ``_particles_var`` (doubles),
+#: ``_calculate_megno`` (bytes: an int) and ``_megno_initial_t`` (doubles)
+(A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX,
+ D_NV, D_TGF, D_TGC, D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0
+ ) = range(C_VALUES + N_CFG, C_VALUES + N_CFG + 17)
+N_HEADER = R_MEGNO_T0 + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")
@@ -149,6 +159,17 @@ def rebound_offsets(rebound) -> list[int]:
         raise RuntimeError(f"reb_particle's x, y, z and vx, vy, vz are not consecutive; HBVM's "
                            f"REBOUND host supports {SUPPORTED}")
     return sim + [max(sim + words) + 1, ctypes.sizeof(P) // 8, x, vx, m]
+
+
+def variational_offsets(rebound) -> tuple[int, int, int]:
+    """REBOUND's offsets of ``_particles_var`` (doubles), ``_calculate_megno`` (bytes; a C int)
+    and ``_megno_initial_t`` (doubles), the fields the variational step reads."""
+    S = rebound.Simulation
+    flag = S._calculate_megno
+    if flag.size != 4:
+        raise RuntimeError(f"HBVM's REBOUND host needs reb_simulation.calculate_megno as a C int "
+                           f"(size {flag.size}); it supports {SUPPORTED}")
+    return _offset8(S, "_particles_var"), flag.offset, _offset8(S, "_megno_initial_t")
 
 
 def config_words(rebound) -> list[int]:
