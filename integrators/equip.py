@@ -138,6 +138,8 @@ class EQUIP:
         if name in ("tau", "tau_lo", "omega", "P", "I", "I_lo", "W", "W_lo", "X", "X_lo",
                     "C2", "C2_lo", "E", "n_stages"):
             return getattr(self._gauss, name)
+        if name in ("order", "quadrature_degree", "polynomial_degree_exact"):
+            return getattr(self._path, name)
         raise AttributeError(name)
 
     @property
@@ -159,21 +161,10 @@ class EQUIP:
     def __reduce__(self):
         return (EQUIP, (self.k, self.s))
 
-    @property
-    def order(self) -> int:
-        """2s, Gauss's: alpha = O(h^(2s-1)) moves y1 by O(h^(2s+1))."""
-        return 2 * self.s
-
-    @property
-    def quadrature_degree(self) -> int:
-        """The degree the energy condition's k-point rule integrates exactly: 2k - 1."""
-        return 2 * self.k - 1
-
-    @property
-    def polynomial_degree_exact(self) -> int:
-        """Largest degree nu of a polynomial Hamiltonian conserved exactly: nu s <= 2k (the
-        integrand sigma'^T grad H(sigma) along the degree-s path has degree nu s - 1)."""
-        return (2 * self.k) // self.s
+    # order (2s, Gauss's: alpha = O(h^(2s-1)) moves y1 by O(h^(2s+1))), quadrature_degree (the
+    # energy condition's k-point rule, 2k - 1) and polynomial_degree_exact (nu s <= 2k: the
+    # integrand sigma'^T grad H(sigma) along the degree-s path has degree nu s - 1) are those of
+    # HBVM(k, s), whose rule the energy condition uses: read from it (see __getattr__)
 
     @property
     def work_rows(self) -> int:
