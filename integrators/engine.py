@@ -707,9 +707,7 @@ class Stepper(Counted):
         accepted."""
         s = self.method.s
         while True:
-            snap = (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
-                    self._clock.copy(), self.counters.copy(), self._h_prev, self._solver,
-                    self.solver_switches)
+            snap = self.save_state()
             try:
                 self.step(h)
             except StepError as err:
@@ -719,9 +717,7 @@ class Stepper(Counted):
                 err_est = error_estimate(self._gamma, self.binding.minv)
                 if err_est <= epsilon:
                     return h, next_step(h, err_est, epsilon, s)
-                (self._y[:], self._cy[:], self._gamma[:], self._eref[:], self._clock[:],
-                 self.counters[:]) = snap[:6]
-                self._h_prev, self._solver, self.solver_switches = snap[6:]
+                self.restore_state(snap)
                 cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
                 h_new = next_step(h, err_est, epsilon, s)
             self.rejected += 1
