@@ -311,8 +311,10 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 col = int(params[at + 4 + c])
                 for i in range(s):
                     g[i, col] = gb[i, c]
-            status, itf = follow(y, cy, minv, g, Xb, params, at, h, ht, ht_lo, h2, h2_lo, C2,
-                                 C2_lo, W, W_lo, max_iter, tol, R, fb, fo)
+            status, itf, dlast = follow(y, cy, minv, g, Xb, params, at, h, ht, ht_lo, h2, h2_lo,
+                                        C2, C2_lo, W, W_lo, max_iter, tol, R, fb, fo)
+            if status != OK:
+                counters[C_LAST] = dlast
             if itf > it:            # the counts are the longest block's (the step's depth)
                 counters[C_NFEV] += n * (itf - it)
                 it = itf
@@ -387,7 +389,8 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
     followers' columns holding their initial guess, overwritten with the result; params[at:]:
     the followers block (``systems.nbody.followers_block``); fb[fo:]: scratch
     (``core.follower_size``); R: the step's scratch of column sums.  Returns (status,
-    iterations of the slowest follower, the polish included)."""
+    iterations of the slowest follower, the polish included, and the last increment of the
+    follower that failed, 0 when none did)."""
     P = int(params[at])
     w = int(params[at + 1])
     us = int(params[at + 2])
@@ -437,7 +440,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
         it = 0
         while na > 0:
             if it >= max_iter:
-                return DIVERGED, it
+                return DIVERGED, it, dcol[0]
             it += 1
             ua = na * w
             ya, cya, ma = view1(fb, o_y, 2 * ua), view1(fb, o_cy, 2 * ua), view1(fb, o_m, ua)
@@ -482,7 +485,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
                     fb[o_keep + nk] = j
                     nk += 1
                 else:
-                    return -action, it
+                    return -action, it, delta
             if nk < na:                     # the converged leave: the others move up
                 keep = view1(fb, o_keep, nk)
                 compact_slots(fb, o_y, 2, w, na, keep, nk)
@@ -518,7 +521,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
             for i in range(s):
                 for c in range(w):
                     g[i, c0 + c] = gall[i, w * j + c]
-    return OK, itmax
+    return OK, itmax, 0.0
 
 
 def advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,
