@@ -50,6 +50,7 @@ OK, DIVERGED, NOT_FINITE, UNRESOLVED, TOO_SMALL = 0, 1, 2, 3, 4
 NARROW = 8                # from this many columns the sums run column-innermost (vectorised),
                           # below it entry by entry (fewer than 3 bodies), measured
 BLOCK = 512               # ... in blocks of this many columns (their partial sums stay in cache)
+FOLLOWER_GROUP = 128       # followers iterated together (integrators.loop.follow), measured
 TINY_RATIO = 1e-3         # a step this much shorter than the previous one is a sliver
 MAX_EXTRAPOLATION = 4.0   # the longest h_new / h_old the previous polynomial is extrapolated over
 # what the iteration does next (stop_action)
@@ -168,6 +169,32 @@ def lipschitz_probe(X, F, Xp, Fp, lip):
 
 
 @jit
+def lipschitz_slots(X, F, Xp, Fp, w, lip, xmax):
+    """:func:`lipschitz_probe` for each slot of w adjacent columns on its own (lip, xmax:
+    (columns / w,), the slots' estimates updated and their max |X|), in one pass."""
+    n, u = X.shape
+    for j in range(u // w):
+        dx = 0.0
+        df = 0.0
+        xm = 0.0
+        for i in range(n):
+            for c in range(w * j, w * j + w):
+                d = abs(X[i, c] - Xp[i, c])
+                if d > dx:
+                    dx = d
+                d = abs(F[i, c] - Fp[i, c])
+                if d > df:
+                    df = d
+                if abs(X[i, c]) > xm:
+                    xm = abs(X[i, c])
+                Xp[i, c] = X[i, c]
+                Fp[i, c] = F[i, c]
+        if dx > 1024.0 * EPS * xm and df / dx > lip[j]:
+            lip[j] = df / dx
+        xmax[j] = xm
+
+
+@jit
 def all_finite(a):
     for j in range(a.shape[0]):
         if not np.isfinite(a[j]):
@@ -211,7 +238,9 @@ def energy_flow(full, y, minv, h, g, W, I, G):
     |h| sum_i |b_i dH/dy sigma'(c_i)| taken coordinate by coordinate in absolute value.
 
     Separable form: the kinetic term, |h| sum_i sum_j |v_ij b_i sigma_p'(c_i)_j| with v =
-    (p0 + h I_s gamma) M^{-1} the stage velocities and b_i sigma_p'(c_i) = sum_l W[l, i]
+    (p0 + h I_s gamma) w the stage velocities of the degrees of freedom the kinetic energy
+    counts (``minv``: the kinetic weights, 1 / m or 0 for a test particle, which carries no
+    energy and moves none) and b_i sigma_p'(c_i) = sum_l W[l, i]
     gamma_l (W = P_s^T Omega); the k-point rule integrates v . sigma_p' (degree 2s - 1)
     exactly, so this is at least |T(p1) - T(p0)|.  Full form: half of |h| sum_i sum_j |G_ij
     b_i sigma'(c_i)_j| with G (k, 2m) = grad H at the stages (each unit of energy leaves one
@@ -484,6 +513,68 @@ def project(W, F, g, R):
     return delta, scale
 
 @jit
+def project_each(W, F, g, R, dcol, scol):
+    """g <- W F as :func:`project` computes it (the same numbers), but the increment and the
+    size kept column by column: dcol[j] = max_i |increment_ij| (nan when one is nan), scol[j] =
+    max_i |g_ij|, (u,) each; for blocks of columns that stop on their own (the followers of
+    :mod:`integrators.loop`)."""
+    s, m = g.shape
+    n = F.shape[0]
+    acc = R[0]
+    for j in range(m):
+        dcol[j] = 0.0
+        scol[j] = 0.0
+    for j0 in range(0, m, BLOCK):
+        nb = np.uint64(min(BLOCK, m - j0))
+        ju = np.uint64(j0)
+        for i in range(s):
+            for jj in range(nb):
+                acc[jj] = 0.0
+            for l in range(n):
+                w = W[i, l]
+                for jj in range(nb):
+                    acc[jj] += w * F[l, ju + jj]
+            for jj in range(nb):
+                j = ju + jj
+                v = acc[jj]
+                d = abs(v - g[i, j])
+                c = dcol[j]
+                dcol[j] = d if (d > c or d != d) else c
+                x = abs(v)
+                c = scol[j]
+                scol[j] = x if x > c else c
+                g[i, j] = v
+
+
+@jit
+def compact_slots(buf, off, rows, width, na, keep, nk):
+    """In place: the (rows, na width) array at buf[off:] becomes the (rows, nk width) array of
+    the slots keep[0 .. nk) (increasing; a slot is ``width`` adjacent columns).  Every entry
+    moves to a lower or equal index, and in increasing order, so nothing is overwritten
+    before it is read."""
+    ou = na * width
+    nu = nk * width
+    for r in range(rows):
+        for j in range(nk):
+            src = off + r * ou + width * int(keep[j])
+            dst = off + r * nu + width * j
+            for c in range(width):
+                buf[dst + c] = buf[src + c]
+
+
+@jit
+def no_followers(params):
+    """The followers hook of a system without them (:mod:`integrators.loop`): none."""
+    return -1
+
+
+@jit
+def no_field(Xt, Xs, params, out):
+    """The field hook of a system without followers: never called."""
+    return None
+
+
+@jit
 def project_compensated(W, W_lo, F, g, R):
     """g <- W F as if in twice the working precision (Dot2), rounded once (R: scratch, the
     sums column-innermost in blocks)."""
@@ -652,6 +743,18 @@ def work_sizes(n, s, u, m, d):
     """(float, complex) lengths of the work buffers :func:`carve` cuts for k = n stages, s
     coefficient blocks of width u, m masses and a state of length d."""
     return 4 * n + 5 + 2 * m + 3 * s * u + 5 * n * u + 2 * d + 5 * min(u, BLOCK), 2 * s * u
+
+
+@jit
+def follower_size(n, s, us, up, P):
+    """The length of the float buffer of a step with P followers of up columns in all
+    (:mod:`integrators.loop`): the sources' block (us columns: state, masses, coefficients,
+    stage values and forces and their previous iterates) and one group of followers (at most
+    FOLLOWER_GROUP of them: the same plus their final coefficients, the columns' increments and
+    sizes, and ten numbers each for their own stop rule)."""
+    g = min(P, FOLLOWER_GROUP)
+    up = (up // P) * g if P > 0 else 0
+    return 5 * us + 2 * s * us + 4 * n * us + 7 * up + 3 * s * up + 4 * n * up + 10 * g
 
 
 @jit

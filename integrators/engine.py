@@ -338,7 +338,13 @@ class Binding:
         self.params = np.ascontiguousarray(params, dtype=float)
         # fast=False runs the step as Python code: with the system's compiled kernels when it
         # has them (then the numbers and counters equal the compiled run's bit for bit)
-        self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp)
+        # test particles (followers) solved after the sources: compiled kernels only
+        self.follow = (system.separable_followers()
+                       if has_kernels and not self.full
+                       and callable(getattr(system, "separable_followers", None))
+                       else None)
+        self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp,
+                                    follow=self.follow)
         self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"

@@ -30,6 +30,23 @@ the step's work arrays: a host that calls one step at a time (REBOUND, ASE) pays
 microsecond for each array argument it passes or array the step allocates.  :func:`advance` returns a status
 code; it changes y, cy, gamma and eref only when the step succeeded.
 
+Followers.  A separable system may split its unknowns into *sources* and *followers*: the
+followers feel the sources and act on nobody (REBOUND's test particles, ``testparticle_type =
+0``).  The sources then form a closed system, and the step solves their stage equations first,
+on copies of their columns only, with the very iteration, kernel and stop rule a run of the
+sources alone uses (their parameters are the sources-alone system's): their trajectory is that
+run's bit for bit, whatever followers there are.  Then each follower's stage equations, in the
+sources' field at their stage values, each with its own stop rule (:func:`follow`): a slow one
+makes neither the sources nor the others iterate, and each follower's trajectory is the same
+whichever others are there.  The system provides two more kernels, bound by
+:mod:`integrators.specialise` like the others: ``_followers(params)`` (where the followers
+block starts in params, or -1: ``systems.nbody.followers_block`` says what it holds) and
+``_field(Xt, Xs, params_s, out)`` (the followers' right-hand side at their stage values Xt
+from the sources' Xs).  Not with the full form, EQUIP (its energy condition couples every
+unknown) or simplified Newton: there the step solves all unknowns together, as for a system
+without followers (:func:`integrators.core.no_followers`).  A step with followers counts the
+iterations and evaluations of its slowest block.
+
 EQUIP(k, s) (:mod:`integrators.equip`) runs in the same step: its packed arrays hold Gauss's
 in the places above and its own in more planes (Cp.shape[0] > 4 tells the step), its work
 buffers are sized for ``EQUIP.work_rows`` stage rows and eref has 3 entries (alpha and the
@@ -39,19 +56,21 @@ slope of its energy condition ride in eref[1:3]); the pieces it adds are in
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
-                              C_STEPS, DIVERGED, EPS, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              C_STEPS, DIVERGED, EPS, FOLLOWER_GROUP, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
-                              all_finite, all_zero, carve, energy_flow, fail, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
+                              all_finite, all_zero, carve, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
                               guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
                               stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
-                              weighted_kinetic)
+                              weighted_kinetic, compact_slots, lipschitz_slots, project_each)
 from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
 
 _force = None        # bound by integrators.specialise
 _potential = None
+_followers = None    # (the followers hooks: core.no_followers and core.no_field when none)
+_field = None
 
 
 def evaluate(full, X, params, F, G):
@@ -107,6 +126,28 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     Xk, Fk, rho, htk, htk_lo, es = eq.carve(work, n, s, u, m, y.shape[0], K)
     if equip and eref.shape[0] < eq.EREF_EQUIP:
         raise ValueError("internal error: EQUIP carries alpha in eref[1:3]: eref too short")
+    # Followers (module docstring): the sources' stage equations are solved as if alone, on
+    # their own copies (the "block" the iteration below works on), then each follower's in
+    # their field (follow); without followers the block is the whole system
+    at = -1 if (full or equip or NM.shape[0] > 0) else _followers(params)
+    yb, cyb, mb, gb, ab, Xb, Fb, Xpb, Fpb, pb = y, cy, minv, g, a, X, F, Xp, Fp, params
+    fb = work[:0]
+    fo = 0
+    us = 0
+    if at >= 0:
+        us = int(params[at + 2])
+        up = int(params[at]) * int(params[at + 1])
+        fb = np.empty(follower_size(n, s, us, up, int(params[at])))
+        yb, cyb, mb = view1(fb, 0, 2 * us), view1(fb, 2 * us, 2 * us), view1(fb, 4 * us, us)
+        gb, ab = view(fb, 5 * us, s, us), view(fb, 5 * us + s * us, s, us)
+        fo = 5 * us + 2 * s * us
+        Xb, Fb = view(fb, fo, n, us), view(fb, fo + n * us, n, us)
+        Xpb, Fpb = view(fb, fo + 2 * n * us, n, us), view(fb, fo + 3 * n * us, n, us)
+        fo += 4 * n * us
+        pb = view1(params, at + 4 + us + int(params[at]), int(params[at + 3]))
+        for c in range(us):
+            mb[c] = minv[int(params[at + 4 + c])]
+    narrowb = gb.shape[1] < NARROW
     isample = 0
     if sample_every > 0:
         out_t[0] = t
@@ -136,6 +177,13 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             guess_narrow(E, gamma, g)
         else:
             guess(E, gamma, g)
+        if at >= 0:          # the sources' block (their guess as computed for all: the same)
+            for c in range(us):
+                col = int(params[at + 4 + c])
+                yb[c], yb[us + c] = y[col], y[m + col]
+                cyb[c], cyb[us + c] = cy[col], cy[m + col]
+                for i in range(s):
+                    gb[i, c] = g[i, col]
         # the iteration: fixed point g <- P_s^T Omega f(stages(g)) (eq. (hbvm_sys)), or simplified
         # Newton when NM is not empty; the same stop rule either way (core.stop_action), then one
         # compensated evaluation (the polish) whose rounding is what the step keeps; only the polish
@@ -144,13 +192,13 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         # of the outer solar system in time, see core.project).  It is written
         # here, with the kernel called directly and the arrays passed one by one, because one more
         # call level or a tuple argument costs tens of nanoseconds an iteration (measured).
-        n = X.shape[0]
+        n = Xb.shape[0]
         newton = NM.shape[0] > 0
         hist[0] = np.inf
         hist[1] = 0.0
         hist[2] = np.inf
         hist[3] = np.inf
-        ymax = max_abs(y)
+        ymax = max_abs(yb)
         yscale = EPS * ymax
         lip = 0.0
         xmax = 0.0
@@ -161,38 +209,38 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         while polish or it - it0 < max_iter:
             it += 1
             if full:
-                if narrow:
-                    full_stages_narrow(y, cy, g, I, I_lo, h, X, polish)
+                if narrowb:
+                    full_stages_narrow(yb, cyb, gb, I, I_lo, h, Xb, polish)
                 else:
-                    full_stages(y, cy, g, I, I_lo, h, X, R, polish)
+                    full_stages(yb, cyb, gb, I, I_lo, h, Xb, R, polish)
                 if equip:
-                    eq.stage_correction(full, y, minv, g, a, h, h2, es[0], Cp[eq.CP_PS],
-                                        Cp[eq.CP_B1], Cp[eq.CP_B2], ts[eq.TS_PSE1], X)
-                _force(X, params, G)
-                symplectic(G, F)
+                    eq.stage_correction(full, yb, mb, gb, ab, h, h2, es[0], Cp[eq.CP_PS],
+                                        Cp[eq.CP_B1], Cp[eq.CP_B2], ts[eq.TS_PSE1], Xb)
+                _force(Xb, pb, G)
+                symplectic(G, Fb)
             else:
-                if narrow:
-                    stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, polish)
+                if narrowb:
+                    stage_positions_narrow(yb, cyb, mb, gb, C2, C2_lo, ht, ht_lo, h2, h2_lo, ab, Xb, polish)
                 else:
-                    stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, polish)
+                    stage_positions(yb, cyb, mb, gb, C2, C2_lo, ht, ht_lo, h2, h2_lo, ab, Xb, R, polish)
                 if equip:
-                    eq.stage_correction(full, y, minv, g, a, h, h2, es[0], Cp[eq.CP_PS],
-                                        Cp[eq.CP_B1], Cp[eq.CP_B2], ts[eq.TS_PSE1], X)
-                _force(X, params, F)
+                    eq.stage_correction(full, yb, mb, gb, ab, h, h2, es[0], Cp[eq.CP_PS],
+                                        Cp[eq.CP_B1], Cp[eq.CP_B2], ts[eq.TS_PSE1], Xb)
+                _force(Xb, pb, Fb)
             counters[C_NFEV] += n
             if it <= 3:          # the force's Lipschitz constant, for the round-off floor
                 if it > 1:
-                    lip, xmax = lipschitz_probe(X, F, Xp, Fp, lip)
+                    lip, xmax = lipschitz_probe(Xb, Fb, Xpb, Fpb, lip)
                 else:
-                    copy2(Xp, X)
-                    copy2(Fp, F)
+                    copy2(Xpb, Xb)
+                    copy2(Fpb, Fb)
             if polish:
                 if newton:      # a last Newton update from the compensated residual: a plain
                     # fixed-point polish would amplify the error by h L |X_s| (stiff problems)
-                    project_compensated(W, W_lo, F, pg, R)
-                    newton_update(g, pg, NV, NVinv, NM, Rt, Z)
+                    project_compensated(W, W_lo, Fb, pg, R)
+                    newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
                 else:
-                    project_compensated(W, W_lo, F, g, R)
+                    project_compensated(W, W_lo, Fb, gb, R)
                 if energy_ok:
                     status = OK
                     break
@@ -203,22 +251,22 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 # integral's quadrature decides.  The path and its projection with the
                 # coefficients' low parts, for the same reason
                 if full:
-                    if narrow:
-                        full_stages_narrow(y, cy, g, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, True)
+                    if narrowb:
+                        full_stages_narrow(yb, cyb, gb, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, True)
                     else:
-                        full_stages(y, cy, g, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, R, True)
+                        full_stages(yb, cyb, gb, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, R, True)
                 else:
-                    if narrow:
-                        stage_positions_narrow(y, cy, minv, g, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
-                                               htk, htk_lo, h2, h2_lo, a, Xk, True)
+                    if narrowb:
+                        stage_positions_narrow(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
+                                               htk, htk_lo, h2, h2_lo, ab, Xk, True)
                     else:
-                        stage_positions(y, cy, minv, g, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
-                                        htk, htk_lo, h2, h2_lo, a, Xk, R, True)
-                    eq.path_correction(g, minv, h2, es[0], Cp[eq.CP_PATH_S], Xk)
-                _force(Xk, params, Fk)
+                        stage_positions(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
+                                        htk, htk_lo, h2, h2_lo, ab, Xk, R, True)
+                    eq.path_correction(gb, mb, h2, es[0], Cp[eq.CP_PATH_S], Xk)
+                _force(Xk, pb, Fk)
                 counters[C_NFEV] += K
                 project_compensated(Wp[eq.WP_PATH], Wp[eq.WP_PATH_LO], Fk, rho, R)
-                e_res, e_scale, e_weight = eq.energy_residual(full, y, minv, kin_w, g, rho, h, es[0],
+                e_res, e_scale, e_weight = eq.energy_residual(full, yb, mb, kin_w, gb, rho, h, es[0],
                                                               Cp[eq.CP_X], Cp[eq.CP_X_LO],
                                                               ts[eq.TS_S0])
                 answer = eq.update_alpha(es, e_res, e_scale,
@@ -239,25 +287,37 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                     break                       # status DIVERGED: no small alpha conserves H
                 continue
             if newton:
-                if narrow:
-                    project_narrow(W, F, pg)
+                if narrowb:
+                    project_narrow(W, Fb, pg)
                 else:
-                    project(W, F, pg, R)
-                delta, scale = newton_update(g, pg, NV, NVinv, NM, Rt, Z)
+                    project(W, Fb, pg, R)
+                delta, scale = newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
             else:
-                if narrow:
-                    delta, scale = project_narrow(W, F, g)
+                if narrowb:
+                    delta, scale = project_narrow(W, Fb, gb)
                 else:
-                    delta, scale = project(W, F, g, R)
+                    delta, scale = project(W, Fb, gb, R)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
-            action = stop_action(delta, scale, F, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
+            action = stop_action(delta, scale, Fb, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
                                  abs(h) * scale, ymax, it, hist, tol)
             if action == POLISH:
                 polish = True
             elif action != ITERATE:
                 status = -action
                 break
+        if at >= 0 and status == OK:
+            for c in range(us):
+                col = int(params[at + 4 + c])
+                for i in range(s):
+                    g[i, col] = gb[i, c]
+            status, itf, dlast = follow(y, cy, minv, g, Xb, params, at, h, ht, ht_lo, h2, h2_lo,
+                                        C2, C2_lo, W, W_lo, max_iter, tol, R, fb, fo)
+            if status != OK:
+                counters[C_LAST] = dlast
+            if itf > it:            # the counts are the longest block's (the step's depth)
+                counters[C_NFEV] += n * (itf - it)
+                it = itf
         counters[C_ITER] += it
         counters[C_LASTIT] = it
         if newton:
@@ -291,7 +351,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             if refuse and etol < 0.0:
                 moved = abs(t1 + v1 - eref[0])
                 refuse = not ((not full and moved <= abs(t1 - weighted_kinetic(y[m:], kin_w)))
-                              or moved <= energy_flow(full, y, minv, h, g, W, I, G))
+                              or moved <= energy_flow(full, y, kin_w, h, g, W, I, G))
             if refuse:
                 counters[C_CHANGE] = change
                 return fail(counters, UNRESOLVED, work_iter, work_nfev, work_newton)
@@ -313,6 +373,155 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             isample += 1
     counters[C_STATUS] = OK
     return OK
+
+
+def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W, W_lo,
+           max_iter, tol, R, fb, fo):
+    """The followers' stage equations, after the sources': each follower (a slot of ``width``
+    columns, a test particle's three) is iterated in the sources' field at their stage values
+    Xs (n, us) with the fixed-point iteration and stop rule of :func:`run`, applied to it alone
+    (its own increments, sizes, round-off floors and runaway test, :func:`core.stop_action`),
+    and leaves the iteration when it has converged: one slow follower makes neither the
+    sources nor the others iterate.  Then one compensated evaluation (the polish, as in
+    :func:`run`).  The followers go through in groups of ``core.FOLLOWER_GROUP``, each
+    iterated to the end before the next (their arrays stay in cache, and the time per
+    follower does not depend on how many there are).  g (s, u): the step's coefficients, the
+    followers' columns holding their initial guess, overwritten with the result; params[at:]:
+    the followers block (``systems.nbody.followers_block``); fb[fo:]: scratch
+    (``core.follower_size``); R: the step's scratch of column sums.  Returns (status,
+    iterations of the slowest follower, the polish included, and the last increment of the
+    follower that failed, 0 when none did)."""
+    P = int(params[at])
+    w = int(params[at + 1])
+    us = int(params[at + 2])
+    fcol = at + 4 + us
+    ps = view1(params, fcol + P, int(params[at + 3]))
+    s = g.shape[0]
+    n = Xs.shape[0]
+    m = minv.shape[0]
+    nmax = min(P, FOLLOWER_GROUP)
+    up = nmax * w
+    o_y, o_cy, o_m = fo, fo + 2 * up, fo + 4 * up
+    o_g = fo + 5 * up
+    o_all = o_g + s * up
+    o_a = o_g + 2 * s * up
+    o_x = o_a + s * up
+    o_f, o_xp, o_fp = o_x + n * up, o_x + 2 * n * up, o_x + 3 * n * up
+    dcol = view1(fb, o_x + 4 * n * up, up)
+    scol = view1(fb, o_x + 4 * n * up + up, up)
+    o_h = o_x + 4 * n * up + 2 * up
+    o_lip, o_xmax, o_ymax, o_who, o_keep = (o_h + 5 * nmax, o_h + 6 * nmax, o_h + 7 * nmax,
+                                            o_h + 8 * nmax, o_h + 9 * nmax)
+    itmax = 0
+    for j0 in range(0, P, nmax):
+        pc = min(nmax, P - j0)
+        uc = pc * w
+        gall = view(fb, o_all, s, uc)
+        for j in range(pc):             # gather, in the followers' order
+            c0 = int(params[fcol + j0 + j])
+            ym = 0.0
+            for c in range(w):
+                fb[o_y + w * j + c], fb[o_y + uc + w * j + c] = y[c0 + c], y[m + c0 + c]
+                fb[o_cy + w * j + c], fb[o_cy + uc + w * j + c] = cy[c0 + c], cy[m + c0 + c]
+                fb[o_m + w * j + c] = minv[c0 + c]
+                ym = max(ym, abs(y[c0 + c]), abs(y[m + c0 + c]))
+                for i in range(s):
+                    fb[o_g + i * uc + w * j + c] = g[i, c0 + c]
+            fb[o_h + 5 * j] = np.inf            # core.stop_action's history, as run starts it
+            fb[o_h + 5 * j + 1] = 0.0
+            fb[o_h + 5 * j + 2] = np.inf
+            fb[o_h + 5 * j + 3] = np.inf
+            fb[o_h + 5 * j + 4] = 0.0
+            fb[o_lip + j] = 0.0
+            fb[o_xmax + j] = 0.0
+            fb[o_ymax + j] = ym
+            fb[o_who + j] = j
+        na = pc
+        it = 0
+        while na > 0:
+            if it >= max_iter:
+                return DIVERGED, it, dcol[0]
+            it += 1
+            ua = na * w
+            ya, cya, ma = view1(fb, o_y, 2 * ua), view1(fb, o_cy, 2 * ua), view1(fb, o_m, ua)
+            ga, aa = view(fb, o_g, s, ua), view(fb, o_a, s, ua)
+            Xa, Fa = view(fb, o_x, n, ua), view(fb, o_f, n, ua)
+            Xpa, Fpa = view(fb, o_xp, n, ua), view(fb, o_fp, n, ua)
+            if ua < NARROW:
+                stage_positions_narrow(ya, cya, ma, ga, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa,
+                                       False)
+            else:
+                stage_positions(ya, cya, ma, ga, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, R, False)
+            _field(Xa, Xs, ps, Fa)
+            if it <= 3:          # each follower's Lipschitz constant, for its round-off floor
+                if it > 1:
+                    lipschitz_slots(Xa, Fa, Xpa, Fpa, w, view1(fb, o_lip, na),
+                                    view1(fb, o_xmax, na))
+                else:
+                    copy2(Xpa, Xa)
+                    copy2(Fpa, Fa)
+            project_each(W, Fa, ga, R, dcol, scol)
+            nk = 0
+            for j in range(na):
+                delta = 0.0
+                scale = 0.0
+                for c in range(w * j, w * j + w):
+                    if dcol[c] > delta or dcol[c] != dcol[c]:
+                        delta = dcol[c]
+                    if scol[c] > scale:
+                        scale = scol[c]
+                ym = fb[o_ymax + j]
+                hstate = abs(h) * delta / (EPS * ym) if ym > 0.0 else np.inf
+                action = stop_action(delta, scale, Fa[:, w * j:w * j + w],
+                                     LIPSCHITZ_ULPS * EPS * fb[o_xmax + j] * fb[o_lip + j],
+                                     hstate, abs(h) * scale, ym, it, view1(fb, o_h + 5 * j, 5),
+                                     tol)
+                if action == POLISH:
+                    k = int(fb[o_who + j])
+                    for i in range(s):
+                        for c in range(w):
+                            gall[i, w * k + c] = ga[i, w * j + c]
+                elif action == ITERATE:
+                    fb[o_keep + nk] = j
+                    nk += 1
+                else:
+                    return -action, it, delta
+            if nk < na:                     # the converged leave: the others move up
+                keep = view1(fb, o_keep, nk)
+                compact_slots(fb, o_y, 2, w, na, keep, nk)
+                compact_slots(fb, o_cy, 2, w, na, keep, nk)
+                compact_slots(fb, o_m, 1, w, na, keep, nk)
+                compact_slots(fb, o_g, s, w, na, keep, nk)
+                if it < 3:
+                    compact_slots(fb, o_xp, n, w, na, keep, nk)
+                    compact_slots(fb, o_fp, n, w, na, keep, nk)
+                compact_slots(fb, o_h, 1, 5, na, keep, nk)
+                for o in (o_lip, o_xmax, o_ymax, o_who):
+                    compact_slots(fb, o, 1, 1, na, keep, nk)
+                na = nk
+        itmax = max(itmax, it + 1)
+        # the polish, the group at once from its state gathered again in its order
+        for j in range(pc):
+            c0 = int(params[fcol + j0 + j])
+            for c in range(w):
+                fb[o_y + w * j + c], fb[o_y + uc + w * j + c] = y[c0 + c], y[m + c0 + c]
+                fb[o_cy + w * j + c], fb[o_cy + uc + w * j + c] = cy[c0 + c], cy[m + c0 + c]
+                fb[o_m + w * j + c] = minv[c0 + c]
+        ya, cya, ma = view1(fb, o_y, 2 * uc), view1(fb, o_cy, 2 * uc), view1(fb, o_m, uc)
+        aa, Xa, Fa = view(fb, o_a, s, uc), view(fb, o_x, n, uc), view(fb, o_f, n, uc)
+        if uc < NARROW:
+            stage_positions_narrow(ya, cya, ma, gall, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa,
+                                   True)
+        else:
+            stage_positions(ya, cya, ma, gall, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, R, True)
+        _field(Xa, Xs, ps, Fa)
+        project_compensated(W, W_lo, Fa, gall, R)
+        for j in range(pc):
+            c0 = int(params[fcol + j0 + j])
+            for i in range(s):
+                for c in range(w):
+                    g[i, c0 + c] = gall[i, w * j + c]
+    return OK, itmax, 0.0
 
 
 def advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,

@@ -35,7 +35,9 @@ import numba
 
 from . import core, equip_core, jit as _jitmod, loop, pointers as _pointersmod, tangent
 
-LOOP_FUNCTIONS = ("evaluate", "energy_parts", "run", "advance", "attempt")
+LOOP_FUNCTIONS = ("evaluate", "energy_parts", "follow", "run", "advance", "attempt")
+# the followers hooks of a system without followers (integrators.loop, "Followers")
+NO_FOLLOWERS = (("integrators.core", "no_followers"), ("integrators.core", "no_field"))
 _LOOP_PATH = Path(loop.__file__)
 # the tangent map of the step (integrators.tangent), appended when a jvp kernel is bound
 TANGENT_FUNCTIONS = ("evaluate_jvp", "tangent_converged", "tangent_sizes", "stages", "tangent_map",
@@ -100,7 +102,7 @@ def _glue(glue):
             dict(getattr(module, "GLUE_CFUNCS", {})), depends)
 
 
-def _source_hash(refs, glue=None) -> str:
+def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS) -> str:
     h = hashlib.sha256()
     paths = [_LOOP_PATH, Path(core.__file__), Path(equip_core.__file__), Path(_jitmod.__file__),
              Path(_pointersmod.__file__)]
@@ -110,15 +112,15 @@ def _source_hash(refs, glue=None) -> str:
         paths.append(_TANGENT_PATH)
     for path in paths:
         h.update(path.read_bytes())
-    for mod, name in refs:
+    for mod, name in list(refs) + list(frefs):
         h.update(f"{mod}:{name}".encode())
         h.update(Path(sys.modules[mod].__file__).read_bytes())
     h.update(f"{numba.__version__} {sys.version}".encode())
     return h.hexdigest()[:24]
 
 
-def _compiled_from_file(refs, glue=None) -> types.ModuleType:
-    digest = _source_hash(refs, glue)
+def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS) -> types.ModuleType:
+    digest = _source_hash(refs, glue, frefs)
     name = f"_hbvm_md_step_{digest}"
     if name in sys.modules:
         return sys.modules[name]
@@ -137,6 +139,8 @@ def _compiled_from_file(refs, glue=None) -> types.ModuleType:
              f"from {refs[1][0]} import {refs[1][1]} as _potential  # noqa: E402\n"
              + (f"from {refs[2][0]} import {refs[2][1]} as _force_jvp  # noqa: E402\n"
                 if len(refs) > 2 else "")
+             + f"from {frefs[0][0]} import {frefs[0][1]} as _followers  # noqa: E402\n"
+             + f"from {frefs[1][0]} import {frefs[1][1]} as _field  # noqa: E402\n"
              + "from integrators.jit import cjit as _cjit, jit as _jit  # noqa: E402\n"
              + "".join(f"{f} = _jit({f})\n" for f in functions)
              + "".join(f"{f} = _cjit({sig!r})({f})\n" for f, sig in cfuncs.items()))
@@ -153,7 +157,8 @@ def _compiled_from_file(refs, glue=None) -> types.ModuleType:
     return module
 
 
-def _executed(force, potential, compile_: bool, glue=None, jvp=None) -> types.SimpleNamespace:
+def _executed(force, potential, compile_: bool, glue=None, jvp=None,
+              follow=None) -> types.SimpleNamespace:
     ns = {"__name__": "integrators.loop_bound", "__file__": str(_LOOP_PATH)}
     exec(compile(_LOOP_PATH.read_text(), str(_LOOP_PATH), "exec"), ns)
     functions = LOOP_FUNCTIONS
@@ -165,6 +170,8 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None) -> types.Si
         exec(compile(glue[0].read_text(), str(glue[0]), "exec"), ns)
         functions = functions + glue[1]
     ns["_force"], ns["_potential"] = force, potential
+    ns["_followers"], ns["_field"] = follow if follow is not None else (core.no_followers,
+                                                                        core.no_field)
     if compile_:
         for f in functions:
             ns[f] = numba.njit(error_model="numpy")(ns[f])
@@ -175,7 +182,8 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None) -> types.Si
     return types.SimpleNamespace(**{f: ns[f] for f in functions})
 
 
-def specialise(force, potential, python: bool = False, glue: str | None = None, jvp=None):
+def specialise(force, potential, python: bool = False, glue: str | None = None, jvp=None,
+               follow=None):
     """The step bound to these kernels: an object with ``advance``, ``run``, ``attempt`` (see
     :mod:`integrators.loop`) and ``kind`` ("compiled" or "python"); ``python=True`` executes
     the step as Python even when the kernels are compiled.
@@ -189,14 +197,21 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
     ``jvp``: a kernel ``jvp(X, dX, params, out)`` (the derivative of ``force`` along dX, row by
     row; see :mod:`integrators.variational`): the tangent map of :mod:`integrators.tangent` is
     then bound too (``evaluate_jvp``, ``tangent_map``, ``megno_step``, ``run_variational``),
-    compiled when all three kernels are, else executed as Python."""
+    compiled when all three kernels are, else executed as Python.
+
+    ``follow``: the followers hooks ``(followers(params), field(Xt, Xs, params, out))`` of a
+    separable system whose unknowns split into sources and followers (test particles, see
+    :mod:`integrators.loop`), bound like the force kernel (Python ones make the step Python);
+    None: none."""
     if jvp is not None and not _is_compiled(jvp):
         python = True
+    if follow is not None and not all(_is_compiled(f) for f in follow):
+        python = True
     if python:
-        out = _executed(force, potential, False, _glue(glue), jvp)
+        out = _executed(force, potential, False, _glue(glue), jvp, follow)
         out.kind = "python"
         return out
-    key = (force, potential, glue, jvp)
+    key = (force, potential, glue, jvp, follow)
     try:
         hit = _CACHE.get(key)
     except TypeError:            # unhashable callables: no cache
@@ -209,16 +224,17 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
             refs = [_import_ref(force), _import_ref(potential)]
             if jvp is not None:
                 refs.append(_import_ref(jvp))
-            if None not in refs:
-                mod = _compiled_from_file(refs, glue_)
+            frefs = NO_FOLLOWERS if follow is None else tuple(_import_ref(f) for f in follow)
+            if None not in refs and None not in frefs:
+                mod = _compiled_from_file(refs, glue_, frefs)
                 names = (LOOP_FUNCTIONS + (TANGENT_FUNCTIONS if jvp is not None else ())
                          + (glue_[1] + tuple(glue_[2]) if glue_ else ()))
                 out = types.SimpleNamespace(**{f: getattr(mod, f) for f in names})
             else:
-                out = _executed(force, potential, True, glue_, jvp)
+                out = _executed(force, potential, True, glue_, jvp, follow)
             out.kind = "compiled"
         else:
-            out = _executed(force, potential, False, glue_, jvp)
+            out = _executed(force, potential, False, glue_, jvp, follow)
             out.kind = "python"
         if key is not None and out.kind == "compiled":
             _CACHE[key] = out

@@ -191,7 +191,8 @@ def test_test_particles_never_act_on_the_sources_trajectory(seed):
     massless active particle) and the outer solar system with particles among the planets:
     the sources' positions and momenta are those of the sources alone, bit for bit, after
     200 fixed steps, although the particles change the iterations a step (asteroids: 4.0 -> 6.0
-    measured; among the planets 5.0 -> 5.0-5.4)."""
+    measured; among the planets 5.0 -> 5.0-5.4).  (The iterations of a step with test
+    particles count its slowest block: the sources, or the slowest particle.)"""
     rng = np.random.default_rng(seed)
     star_jupiter = NBody([1.0, 1e-3], positions=[[-5.2e-3, 0, 0], [5.2 * (1 - 1e-3), 0, 0]],
                          velocities=[[0, -1e-3 * np.sqrt(1.001 / 5.2), 0],
@@ -199,16 +200,14 @@ def test_test_particles_never_act_on_the_sources_trajectory(seed):
     for src, h, rmin, rmax in ((star_jupiter, 0.75, 2.1, 3.3), (outer_solar_system(), 100.0, 6.0, 25.0)):
         nb, idx = _with_test_particles(src, rng, 30, rmin, rmax)
         d, it_alone, it_with = _sources_drift(src, nb, idx, h, 200)
-        assert it_with != it_alone and d == 0.0, (src.N, it_alone, it_with, d)
+        assert it_with >= it_alone and d == 0.0, (src.N, it_alone, it_with, d)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 30 item 2: the stop rule's round-off floors "
-                   "(max |q|, the Lipschitz estimate) are taken over all bodies, so test particles "
-                   "beyond the sources end the sources' iteration earlier")
 def test_test_particles_far_outside_the_sources_leave_them_bit_for_bit():
-    """Particles out to 60 au around the outer solar system (beyond Neptune) lower the
-    iterations (1005 -> 900 in 200 steps, measured) and the sources move by 1.2e-15:
-    bit for bit needs the sources' stage equations solved with their own convergence test."""
+    """Particles out to 60 au around the outer solar system (beyond Neptune): solved together
+    with the sources, they lowered the stop rule's round-off floors (taken over all bodies)
+    and the sources moved by 1.2e-15 in 200 steps; solved after the sources, with their own
+    convergence test, they leave the sources bit for bit."""
     nb, idx = _with_test_particles(outer_solar_system(), np.random.default_rng(32), 20, 8.0, 60.0)
     d, it_alone, it_with = _sources_drift(outer_solar_system(), nb, idx, 100.0, 200, HBVM(8, 6))
     assert d == 0.0
