@@ -17,6 +17,110 @@ from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
 
+#: a scene with at most this many test particles is probed for k whole (:func:`probe_scene`)
+PROBE_WHOLE = 64
+#: test particles kept from each ranking of :func:`probe_scene` (its probe has at most
+#: 2 PROBE_RANKED + 9 of them)
+PROBE_RANKED = 16
+
+
+def _closest_ahead(x, v, xs, vs, mu):
+    """r_a^3 / mu for test particles at x, v (n, 3) about one source at xs, vs (3,) of G m = mu:
+    r_a the closest distance their two-body motion about it still has ahead, the osculating
+    pericentre h^2 / (mu (1 + e)) when the relative orbit is bound or approaching, else the
+    distance now (an unbound orbit moving away has its pericentre behind it).  (n,)"""
+    r = x - xs
+    w = v - vs
+    r2 = np.einsum("ij,ij->i", r, r)
+    rn = np.sqrt(r2)
+    c = np.cross(r, w)
+    h2 = np.einsum("ij,ij->i", c, c)
+    energy = 0.5 * np.einsum("ij,ij->i", w, w) - mu / rn
+    e = np.sqrt(np.maximum(0.0, 1.0 + 2.0 * energy * h2 / (mu * mu)))
+    ahead = (energy < 0.0) | (np.einsum("ij,ij->i", r, w) < 0.0)
+    ra = np.where(ahead, np.minimum(h2 / (mu * (1.0 + e)), rn), rn)
+    return ra * ra * ra / mu, r2 * rn / mu
+
+
+def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarray]:
+    """The scene k is measured on (:func:`integrators.kchoice.choose_k`): ``nb`` itself when it
+    has at most PROBE_WHOLE test particles, else its sources and the few test particles that
+    decide k, so that attaching costs the same for 1e2 or 1e5 test particles.
+
+    Parameters
+    ----------
+    nb : systems.NBody
+        The whole scene (sources and test particles, :mod:`systems.nbody`).
+    y0 : ndarray (6N,)
+        Its state (q, p).
+
+    Returns
+    -------
+    probe : systems.NBody
+        ``nb`` itself, or the scene of the kept particles (same G, masses and sources).
+    y_probe : ndarray (6 N_p,)
+        Their state, the entries of y0.
+    kept : ndarray (N_p,) of int
+        Their indices in ``nb``, increasing (so the sources come in the same order and their
+        forces are the same numbers bit for bit).
+
+    Notes
+    -----
+    choose_k measures the largest energy error of HBVM(k, s) over the test steps, and the
+    energy is the sources' alone (test particles carry none, as in REBOUND).  The sources feel
+    nothing from the test particles and a test particle's force sums over the sources only, so
+    every particle kept follows the same arithmetic in the probe as in the whole scene; test
+    particles reach k in two ways only, and the sample keeps what decides each:
+
+    * the iteration's stop rule (:func:`integrators.core.stop_action`) is taken in max norms
+      over all unknowns (the increment, the coefficients' size, max |y|, the stage values, the
+      force's Lipschitz estimate): it stops when the slowest-converging unknown reaches
+      round-off, and the fixed-point iteration contracts like (h / T)^2 for a particle's time
+      scale T.  Kept: the PROBE_RANKED test particles with the shortest two-body period about
+      any source now, min_j r^3 / (G m_j) (the fastest motion, which also gives the largest
+      force gradient; the whole scene's shortest period sets the number of test steps, taken
+      by the caller on ``nb``), and those holding the largest |component| of position,
+      momentum and force at y0 (the scales of the stop rule);
+    * a trial run fails (``StepError``) when a test particle's motion ahead is not resolved by
+      the step (an encounter, a pericentre passage within the test steps).  Kept: the
+      PROBE_RANKED with the shortest period at the closest distance their two-body motion about
+      any source still has ahead (the osculating pericentre, :func:`_closest_ahead`): an
+      eccentric orbit now at its apocentre, a particle falling towards a planet.
+
+    Nothing in choose_k averages over the particles, so no particle of typical motion is kept.
+    Measured: the same k as the whole scene's on REBOUND's test-particle scene
+    (``benchmarks/bench_testparticles.py``) for n = 1e2 .. 1e4 at several (s, dt), and on the
+    outer solar system with test particles (``tests/test_rebound_kprobe.py``).
+    """
+    test = np.flatnonzero(~nb.is_source)
+    if test.size <= PROBE_WHOLE:
+        return nb, y0, np.arange(nb.N)
+    src = np.flatnonzero(nb.is_source)
+    N = nb.N
+    x = y0[:nb.dim].reshape(N, 3)
+    p = y0[nb.dim:].reshape(N, 3)
+    v = p / nb.masses.reshape(N, 3)          # p = v for a test particle, m v for a source
+    now = np.full(test.size, np.inf)
+    ahead = np.full(test.size, np.inf)
+    xt, vt = x[test], v[test]
+    for j in src:                                  # O(N_s n) in memory O(n)
+        a, b = _closest_ahead(xt, vt, x[j], v[j], nb.G * nb.body_masses[j])
+        np.minimum(ahead, a, out=ahead)
+        np.minimum(now, b, out=now)
+    keep = [test[np.argsort(now, kind="stable")[:PROBE_RANKED]],
+            test[np.argsort(ahead, kind="stable")[:PROBE_RANKED]]]
+    force, _, params = nb.separable_kernels()
+    f = np.empty((1, nb.dim))
+    force(np.ascontiguousarray(y0[None, :nb.dim]), params, f)   # one evaluation, O(N_s N)
+    for a in (x, p, f.reshape(N, 3)):
+        keep.append(test[np.argmax(np.abs(a[test]), axis=0)])
+    kept = np.union1d(src, np.concatenate(keep))
+    probe = NBody(nb.body_masses[kept], G=nb.G, n_active=int(np.count_nonzero(kept < nb.n_active)),
+                  positions=x[kept], velocities=v[kept])
+    # the state's own entries (m (p / m) need not give p back)
+    return probe, np.concatenate([x[kept].ravel(), p[kept].ravel()]), kept
+
+
 class HBVMIntegrator(Counted):
     """Select and configure HBVM(k, s) or EQUIP(k, s) on a ``rebound.Simulation``:
     ``sim.integrator = "hbvm"`` with these settings (checked), and k measured on the scene when
@@ -155,8 +259,9 @@ class HBVMIntegrator(Counted):
             nb = NBody.from_rebound(sim)
             y0 = nb.initial_state()
             check_particles(y0, nb)
-            steps = period_steps(shortest_period(nb), h)
-            method = build(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k)
+            steps = period_steps(shortest_period(nb), h)     # the whole scene's fastest motion
+            probe, yp, _ = probe_scene(nb, y0)     # its sources and test particles that decide k
+            method = build(choose_k(probe, yp, method.s, h, steps, solver="fixed_point").k)
         # the engine's one default check; k chosen here is chosen for a round-off quadrature
         # error, so "auto" is its strict DEFAULT_ENERGY_TOL (gravity is not polynomial: a k the
         # user gives gets the not-a-solution rule)
