@@ -25,10 +25,11 @@ PROBE_RANKED = 16
 
 
 def _closest_ahead(x, v, xs, vs, mu):
-    """r_a^3 / mu for test particles at x, v (n, 3) about one source at xs, vs (3,) of G m = mu:
+    """(r_a^3 / mu, r^3 / mu), each (n,), for test particles at x, v (n, 3) about one source
+    at xs, vs (3,) of G m = mu (the squared two-body periods over 4 pi^2): r the distance now,
     r_a the closest distance their two-body motion about it still has ahead, the osculating
-    pericentre h^2 / (mu (1 + e)) when the relative orbit is bound or approaching, else the
-    distance now (an unbound orbit moving away has its pericentre behind it).  (n,)"""
+    pericentre h^2 / (mu (1 + e)) when the relative orbit is bound or approaching, else r (an
+    unbound orbit moving away has its pericentre behind it)."""
     r = x - xs
     w = v - vs
     r2 = np.einsum("ij,ij->i", r, r)
@@ -45,7 +46,7 @@ def _closest_ahead(x, v, xs, vs, mu):
 def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarray]:
     """The scene k is measured on (:func:`integrators.kchoice.choose_k`): ``nb`` itself when it
     has at most PROBE_WHOLE test particles, else its sources and the few test particles that
-    decide k, so that attaching costs the same for 1e2 or 1e5 test particles.
+    decide k, so that the probe's cost does not grow with the number of test particles.
 
     Parameters
     ----------
@@ -97,8 +98,11 @@ def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarra
     check of coincident positions, the rankings here).  Each ranking decides k somewhere
     (``tests/test_rebound_kprobe.py``): without the particles fastest now the sample measured
     k = 12 for the whole scene's 9 (the belt at dt = 8, a fifth of the innermost periods);
-    without the closest approach ahead, 9 for 14 (a comet at apocentre) and 7 for 14 (a
-    particle falling onto the Jupiter).  The outer solar system with 100-1000 test particles
+    without the closest approach ahead, 9 for 14 (a comet at apocentre) and, without the
+    largest components too (which also held it), 7 for 14 (a particle falling onto the
+    Jupiter).  No case was found where the largest components alone change k: they are kept
+    for the stop rule's scales (far particles raise its round-off floors, README, "Test
+    particles through REBOUND").  The outer solar system with 100-1000 test particles
     (among the planets, beyond them, out to 60 au, Pluto a massive test particle) gave the
     whole scene's k and trial errors in every setting tried.
     """
@@ -117,7 +121,8 @@ def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarra
         a, b = _closest_ahead(xt, vt, x[j], v[j], nb.G * nb.body_masses[j])
         np.minimum(ahead, a, out=ahead)
         np.minimum(now, b, out=now)
-    # the PROBE_RANKED smallest of each (a partition: O(n), where a sort took 0.5 ms at 1e4)
+    # the PROBE_RANKED smallest of each, deterministic (a partition: O(n), where a sort took
+    # 0.5 ms at 1e4)
     keep = [test[np.argpartition(now, PROBE_RANKED)[:PROBE_RANKED]],
             test[np.argpartition(ahead, PROBE_RANKED)[:PROBE_RANKED]]]
     force, _, params = nb.separable_kernels()
