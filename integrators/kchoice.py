@@ -1,8 +1,9 @@
 """Choosing k for HBVM(k, s): the smallest k that leaves no quadrature error in the energy.
 
 One implementation for every caller: the REBOUND driver measures k when it attaches (on one
-shortest orbital period), the work-precision reports and the Brouwer benchmark on a fixed number
-of test steps.
+shortest orbital period, on the sources and the few test particles that decide k:
+``hbvm_md.rebound.integrator.probe_scene``), the work-precision reports and the Brouwer
+benchmark on a fixed number of test steps.
 
 * Polynomial H of degree nu (``system.polynomial_degree``): k = max(s, ceil(nu s / 2)) conserves
   H exactly (:meth:`HBVM.for_polynomial_degree`); nothing is run.

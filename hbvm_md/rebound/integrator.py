@@ -17,6 +17,126 @@ from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
 
+#: a scene with at most this many test particles is probed for k whole (:func:`probe_scene`)
+PROBE_WHOLE = 64
+#: test particles kept from each ranking of :func:`probe_scene` (its probe has at most
+#: 2 PROBE_RANKED + 9 of them)
+PROBE_RANKED = 16
+
+
+def _closest_ahead(x, v, xs, vs, mu):
+    """(r_a^3 / mu, r^3 / mu), each (n,), for test particles at x, v (n, 3) about one source
+    at xs, vs (3,) of G m = mu (the squared two-body periods over 4 pi^2): r the distance now,
+    r_a the closest distance their two-body motion about it still has ahead, the osculating
+    pericentre h^2 / (mu (1 + e)) when the relative orbit is bound or approaching, else r (an
+    unbound orbit moving away has its pericentre behind it)."""
+    r = x - xs
+    w = v - vs
+    r2 = np.einsum("ij,ij->i", r, r)
+    rn = np.sqrt(r2)
+    c = np.cross(r, w)
+    h2 = np.einsum("ij,ij->i", c, c)
+    energy = 0.5 * np.einsum("ij,ij->i", w, w) - mu / rn
+    e = np.sqrt(np.maximum(0.0, 1.0 + 2.0 * energy * h2 / (mu * mu)))
+    ahead = (energy < 0.0) | (np.einsum("ij,ij->i", r, w) < 0.0)
+    ra = np.where(ahead, np.minimum(h2 / (mu * (1.0 + e)), rn), rn)
+    return ra * ra * ra / mu, r2 * rn / mu
+
+
+def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarray]:
+    """The scene k is measured on (:func:`integrators.kchoice.choose_k`): ``nb`` itself when it
+    has at most PROBE_WHOLE test particles, else its sources and the few test particles that
+    decide k, so that the probe's cost does not grow with the number of test particles.
+
+    Parameters
+    ----------
+    nb : systems.NBody
+        The whole scene (sources and test particles, :mod:`systems.nbody`).
+    y0 : ndarray (6N,)
+        Its state (q, p).
+
+    Returns
+    -------
+    probe : systems.NBody
+        ``nb`` itself, or the scene of the kept particles (same G, masses and sources).
+    y_probe : ndarray (6 N_p,)
+        Their state, the entries of y0.
+    kept : ndarray (N_p,) of int
+        Their indices in ``nb``, increasing (so the sources come in the same order and their
+        forces are the same numbers bit for bit).
+
+    Notes
+    -----
+    choose_k measures the largest energy error of HBVM(k, s) over the test steps, and the
+    energy is the sources' alone (test particles carry none, as in REBOUND).  The sources feel
+    nothing from the test particles and a test particle's force sums over the sources only, so
+    every particle kept follows the same arithmetic in the probe as in the whole scene; test
+    particles reach k in two ways only, and the sample keeps what decides each:
+
+    * the iteration's stop rule (:func:`integrators.core.stop_action`) is taken in max norms
+      over all unknowns (the increment, the coefficients' size, max |y|, the stage values, the
+      force's Lipschitz estimate): it stops when the slowest-converging unknown reaches
+      round-off, and the fixed-point iteration contracts like (h / T)^2 for a particle's time
+      scale T.  Kept: the PROBE_RANKED test particles with the shortest two-body period about
+      any source now, min_j r^3 / (G m_j) (the fastest motion, which also gives the largest
+      force gradient; the whole scene's shortest period sets the number of test steps, taken
+      by the caller on ``nb``), and those holding the largest |component| of position,
+      momentum and force at y0 (the scales of the stop rule);
+    * a trial run fails (``StepError``) when a test particle's motion ahead is not resolved by
+      the step (an encounter, a pericentre passage within the test steps).  Kept: the
+      PROBE_RANKED with the shortest period at the closest distance their two-body motion about
+      any source still has ahead (the osculating pericentre, :func:`_closest_ahead`): an
+      eccentric orbit now at its apocentre, a particle falling towards a planet.
+
+    Nothing in choose_k averages over the particles, so no particle of typical motion is kept.
+    Measured (``python benchmarks/bench_testparticles.py --attach``): on REBOUND's
+    test-particle scene, n = 1e2 .. 1e4, 3 seeds x 9 (s, dt) each, the whole scene's k every
+    time, with the same energy error of every trial run in 106 of 108 (in 2 a round-off draw
+    of 2.8e-16 against 5.6e-16, both below the early exit's bound); attaching at dt = 0.5 took
+    2.2 / 21.1 / 264 ms at n = 1e2 / 1e3 / 1e4 with the whole scene probed, 1.2 / 2.2 / 6.8 ms
+    with the sample (what remains grows with n outside the probe: reading the particles, the
+    check of coincident positions, the rankings here).  Each ranking decides k somewhere
+    (``tests/test_rebound_kprobe.py``): without the particles fastest now the sample measured
+    k = 12 for the whole scene's 9 (the belt at dt = 8, a fifth of the innermost periods);
+    without the closest approach ahead, 9 for 14 (a comet at apocentre) and, without the
+    largest components too (which also held it), 7 for 14 (a particle falling onto the
+    Jupiter).  No case was found where the largest components alone change k: they are kept
+    for the stop rule's scales (far particles raise its round-off floors, README, "Test
+    particles through REBOUND").  The outer solar system with 100-1000 test particles
+    (among the planets, beyond them, out to 60 au, Pluto a massive test particle) gave the
+    whole scene's k and trial errors in every setting tried.
+    """
+    test = np.flatnonzero(~nb.is_source)
+    if test.size <= PROBE_WHOLE:
+        return nb, y0, np.arange(nb.N)
+    src = np.flatnonzero(nb.is_source)
+    N = nb.N
+    x = y0[:nb.dim].reshape(N, 3)
+    p = y0[nb.dim:].reshape(N, 3)
+    v = p / nb.masses.reshape(N, 3)          # p = v for a test particle, m v for a source
+    now = np.full(test.size, np.inf)
+    ahead = np.full(test.size, np.inf)
+    xt, vt = x[test], v[test]
+    for j in src:                                  # O(N_s n) in memory O(n)
+        a, b = _closest_ahead(xt, vt, x[j], v[j], nb.G * nb.body_masses[j])
+        np.minimum(ahead, a, out=ahead)
+        np.minimum(now, b, out=now)
+    # the PROBE_RANKED smallest of each, deterministic (a partition: O(n), where a sort took
+    # 0.5 ms at 1e4)
+    keep = [test[np.argpartition(now, PROBE_RANKED)[:PROBE_RANKED]],
+            test[np.argpartition(ahead, PROBE_RANKED)[:PROBE_RANKED]]]
+    force, _, params = nb.separable_kernels()
+    f = np.empty((1, nb.dim))
+    force(np.ascontiguousarray(y0[None, :nb.dim]), params, f)   # one evaluation, O(N_s N)
+    for a in (x, p, f.reshape(N, 3)):
+        keep.append(test[np.argmax(np.abs(a[test]), axis=0)])
+    kept = np.union1d(src, np.concatenate(keep))
+    probe = NBody(nb.body_masses[kept], G=nb.G, n_active=int(np.count_nonzero(kept < nb.n_active)),
+                  positions=x[kept], velocities=v[kept])
+    # the state's own entries (m (p / m) need not give p back)
+    return probe, np.concatenate([x[kept].ravel(), p[kept].ravel()]), kept
+
+
 class HBVMIntegrator(Counted):
     """Select and configure HBVM(k, s) or EQUIP(k, s) on a ``rebound.Simulation``:
     ``sim.integrator = "hbvm"`` with these settings (checked), and k measured on the scene when
@@ -34,8 +154,10 @@ class HBVMIntegrator(Counted):
         Quadrature nodes (k >= s) of the line integral (EQUIP: of its energy condition, the
         same k-point discrete line integral, so the same k keeps the energy to round-off).
         None: measured on the scene at attach time for ``sim.dt``
-        (:func:`integrators.kchoice.choose_k` over one shortest orbital period) with a fixed
-        step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive steps.
+        (:func:`integrators.kchoice.choose_k` over one shortest orbital period, on the sources
+        and at most 41 of the test particles, those that decide k: :func:`probe_scene`) with a
+        fixed step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive
+        steps.
     method : {"hbvm", "equip"}
         ``"hbvm"`` (default): HBVM(k, s), which conserves the energy; its angular momentum
         has an error of order h^2s (at round-off with s = 6 and planetary steps, visible at
@@ -155,8 +277,9 @@ class HBVMIntegrator(Counted):
             nb = NBody.from_rebound(sim)
             y0 = nb.initial_state()
             check_particles(y0, nb)
-            steps = period_steps(shortest_period(nb), h)
-            method = build(choose_k(nb, y0, method.s, h, steps, solver="fixed_point").k)
+            steps = period_steps(shortest_period(nb), h)     # the whole scene's fastest motion
+            probe, yp, _ = probe_scene(nb, y0)     # its sources and test particles that decide k
+            method = build(choose_k(probe, yp, method.s, h, steps, solver="fixed_point").k)
         # the engine's one default check; k chosen here is chosen for a round-off quadrature
         # error, so "auto" is its strict DEFAULT_ENERGY_TOL (gravity is not polynomial: a k the
         # user gives gets the not-a-solution rule)
