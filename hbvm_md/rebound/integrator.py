@@ -20,7 +20,7 @@ from systems.nbody import NBody
 #: a scene with at most this many test particles is probed for k whole (:func:`probe_scene`)
 PROBE_WHOLE = 64
 #: test particles kept from each ranking of :func:`probe_scene` (its probe has at most
-#: 2 PROBE_RANKED + 9 of them)
+#: 2 PROBE_RANKED of them)
 PROBE_RANKED = 16
 
 
@@ -68,43 +68,36 @@ def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarra
     Notes
     -----
     choose_k measures the largest energy error of HBVM(k, s) over the test steps, and the
-    energy is the sources' alone (test particles carry none, as in REBOUND).  The sources feel
-    nothing from the test particles and a test particle's force sums over the sources only, so
-    every particle kept follows the same arithmetic in the probe as in the whole scene; test
-    particles reach k in two ways only, and the sample keeps what decides each:
+    energy is the sources' alone (test particles carry none, as in REBOUND).  The step solves
+    the sources' stage equations as if alone and each test particle's after them with its own
+    stop rule (:mod:`integrators.loop`, "Followers"), so the sources' trajectory, and the
+    energy errors choose_k compares, are the same bit for bit whatever test particles the probe
+    has, and every particle kept follows the same arithmetic as in the whole scene.  Test
+    particles reach k in one way only: a trial run fails (``StepError``) on a particle the step
+    does not resolve, and choose_k then keeps its reference k.  The sample keeps the particles
+    likely to fail first:
 
-    * the iteration's stop rule (:func:`integrators.core.stop_action`) is taken in max norms
-      over all unknowns (the increment, the coefficients' size, max |y|, the stage values, the
-      force's Lipschitz estimate): it stops when the slowest-converging unknown reaches
-      round-off, and the fixed-point iteration contracts like (h / T)^2 for a particle's time
-      scale T.  Kept: the PROBE_RANKED test particles with the shortest two-body period about
-      any source now, min_j r^3 / (G m_j) (the fastest motion, which also gives the largest
-      force gradient; the whole scene's shortest period sets the number of test steps, taken
-      by the caller on ``nb``), and those holding the largest |component| of position,
-      momentum and force at y0 (the scales of the stop rule);
-    * a trial run fails (``StepError``) when a test particle's motion ahead is not resolved by
-      the step (an encounter, a pericentre passage within the test steps).  Kept: the
-      PROBE_RANKED with the shortest period at the closest distance their two-body motion about
-      any source still has ahead (the osculating pericentre, :func:`_closest_ahead`): an
+    * the PROBE_RANKED test particles with the shortest two-body period about any source now,
+      min_j r^3 / (G m_j): the fastest motion, where the fixed-point iteration contracts least
+      (like (h / T)^2 for a time scale T); the whole scene's shortest period sets the number of
+      test steps, taken by the caller on ``nb``;
+    * the PROBE_RANKED with the shortest period at the closest distance their two-body motion
+      about any source still has ahead (the osculating pericentre, :func:`_closest_ahead`): an
       eccentric orbit now at its apocentre, a particle falling towards a planet.
 
-    Nothing in choose_k averages over the particles, so no particle of typical motion is kept.
-    Measured (``python benchmarks/bench_testparticles.py --attach``): on REBOUND's
-    test-particle scene, n = 1e2 .. 1e4, 3 seeds x 9 (s, dt) each, the whole scene's k every
-    time, with the same energy error of every trial run in 106 of 108 (in 2 a round-off draw
-    of 2.8e-16 against 5.6e-16, both below the early exit's bound); attaching at dt = 0.5 took
-    2.2 / 21.1 / 264 ms at n = 1e2 / 1e3 / 1e4 with the whole scene probed, 1.2 / 2.2 / 6.8 ms
-    with the sample (what remains grows with n outside the probe: reading the particles, the
-    check of coincident positions, the rankings here).  Each ranking decides k somewhere
-    (``tests/test_rebound_kprobe.py``): without the particles fastest now the sample measured
-    k = 12 for the whole scene's 9 (the belt at dt = 8, a fifth of the innermost periods);
-    without the closest approach ahead, 9 for 14 (a comet at apocentre) and, without the
-    largest components too (which also held it), 7 for 14 (a particle falling onto the
-    Jupiter).  No case was found where the largest components alone change k: they are kept
-    for the stop rule's scales (far particles raise its round-off floors, README, "Test
-    particles through REBOUND").  The outer solar system with 100-1000 test particles
-    (among the planets, beyond them, out to 60 au, Pluto a massive test particle) gave the
-    whole scene's k and trial errors in every setting tried.
+    When no trial step fails, the sample's k is the whole scene's exactly.  When one does, the
+    sample gives the whole scene's k if it holds the particle that fails first, which the
+    rankings make likely, not certain; the run then fails on that particle whatever k is, with
+    the step's error (a fixed step that does not resolve a test particle is refused).  Measured
+    (``python benchmarks/bench_testparticles.py --attach``, see ``benchmarks/results/
+    testparticles_attach.md``): REBOUND's test-particle scene, n = 1e2 .. 1e4, 3 seeds x 9
+    (s, dt), and ``tests/test_rebound_kprobe.py``'s scenes: the belt at a step of a third of
+    its innermost periods and the particle falling onto the Jupiter need the closest approach
+    ahead (without it the sample measured k = 8 and 7 for the whole scene's 14; the comet at
+    apocentre is held by both rankings).  Before the followers (the sources and the
+    particles in one iteration, whose stop rule took its maxima over all of them) the sample
+    also kept the particles with the largest coordinates, momenta and forces, for the stop
+    rule's scales; the followers took that dependence away, and them with it.
     """
     test = np.flatnonzero(~nb.is_source)
     if test.size <= PROBE_WHOLE:
@@ -125,11 +118,6 @@ def probe_scene(nb: NBody, y0: np.ndarray) -> tuple[NBody, np.ndarray, np.ndarra
     # 0.5 ms at 1e4)
     keep = [test[np.argpartition(now, PROBE_RANKED)[:PROBE_RANKED]],
             test[np.argpartition(ahead, PROBE_RANKED)[:PROBE_RANKED]]]
-    force, _, params = nb.separable_kernels()
-    f = np.empty((1, nb.dim))
-    force(np.ascontiguousarray(y0[None, :nb.dim]), params, f)   # one evaluation, O(N_s N)
-    for a in (x, p, f.reshape(N, 3)):
-        keep.append(test[np.argmax(np.abs(a[test]), axis=0)])
     kept = np.union1d(src, np.concatenate(keep))
     probe = NBody(nb.body_masses[kept], G=nb.G, n_active=int(np.count_nonzero(kept < nb.n_active)),
                   positions=x[kept], velocities=v[kept])
@@ -155,7 +143,7 @@ class HBVMIntegrator(Counted):
         same k-point discrete line integral, so the same k keeps the energy to round-off).
         None: measured on the scene at attach time for ``sim.dt``
         (:func:`integrators.kchoice.choose_k` over one shortest orbital period, on the sources
-        and at most 41 of the test particles, those that decide k: :func:`probe_scene`) with a
+        and at most 32 of the test particles, those likely to decide k: :func:`probe_scene`) with a
         fixed step, :func:`integrators.kchoice.adaptive_k` (8 for the defaults) with adaptive
         steps.
     method : {"hbvm", "equip"}
