@@ -62,7 +62,7 @@ from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NF
                               full_stages, full_stages_narrow,
                               guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
                               stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
-                              weighted_kinetic, compact_slots, lipschitz_slots, project_each)
+                              weighted_kinetic, compact_slots, lipschitz_slots)
 from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
@@ -290,13 +290,13 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 if narrowb:
                     project_narrow(W, Fb, pg)
                 else:
-                    project(W, Fb, pg, R)
+                    project(W, Fb, pg, R, R[3], R[4], False)
                 delta, scale = newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
             else:
                 if narrowb:
                     delta, scale = project_narrow(W, Fb, gb)
                 else:
-                    delta, scale = project(W, Fb, gb, R)
+                    delta, scale = project(W, Fb, gb, R, R[3], R[4], False)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
             action = stop_action(delta, scale, Fb, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
@@ -375,6 +375,30 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     return OK
 
 
+def follower_stages(ya, cya, ma, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, F, Xs, ps, R, exact):
+    """A group of followers' stage values X from their state (ya, cya, ma) and coefficients g,
+    then their right-hand side F in the sources' field at their stage values Xs (``exact``:
+    with the coefficients' low parts, for the polish, as in :func:`run`)."""
+    if X.shape[1] < NARROW:
+        stage_positions_narrow(ya, cya, ma, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, exact)
+    else:
+        stage_positions(ya, cya, ma, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, exact)
+    _field(X, Xs, ps, F)
+
+
+def gather_followers(y, cy, minv, params, fcol, j0, pc, w, fb, o_y, o_cy, o_m):
+    """Followers j0 .. j0 + pc (their first columns at params[fcol:]) gathered into fb: their
+    state as (q, p) of 2 pc w entries at o_y, its compensation at o_cy, 1 / m at o_m."""
+    m = minv.shape[0]
+    uc = pc * w
+    for j in range(pc):
+        c0 = int(params[fcol + j0 + j])
+        for c in range(w):
+            fb[o_y + w * j + c], fb[o_y + uc + w * j + c] = y[c0 + c], y[m + c0 + c]
+            fb[o_cy + w * j + c], fb[o_cy + uc + w * j + c] = cy[c0 + c], cy[m + c0 + c]
+            fb[o_m + w * j + c] = minv[c0 + c]
+
+
 def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W, W_lo,
            max_iter, tol, R, fb, fo):
     """The followers' stage equations, after the sources': each follower (a slot of ``width``
@@ -417,13 +441,11 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
         pc = min(nmax, P - j0)
         uc = pc * w
         gall = view(fb, o_all, s, uc)
-        for j in range(pc):             # gather, in the followers' order
+        gather_followers(y, cy, minv, params, fcol, j0, pc, w, fb, o_y, o_cy, o_m)
+        for j in range(pc):             # their coefficients and stop rules, in their order
             c0 = int(params[fcol + j0 + j])
             ym = 0.0
             for c in range(w):
-                fb[o_y + w * j + c], fb[o_y + uc + w * j + c] = y[c0 + c], y[m + c0 + c]
-                fb[o_cy + w * j + c], fb[o_cy + uc + w * j + c] = cy[c0 + c], cy[m + c0 + c]
-                fb[o_m + w * j + c] = minv[c0 + c]
                 ym = max(ym, abs(y[c0 + c]), abs(y[m + c0 + c]))
                 for i in range(s):
                     fb[o_g + i * uc + w * j + c] = g[i, c0 + c]
@@ -447,12 +469,8 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
             ga, aa = view(fb, o_g, s, ua), view(fb, o_a, s, ua)
             Xa, Fa = view(fb, o_x, n, ua), view(fb, o_f, n, ua)
             Xpa, Fpa = view(fb, o_xp, n, ua), view(fb, o_fp, n, ua)
-            if ua < NARROW:
-                stage_positions_narrow(ya, cya, ma, ga, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa,
-                                       False)
-            else:
-                stage_positions(ya, cya, ma, ga, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, R, False)
-            _field(Xa, Xs, ps, Fa)
+            follower_stages(ya, cya, ma, ga, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, Fa, Xs, ps,
+                            R, False)
             if it <= 3:          # each follower's Lipschitz constant, for its round-off floor
                 if it > 1:
                     lipschitz_slots(Xa, Fa, Xpa, Fpa, w, view1(fb, o_lip, na),
@@ -460,7 +478,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
                 else:
                     copy2(Xpa, Xa)
                     copy2(Fpa, Fa)
-            project_each(W, Fa, ga, R, dcol, scol)
+            project(W, Fa, ga, R, dcol, scol, True)
             nk = 0
             for j in range(na):
                 delta = 0.0
@@ -501,20 +519,11 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
                 na = nk
         itmax = max(itmax, it + 1)
         # the polish, the group at once from its state gathered again in its order
-        for j in range(pc):
-            c0 = int(params[fcol + j0 + j])
-            for c in range(w):
-                fb[o_y + w * j + c], fb[o_y + uc + w * j + c] = y[c0 + c], y[m + c0 + c]
-                fb[o_cy + w * j + c], fb[o_cy + uc + w * j + c] = cy[c0 + c], cy[m + c0 + c]
-                fb[o_m + w * j + c] = minv[c0 + c]
+        gather_followers(y, cy, minv, params, fcol, j0, pc, w, fb, o_y, o_cy, o_m)
         ya, cya, ma = view1(fb, o_y, 2 * uc), view1(fb, o_cy, 2 * uc), view1(fb, o_m, uc)
         aa, Xa, Fa = view(fb, o_a, s, uc), view(fb, o_x, n, uc), view(fb, o_f, n, uc)
-        if uc < NARROW:
-            stage_positions_narrow(ya, cya, ma, gall, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa,
-                                   True)
-        else:
-            stage_positions(ya, cya, ma, gall, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, R, True)
-        _field(Xa, Xs, ps, Fa)
+        follower_stages(ya, cya, ma, gall, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, Fa, Xs, ps, R,
+                        True)
         project_compensated(W, W_lo, Fa, gall, R)
         for j in range(pc):
             c0 = int(params[fcol + j0 + j])

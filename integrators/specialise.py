@@ -35,7 +35,8 @@ import numba
 
 from . import core, equip_core, jit as _jitmod, loop, pointers as _pointersmod, tangent
 
-LOOP_FUNCTIONS = ("evaluate", "energy_parts", "follow", "run", "advance", "attempt")
+LOOP_FUNCTIONS = ("evaluate", "energy_parts", "follower_stages", "gather_followers", "follow", "run",
+                  "advance", "attempt")
 # the followers hooks of a system without followers (integrators.loop, "Followers")
 NO_FOLLOWERS = (("integrators.core", "no_followers"), ("integrators.core", "no_field"))
 _LOOP_PATH = Path(loop.__file__)
