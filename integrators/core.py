@@ -463,12 +463,9 @@ def project_narrow(W, F, g):
 
 
 @jit
-def project(W, F, g, R, dcol, scol, each):
+def project(W, F, g, R):
     """g <- W F (plain sums); returns (max |increment|, max |g|), the first nan when an
-    increment is nan (max |g| skips nan).  The maxima are taken column by column first, in
-    dcol and scol: R[3] and R[4] for the current block of columns, or, with ``each``, arrays
-    of one entry a column (u,) that keep them (the followers' own stop rules,
-    :func:`integrators.loop.follow`).  A non-finite force makes an increment non-finite:
+    increment is nan (max |g| skips nan).  A non-finite force makes an increment non-finite:
     row 0 of W holds the quadrature weights, all positive.  For the iterations before the
     step's last evaluation: they only have to reach the fixed point to round-off, and the low
     parts W_lo of the weights (below half an ulp of W) move the sum by less than its own
@@ -481,15 +478,16 @@ def project(W, F, g, R, dcol, scol, each):
     s, m = g.shape
     n = F.shape[0]
     acc = R[0]
+    dcol = R[3]
+    scol = R[4]
     delta = 0.0
     scale = 0.0
     for j0 in range(0, m, BLOCK):
         nb = np.uint64(min(BLOCK, m - j0))
         ju = np.uint64(j0)
-        o = ju if each else np.uint64(0)        # where the block's column maxima go
         for jj in range(nb):
-            dcol[o + jj] = 0.0
-            scol[o + jj] = 0.0
+            dcol[jj] = 0.0
+            scol[jj] = 0.0
         for i in range(s):
             for jj in range(nb):
                 acc[jj] = 0.0
@@ -501,18 +499,54 @@ def project(W, F, g, R, dcol, scol, each):
                 j = ju + jj
                 v = acc[jj]
                 d = abs(v - g[i, j])
-                c = dcol[o + jj]
-                dcol[o + jj] = d if (d > c or d != d) else c
+                c = dcol[jj]
+                dcol[jj] = d if (d > c or d != d) else c
                 x = abs(v)
-                c = scol[o + jj]
-                scol[o + jj] = x if x > c else c
+                c = scol[jj]
+                scol[jj] = x if x > c else c
                 g[i, j] = v
         for jj in range(nb):
-            if dcol[o + jj] > delta or dcol[o + jj] != dcol[o + jj]:
-                delta = dcol[o + jj]
-            if scol[o + jj] > scale:
-                scale = scol[o + jj]
+            if dcol[jj] > delta or dcol[jj] != dcol[jj]:
+                delta = dcol[jj]
+            if scol[jj] > scale:
+                scale = scol[jj]
     return delta, scale
+
+@jit
+def project_each(W, F, g, R, dcol, scol):
+    """g <- W F as :func:`project` computes it (the same numbers), but the increment and the
+    size kept column by column: dcol[j] = max_i |increment_ij| (nan when one is nan), scol[j] =
+    max_i |g_ij|, (u,) each; for blocks of columns that stop on their own (the followers of
+    :mod:`integrators.loop`).  Not one function with :func:`project` (an argument saying where
+    the column maxima go): that made a step of the outer solar system 2 % slower (HBVM(9, 8)
+    through REBOUND, 13.83 -> 14.15 us, medians of 5 alternated runs)."""
+    s, m = g.shape
+    n = F.shape[0]
+    acc = R[0]
+    for j in range(m):
+        dcol[j] = 0.0
+        scol[j] = 0.0
+    for j0 in range(0, m, BLOCK):
+        nb = np.uint64(min(BLOCK, m - j0))
+        ju = np.uint64(j0)
+        for i in range(s):
+            for jj in range(nb):
+                acc[jj] = 0.0
+            for l in range(n):
+                w = W[i, l]
+                for jj in range(nb):
+                    acc[jj] += w * F[l, ju + jj]
+            for jj in range(nb):
+                j = ju + jj
+                v = acc[jj]
+                d = abs(v - g[i, j])
+                c = dcol[j]
+                dcol[j] = d if (d > c or d != d) else c
+                x = abs(v)
+                c = scol[j]
+                scol[j] = x if x > c else c
+                g[i, j] = v
+
 
 @jit
 def compact_slots(buf, off, rows, width, na, keep, nk):

@@ -62,7 +62,7 @@ from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NF
                               full_stages, full_stages_narrow,
                               guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
                               stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
-                              weighted_kinetic, compact_slots, lipschitz_slots)
+                              weighted_kinetic, compact_slots, lipschitz_slots, project_each)
 from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
@@ -290,13 +290,13 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 if narrowb:
                     project_narrow(W, Fb, pg)
                 else:
-                    project(W, Fb, pg, R, R[3], R[4], False)
+                    project(W, Fb, pg, R)
                 delta, scale = newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
             else:
                 if narrowb:
                     delta, scale = project_narrow(W, Fb, gb)
                 else:
-                    delta, scale = project(W, Fb, gb, R, R[3], R[4], False)
+                    delta, scale = project(W, Fb, gb, R)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
             action = stop_action(delta, scale, Fb, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
@@ -478,7 +478,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
                 else:
                     copy2(Xpa, Xa)
                     copy2(Fpa, Fa)
-            project(W, Fa, ga, R, dcol, scol, True)
+            project_each(W, Fa, ga, R, dcol, scol)
             nk = 0
             for j in range(na):
                 delta = 0.0

@@ -153,13 +153,13 @@ def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
                 if narrow:
                     project_narrow(W, dF, pg)
                 else:
-                    project(W, dF, pg, R, R[3], R[4], False)
+                    project(W, dF, pg, R)
                 delta, scale = newton_update(dg, pg, NV, NVinv, NM, Rt, Z)
             else:
                 if narrow:
                     delta, scale = project_narrow(W, dF, dg)
                 else:
-                    delta, scale = project(W, dF, dg, R, R[3], R[4], False)
+                    delta, scale = project(W, dF, dg, R)
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
             action = tangent_converged(delta, scale, dF, hstate, previous)
             previous = delta
