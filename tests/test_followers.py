@@ -135,3 +135,23 @@ def test_no_followers_block_without_both_kinds():
     for m in ([1.0, 1e-3], [0.0, 0.0, 0.0]):
         params = NBody(m).separable_kernels()[2]
         assert params.size == 3 * len(m) + 3 and nbody_followers(params) == -1
+
+
+def test_adaptive_steps_are_the_sources_own_when_no_particle_needs_smaller():
+    """Adaptive steps (the defaults' control): Kuiper-belt particles (35-50 au) around the outer
+    solar system leave the steps and the planets' trajectory those of the planets alone, bit for
+    bit (no particle is close to anything); asteroids at 2-3 au, whose orbits are the fastest
+    motion of the scene, make the steps smaller (their encounters and orbits resolved)."""
+    from systems import outer_solar_system
+    from tests.test_nbody import _with_test_particles
+    src = outer_solar_system()
+    alone = integrate(HBVM(8, 6), src, src.initial_state(), 100.0, adaptive=True, t_end=2e4)
+    far, idx = _with_test_particles(src, np.random.default_rng(11), 40, 35.0, 50.0)
+    with_far = integrate(HBVM(8, 6), far, far.initial_state(), 100.0, adaptive=True, t_end=2e4)
+    cols = (3 * idx[:, None] + np.arange(3)).ravel()
+    assert np.array_equal(with_far.t, alone.t)
+    assert np.array_equal(with_far.y[:, cols], alone.y[:, :src.dim])
+    assert np.array_equal(with_far.y[:, far.dim + cols], alone.y[:, src.dim:])
+    near, _ = _with_test_particles(src, np.random.default_rng(11), 40, 2.0, 3.0)
+    with_near = integrate(HBVM(8, 6), near, near.initial_state(), 100.0, adaptive=True, t_end=2e4)
+    assert len(with_near.t) > 2 * len(alone.t)
