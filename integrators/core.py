@@ -748,14 +748,14 @@ def work_sizes(n, s, u, m, d):
 
 
 @jit
-def follower_size(n, s, us, up, P):
-    """The length of the float buffer of a step with P followers of up columns in all
+def follower_size(n, s, us, w, P):
+    """The length of the float buffer of a step with P followers of w columns each
     (:mod:`integrators.loop`): the sources' block (us columns: state, masses, coefficients,
     stage values and forces and their previous iterates) and one group of followers (at most
     FOLLOWER_GROUP of them: the same plus their final coefficients, the columns' increments and
     sizes, and ten numbers each for their own stop rule)."""
     g = min(P, FOLLOWER_GROUP)
-    up = (up // P) * g if P > 0 else 0
+    up = w * g
     return 5 * us + 2 * s * us + 4 * n * us + 7 * up + 3 * s * up + 4 * n * up + 10 * g
 
 

@@ -338,7 +338,7 @@ class Binding:
         self.params = np.ascontiguousarray(params, dtype=float)
         # fast=False runs the step as Python code: with the system's compiled kernels when it
         # has them (then the numbers and counters equal the compiled run's bit for bit)
-        # test particles (followers) solved after the sources: compiled kernels only
+        # test particles (followers) solved after the sources, with the system's kernels
         self.follow = (system.separable_followers()
                        if has_kernels and not self.full
                        and callable(getattr(system, "separable_followers", None))

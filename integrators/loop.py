@@ -136,8 +136,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     us = 0
     if at >= 0:
         us = int(params[at + 2])
-        up = int(params[at]) * int(params[at + 1])
-        fb = np.empty(follower_size(n, s, us, up, int(params[at])))
+        fb = np.empty(follower_size(n, s, us, int(params[at + 1]), int(params[at])))
         yb, cyb, mb = view1(fb, 0, 2 * us), view1(fb, 2 * us, 2 * us), view1(fb, 4 * us, us)
         gb, ab = view(fb, 5 * us, s, us), view(fb, 5 * us + s * us, s, us)
         fo = 5 * us + 2 * s * us
@@ -414,7 +413,8 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
     the followers block (``systems.nbody.followers_block``); fb[fo:]: scratch
     (``core.follower_size``); R: the step's scratch of column sums.  Returns (status,
     iterations of the slowest follower, the polish included, and the last increment of the
-    follower that failed, 0 when none did)."""
+    follower that failed (after max_iter iterations: the largest of those still iterating), 0
+    when none did)."""
     P = int(params[at])
     w = int(params[at + 1])
     us = int(params[at + 2])
@@ -460,10 +460,12 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
             fb[o_who + j] = j
         na = pc
         it = 0
+        worst = 0.0                     # the largest increment of those still iterating
         while na > 0:
             if it >= max_iter:
-                return DIVERGED, it, dcol[0]
+                return DIVERGED, it, worst
             it += 1
+            worst = 0.0
             ua = na * w
             ya, cya, ma = view1(fb, o_y, 2 * ua), view1(fb, o_cy, 2 * ua), view1(fb, o_m, ua)
             ga, aa = view(fb, o_g, s, ua), view(fb, o_a, s, ua)
@@ -502,6 +504,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
                 elif action == ITERATE:
                     fb[o_keep + nk] = j
                     nk += 1
+                    worst = max(worst, delta)
                 else:
                     return -action, it, delta
             if nk < na:                     # the converged leave: the others move up

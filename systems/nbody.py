@@ -239,6 +239,16 @@ def source_links(is_source) -> np.ndarray:
     return np.minimum.accumulate(np.append(idx, float(N))[::-1])[::-1].copy()
 
 
+def kernel_params(G, masses, is_source) -> np.ndarray:
+    """``[G, N, w, g, f]`` (3N + 3,), the kernels' parameters without the followers block
+    (module docstring): w the mass in M (the mass for a source, 1 for a test particle), g the
+    gravitating mass (0 for a test particle), f the sources' links (:func:`source_links`).
+    masses, is_source: (N,)."""
+    m = np.asarray(masses, dtype=float)
+    return np.concatenate([[G, float(m.size)], np.where(is_source, m, 1.0),
+                           np.where(is_source, m, 0.0), source_links(is_source)])
+
+
 def followers_block(G, masses, is_source) -> np.ndarray:
     """The tail of the kernel parameters that lets the step solve the sources first and the test
     particles after them (:mod:`integrators.loop`, "Followers"): empty unless there are both
@@ -251,8 +261,7 @@ def followers_block(G, masses, is_source) -> np.ndarray:
     if src.size == 0 or tp.size == 0:
         return np.zeros(0)
     ns = src.size
-    own = np.concatenate([[G, float(ns)], masses[src], masses[src],
-                          source_links(np.ones(ns, dtype=bool))])
+    own = kernel_params(G, masses[src], np.ones(ns, dtype=bool))
     cols = (3 * src[:, None] + np.arange(3)).ravel()
     return np.concatenate([[float(tp.size), 3.0, 3.0 * ns, float(own.size)], cols, 3.0 * tp, own])
 
@@ -355,9 +364,8 @@ class NBody(SeparableSystem):
         w = np.where(self.is_source, m, 1.0)
         self.masses = np.repeat(w, 3)
         self.dim = 3 * N
-        self._params = np.concatenate([[self.G, float(N)], w, np.where(self.is_source, m, 0.0),
-                                       source_links(self.is_source), followers_block(
-                                           self.G, m, self.is_source)])
+        self._params = np.concatenate([kernel_params(self.G, m, self.is_source),
+                                       followers_block(self.G, m, self.is_source)])
         self.names = list(names) if names is not None else [f"body{i}" for i in range(N)]
         if len(self.names) != N:
             raise ValueError(f"`names` must have N={N} entries (got {len(self.names)})")
