@@ -216,12 +216,14 @@ def test_other_constraints_are_refused():
     atoms = s22.create_s22_system("Water_dimer")
     atoms.calc = TIP3P(rc=9.0)
     atoms.set_constraint(FixBondLengths([(0, 1)]))
-    with pytest.raises(ValueError, match="only FixAtoms constraints \\(got FixBondLengths\\)"):
+    # (issue 35: the message names the holonomic constraint; was "only FixAtoms constraints
+    # (got FixBondLengths)" when every constraint but FixAtoms was refused)
+    with pytest.raises(ValueError, match="holonomic constraint FixBondLength yet"):
         HBVMDynamics(atoms, 1 * units.fs)
     atoms.set_constraint()
     dyn = HBVMDynamics(atoms, 1 * units.fs)
     atoms.set_constraint(FixBondLengths([(0, 1)]))     # added later: refused at the next step
-    with pytest.raises(ValueError, match="got FixBondLengths"):
+    with pytest.raises(ValueError, match="holonomic constraint FixBondLength yet"):
         dyn.run(1)
 
 

@@ -14,12 +14,13 @@ import re
 
 import numpy as np
 from ase import units
-from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
 from integrators import EQUIP, HBVM, ConvergenceError, Stepper
 from integrators.engine import check_step
 from systems.base import SeparableSystem
+
+from .constraints import AtomsConstraints, signature
 
 _log = logging.getLogger(__name__)
 
@@ -48,31 +49,35 @@ def default_k(s: int, polynomial_degree: int | None) -> int:
 
 
 class _AtomsSystem(SeparableSystem):
-    """The atoms as a separable system (q, p flattened to (3N,)); fixed atoms feel no force."""
+    """The atoms as a separable system (q, p flattened to (3N,)); the forces are the
+    calculator's plus those of the constraints' energy terms, projected onto the linear
+    constraints' subspace (:class:`hbvm_md.ase.constraints.AtomsConstraints`)."""
 
     polynomial_degree = None
     rows_independent = True     # forces keeps the stage rows apart: no probe (2 calculator calls)
 
-    def __init__(self, atoms, fixed: np.ndarray, batched: bool):
+    def __init__(self, atoms, constraints: AtomsConstraints, batched: bool):
         self.atoms = atoms
         self.calc = atoms.calc
         self.n_atoms = len(atoms)
         self.dim = 3 * self.n_atoms
         self.masses = np.repeat(np.asarray(atoms.get_masses(), dtype=float), 3)
-        self.free = np.ones((self.n_atoms, 1))
-        self.free[fixed] = 0.0
-        self.fixed = np.asarray(fixed, dtype=int)
+        self.constraints = constraints
         self.batched = batched
         self.stage_evaluations = 0
         # a polynomial calculator's degree: the engine's default energy check is then strict
-        self.polynomial_degree = getattr(self.calc, "polynomial_degree", None)
+        # (linear constraints keep H polynomial on their subspace; Hookean and ExternalForce
+        # terms do not)
+        self.polynomial_degree = (None if constraints.terms
+                                  else getattr(self.calc, "polynomial_degree", None))
         # the engine writes the stage forces straight into its array when the calculator's
-        # forces_batch takes out= (PolynomialPairPotential's does) and no atom is fixed
+        # forces_batch takes out= (PolynomialPairPotential's does); the constraints then act
+        # on that array in place
         try:
             takes_out = batched and "out" in inspect.signature(self.calc.forces_batch).parameters
         except (TypeError, ValueError):
             takes_out = False
-        if takes_out and not self.fixed.size:
+        if takes_out:
             self.forces_into = self._forces_into
 
     def _forces_into(self, Q: np.ndarray, out: np.ndarray) -> None:
@@ -80,8 +85,11 @@ class _AtomsSystem(SeparableSystem):
         n = Q.shape[0]
         target = out.view()
         target.shape = (n, self.n_atoms, 3)    # raises rather than reshape into a copy
-        self.calc.forces_batch(Q.reshape(n, self.n_atoms, 3), self.atoms, out=target)
+        X = Q.reshape(n, self.n_atoms, 3)
+        self.calc.forces_batch(X, self.atoms, out=target)
         self.stage_evaluations += n
+        if self.constraints.any:
+            self.constraints.forces(X, target)
 
     def forces(self, Q: np.ndarray) -> np.ndarray:
         Q = np.asarray(Q, dtype=float)
@@ -89,7 +97,7 @@ class _AtomsSystem(SeparableSystem):
         lead = X.shape[:-2]
         X = X.reshape((-1, self.n_atoms, 3))
         if self.batched:
-            F = self.calc.forces_batch(X, self.atoms)
+            F = np.array(self.calc.forces_batch(X, self.atoms), dtype=float)
         else:
             # the real atoms object is moved to each stage (calculators may keep per-atoms
             # state); the step puts it back at the final positions afterwards
@@ -98,20 +106,24 @@ class _AtomsSystem(SeparableSystem):
                 self.atoms.set_positions(X[a], apply_constraint=False)
                 F[a] = self.calc.get_property("forces", self.atoms)
         self.stage_evaluations += X.shape[0]
-        if self.fixed.size:
-            F = F * self.free
+        if self.constraints.any:
+            self.constraints.forces(X, F)
         return F.reshape(lead + (self.dim,))
 
     def potential(self, q: np.ndarray):
         q = np.asarray(q, dtype=float)
+        terms = self.constraints.terms
         if q.ndim == 1:
             # one state (the step's energy check, at the new positions): on the atoms
             # themselves, so that the forces the step then asks there come from the cache (a
             # failed step puts the atoms and the calculator's results back, HBVMDynamics.step)
-            self.atoms.set_positions(q.reshape(self.n_atoms, 3), apply_constraint=False)
-            return float(self.calc.get_property("energy", self.atoms))
+            X = q.reshape(self.n_atoms, 3)
+            self.atoms.set_positions(X, apply_constraint=False)
+            v = float(self.calc.get_property("energy", self.atoms))
+            return v + float(terms.energy(X[None])[0]) if terms else v
         flat = q.reshape((-1, self.dim))
         work = self.atoms.copy()
+        work.set_constraint()
         work.calc = self.calc
         out = np.empty(len(flat))
         saved = (self.calc.atoms, dict(self.calc.results)) if hasattr(self.calc, "results") else None
@@ -120,6 +132,8 @@ class _AtomsSystem(SeparableSystem):
             out[a] = work.get_potential_energy()
         if saved is not None:
             self.calc.atoms, self.calc.results = saved
+        if terms:
+            out += terms.energy(flat.reshape(-1, self.n_atoms, 3))
         return out.reshape(q.shape[:-1]) if q.ndim > 1 else float(out[0])
 
 
@@ -128,13 +142,16 @@ class _AtomsSystemWithHessian(_AtomsSystem):
     e.g. :meth:`systems.PolynomialPairPotential.hessian`), used by the Newton solver."""
 
     def hessian(self, y: np.ndarray) -> np.ndarray:
-        """Jacobian (2m, 2m) of ``gradient`` at one state: [[d^2V/dq^2, 0], [0, M^-1]], with
-        the rows of fixed atoms zero (they feel no force)."""
+        """Jacobian (2m, 2m) of ``gradient`` at one state: [[d^2V/dq^2, 0], [0, M^-1]], the
+        rows of d^2V/dq^2 projected onto the linear constraints (d(P F)/dq = P dF/dq); the
+        energy terms' second derivatives are left out (the simplified Newton iteration
+        converges to the same step with an approximate matrix)."""
         y = np.asarray(y, dtype=float)
         m = self.dim
         H = np.zeros((2 * m, 2 * m))
         K = self.calc.hessian(y[:m].reshape(self.n_atoms, 3), self.atoms)
-        H[:m, :m] = K * np.repeat(self.free[:, 0], 3)[:, None]
+        proj = self.constraints.projector
+        H[:m, :m] = K if proj is None else proj.matrix() @ K
         H[np.arange(m, 2 * m), np.arange(m, 2 * m)] = 1.0 / self.masses
         return H
 
@@ -145,9 +162,13 @@ class HBVMDynamics(MolecularDynamics):
     Parameters
     ----------
     atoms : ase.Atoms
-        With a calculator.  Constraints: only :class:`ase.constraints.FixAtoms` (fixed atoms
-        keep zero displacement and zero momentum; their momenta are set to zero here); others
-        raise ``ValueError``.
+        With a calculator.  Constraints (:mod:`hbvm_md.ase.constraints`): the linear ones
+        (FixAtoms, FixCom, FixSubsetCom, FixedPlane, FixedLine, FixCartesian) by projection
+        of the stage forces and the momenta, kept to round-off, the momenta projected onto
+        them here (fixed atoms at rest, no centre-of-mass drift with FixCom); Hookean and
+        ExternalForce as terms of the energy, which is conserved with them.  Holonomic
+        constraints (FixBondLength(s), FixLinearTriatomic) and any other class raise
+        ``ValueError`` naming the class.
     timestep : float
         In ASE time units (e.g. ``2 * ase.units.fs``).
     s : int
@@ -225,9 +246,10 @@ class HBVMDynamics(MolecularDynamics):
         if method == "equip" and nodes != "gauss":
             raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}): "
                              f"EQUIP perturbs the Gauss method")
+        constraints = AtomsConstraints(atoms)      # refuses what the step cannot run
         if k is None:
             HBVM(s, s, nodes)   # validates s and nodes with their own messages
-            nu = getattr(atoms.calc, "polynomial_degree", None)
+            nu = None if constraints.terms else getattr(atoms.calc, "polynomial_degree", None)
             k = default_k(s, nu)
             why = (f"chosen: exact for the calculator's polynomial degree {nu}" if nu is not None
                    else "chosen: s + 1, the cheapest k for a non-polynomial calculator")
@@ -237,18 +259,15 @@ class HBVMDynamics(MolecularDynamics):
         _log.info("HBVMDynamics: %r, k=%d (%s), s=%d (order %d), solver=%s",
                   self.method, k, why, s, self.method.order, solver)
         self.solver = solver
-        fixed = self._fixed_indices(atoms)
         self._stepper = None
         self._system = None
         self._written = None
         self._stage_total = 0
         super().__init__(atoms, timestep, trajectory=trajectory, logfile=logfile,
                          loginterval=loginterval, **kwargs)
-        if fixed.size:
-            # fixed atoms carry no momentum, so that the first logged energy is the conserved one
-            p = atoms.get_momenta()
-            p[fixed] = 0.0
-            atoms.set_momenta(p, apply_constraint=False)
+        # the momenta on the constraints' subspace (fixed atoms at rest, no centre-of-mass
+        # drift with FixCom, ...), so that the first logged energy is the conserved one
+        self._project_momenta(atoms, constraints)
 
     @property
     def k(self) -> int:
@@ -270,15 +289,26 @@ class HBVMDynamics(MolecularDynamics):
 
     # -- state ---------------------------------------------------------------------------------
     @staticmethod
-    def _fixed_indices(atoms) -> np.ndarray:
-        fixed = []
-        for c in atoms.constraints:
-            if isinstance(c, FixAtoms):
-                fixed.extend(int(i) for i in c.get_indices())
-            else:
-                raise ValueError(f"HBVMDynamics supports only FixAtoms constraints (got "
-                                 f"{type(c).__name__}); remove it or use VelocityVerlet")
-        return np.array(sorted(set(fixed)), dtype=int)
+    def _project_momenta(atoms, constraints: AtomsConstraints) -> None:
+        """Write the momenta projected onto the linear constraints' subspace, when that
+        changes them (set_momenta without ASE's own adjustments: FixCom's is ours, FixedPlane's
+        has none)."""
+        if constraints.projector is None:
+            return
+        p = atoms.get_momenta()
+        q = constraints.momenta(p)
+        if not np.array_equal(p, q):
+            atoms.set_momenta(q, apply_constraint=False)
+
+    def _constraints(self, atoms) -> AtomsConstraints:
+        """The constraints as the step applies them, rebuilt only when they changed (a new
+        list, or one changed in place: :func:`hbvm_md.ase.constraints.signature`)."""
+        sys_ = self._system
+        if (sys_ is not None and sys_.atoms is atoms and sys_.n_atoms == len(atoms)
+                and sys_.constraints.key == signature(atoms.constraints)
+                and np.array_equal(sys_.masses, np.repeat(atoms.get_masses(), 3))):
+            return sys_.constraints
+        return AtomsConstraints(atoms)
 
     @staticmethod
     def _check_atoms(atoms) -> None:
@@ -324,7 +354,7 @@ class HBVMDynamics(MolecularDynamics):
         return (np.asarray(atoms.get_positions(), dtype=float).ravel(),
                 np.asarray(atoms.get_momenta(), dtype=float).ravel())
 
-    def _ensure_stepper(self, fixed: np.ndarray) -> Stepper:
+    def _ensure_stepper(self, constraints: AtomsConstraints) -> Stepper:
         atoms = self.atoms
         q, p = self._current_state()
         w = self._written
@@ -332,7 +362,7 @@ class HBVMDynamics(MolecularDynamics):
         fresh = (self._stepper is None or sys_ is None or sys_.calc is not atoms.calc
                  or sys_.n_atoms != len(atoms) or w is None
                  or not (np.array_equal(w[0], q) and np.array_equal(w[1], p))
-                 or not np.array_equal(w[2], fixed)
+                 or sys_.constraints is not constraints
                  or not np.array_equal(sys_.masses, np.repeat(atoms.get_masses(), 3)))
         if fresh:
             self._check_atoms(atoms)
@@ -340,8 +370,9 @@ class HBVMDynamics(MolecularDynamics):
                 self._stage_total += sys_.stage_evaluations
             batched = hasattr(atoms.calc, "forces_batch")
             kind = _AtomsSystemWithHessian if callable(getattr(atoms.calc, "hessian", None)) else _AtomsSystem
-            sys_ = kind(atoms, fixed, batched)
-            p = p.reshape(-1, 3) * sys_.free
+            sys_ = kind(atoms, constraints, batched)
+            self._project_momenta(atoms, constraints)
+            q, p = self._current_state()
             self._system = sys_
             self._stepper = Stepper(self.method, sys_, np.concatenate([q, p.ravel()]),
                                     solver=self.solver, form="separable")
@@ -356,8 +387,7 @@ class HBVMDynamics(MolecularDynamics):
         atoms = self.atoms
         if len(atoms) == 0:
             return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
-        fixed = self._fixed_indices(atoms)
-        st = self._ensure_stepper(fixed)
+        st = self._ensure_stepper(self._constraints(atoms))
         pos0 = atoms.get_positions()
         mom0 = atoms.get_momenta()
         calc = atoms.calc
@@ -392,5 +422,5 @@ class HBVMDynamics(MolecularDynamics):
             if isinstance(err, ConvergenceError):
                 raise self._in_fs(err) from None
             raise
-        self._written = (*self._current_state(), fixed)
+        self._written = self._current_state()
         return forces
