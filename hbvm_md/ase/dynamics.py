@@ -11,12 +11,13 @@ import copy
 import inspect
 import logging
 import re
+import warnings
 
 import numpy as np
 from ase import units
 from ase.md.md import MolecularDynamics
 
-from integrators import EQUIP, HBVM, ConvergenceError, Stepper
+from integrators import EQUIP, HBVM, ConvergenceError, Stepper, UnresolvedStepError
 from integrators.engine import check_step
 from systems.base import SeparableSystem
 
@@ -26,6 +27,17 @@ _log = logging.getLogger(__name__)
 
 # keyword arguments of ASE's thermostats and barostats: HBVMDynamics conserves energy (NVE)
 METHODS = ("hbvm", "equip")      # the integrators' family: integrators.HBVM, integrators.EQUIP
+#: H at a step's start and the reference the last step ended with differ by more than this
+#: (relative to |T| + |V|; both are computed by the same code and agree bit for bit when
+#: nothing changed): the calculator was changed in place
+CHANGED_H = 64 * np.finfo(float).eps
+
+
+class SolverSwitchWarning(RuntimeWarning):
+    """HBVMDynamics(solver="auto") did a step with Newton's method after the fixed-point
+    iteration failed; the message says why and what Newton costs with this calculator."""
+
+
 _ENSEMBLE_KWARGS = ("temperature_K", "temperature", "friction", "taut", "ttime", "pressure_au",
                     "pressure", "taup", "externalstress")
 
@@ -263,6 +275,7 @@ class HBVMDynamics(MolecularDynamics):
         self._system = None
         self._written = None
         self._stage_total = 0
+        self.hamiltonian_changes = 0
         super().__init__(atoms, timestep, trajectory=trajectory, logfile=logfile,
                          loginterval=loginterval, **kwargs)
         # the momenta on the constraints' subspace (fixed atoms at rest, no centre-of-mass
@@ -280,6 +293,26 @@ class HBVMDynamics(MolecularDynamics):
     @property
     def stage_evaluations(self) -> int:
         return self._stage_total + (self._system.stage_evaluations if self._system else 0)
+
+    @property
+    def solver_in_use(self) -> str:
+        """The iteration the next step starts with: "fixed_point" or "newton" (with
+        solver="auto", Newton after a fixed-point failure until fixed point converges again)."""
+        return self._stepper.solver if self._stepper is not None else (
+            "newton" if self.solver == "newton" else "fixed_point")
+
+    @property
+    def solver_switches(self) -> int:
+        """Steps that solver="auto" did with Newton after the fixed-point iteration failed
+        (each reported by a :class:`SolverSwitchWarning`), over this engine's life."""
+        return self._stepper.solver_switches if self._stepper is not None else 0
+
+    @property
+    def last_switch(self) -> dict | None:
+        """The last switch to Newton: ``t`` and ``h`` in fs, ``why`` in words; None before."""
+        sw = self._stepper.last_switch if self._stepper is not None else None
+        return None if sw is None else {"t": sw["t"] / units.fs, "h": sw["h"] / units.fs,
+                                        "why": sw["why"]}
 
     def todict(self) -> dict:
         d = super().todict()
@@ -346,7 +379,10 @@ class HBVMDynamics(MolecularDynamics):
         else:
             new = copy.copy(err)
         where = f"h={err.h / units.fs:.6g} fs" + ("" if err.t is None else f" at t={err.t / units.fs:.6g} fs")
-        new.args = (re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1),)
+        text = re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1)
+        # the method's own name (EQUIP's steps are not HBVM's), the timestep in ASE's words
+        text = re.sub(r"^HBVM step", f"{type(self.method).__name__} step", text)
+        new.args = (text.replace("use a smaller step", "use a smaller timestep"),)
         return new
 
     def _current_state(self):
@@ -388,6 +424,9 @@ class HBVMDynamics(MolecularDynamics):
         if len(atoms) == 0:
             return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
         st = self._ensure_stepper(self._constraints(atoms))
+        if self._hamiltonian_changed(st):
+            st = self._new_hamiltonian("the energy at the step's start no longer matches the "
+                                       "last step's")
         pos0 = atoms.get_positions()
         mom0 = atoms.get_momenta()
         calc = atoms.calc
@@ -398,6 +437,8 @@ class HBVMDynamics(MolecularDynamics):
                            for key, v in calc.results.items()})
         saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
+        switches = st.solver_switches
+        per_step = self.stage_evaluations / max(self.nsteps, 1)
         try:
             y = st.step(self.dt)
             n = len(atoms)
@@ -419,8 +460,72 @@ class HBVMDynamics(MolecularDynamics):
                 calc.atoms, calc.results = saved_calc
             else:
                 atoms.get_forces(md=True)
-            if isinstance(err, ConvergenceError):
+            if (isinstance(err, UnresolvedStepError) and saved_calc is not None
+                    and self._changed_under_cache(st, saved_calc)):
+                # calc.set(...) without calc.reset(): the cached results at the start were
+                # the old parameters'; the step again, fresh, with the new ones
+                self._new_hamiltonian("the calculator's results at the step's start, computed "
+                                      "again, no longer match the last step's energy")
+                return self.step()
+            if isinstance(err, (ConvergenceError, UnresolvedStepError)):
                 raise self._in_fs(err) from None
             raise
+        if st.solver_switches > switches:
+            self._warn_switch(st, per_step)
         self._written = self._current_state()
         return forces
+
+    # -- a Hamiltonian changed between steps, the solver policy --------------------------------
+    def _hamiltonian_changed(self, st: Stepper) -> bool:
+        """Does H at the engine's state (the calculator's energy now, plus the kinetic energy
+        and the constraints' terms) differ from the energy the last step ended with?  Both are
+        computed by the same code: bit for bit equal unless H changed (a calculator whose
+        parameters were set and reset, or replaced by one with other results)."""
+        ref = st.energy_reference
+        if not np.isfinite(ref):
+            return False
+        b = st.binding
+        T, V = b.step_code.energy_parts(b.full, st.y, b.kin_w, b.params)
+        return not abs(T + V - ref) <= CHANGED_H * (abs(T) + abs(V))
+
+    def _changed_under_cache(self, st: Stepper, saved_calc) -> bool:
+        """After a step refused for its energy change: is the calculator's energy at the
+        step's start, computed again (``calc.reset()``), other than the reference?  Then its
+        cached results were stale (``calc.set(...)`` alone keeps them).  If not, the cache is
+        put back as it was."""
+        calc = self.atoms.calc
+        if not callable(getattr(calc, "reset", None)):
+            return False
+        calc.reset()
+        try:
+            changed = self._hamiltonian_changed(st)
+        except Exception:
+            changed = False
+        if not changed:
+            calc.atoms, calc.results = saved_calc
+        return changed
+
+    def _new_hamiltonian(self, why: str) -> Stepper:
+        """A fresh engine at the current state for the new H (as a new HBVMDynamics would
+        start: the run goes on exactly as a fresh run on the new parameters)."""
+        self.hamiltonian_changes += 1
+        _log.info("HBVMDynamics: the Hamiltonian changed at t=%.6g fs (%s): the run goes on "
+                  "with the new one", self._stepper.t / units.fs, why)
+        self._stepper = None
+        return self._ensure_stepper(self._constraints(self.atoms))
+
+    def _warn_switch(self, st: Stepper, per_step: float) -> None:
+        sw = st.last_switch
+        n3 = 3 * len(self.atoms)
+        if isinstance(self._system, _AtomsSystemWithHessian):
+            cost = "its matrix comes from the calculator's exact Hessian, one call a step"
+        else:
+            cost = (f"its matrix comes from finite differences of the forces, {2 * n3} extra "
+                    f"force evaluations a step ({len(self.atoms)} atoms), against "
+                    f"{per_step:.0f} a step before")
+        warnings.warn(f"HBVMDynamics(solver='auto'): the step at t={sw['t'] / units.fs:.6g} fs "
+                      f"(h={sw['h'] / units.fs:.6g} fs) was done with Newton's method because "
+                      f"{sw['why']}; {cost}. Fixed point is tried again at the next step and "
+                      f"kept once it converges (switches so far: {st.solver_switches}; see "
+                      f"dyn.solver_in_use, dyn.solver_switches)", SolverSwitchWarning,
+                      stacklevel=3)
