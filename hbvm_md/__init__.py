@@ -16,7 +16,7 @@ from integrators import HBVM, ConvergenceError, UnresolvedStepError, integrate
 __version__ = "0.1.0"
 
 _LAZY = {
-    "HBVMDynamics": "hbvm_md.ase_dynamics",
+    "HBVMDynamics": "hbvm_md.ase",
     "compare_md": "hbvm_md.reports.md_comparison",
     "MDComparison": "hbvm_md.reports.md_comparison",
     "HBVMIntegrator": "hbvm_md.rebound",

@@ -39,6 +39,13 @@ DEFAULT_ENERGY_TOL = 1e-10
 NOT_A_SOLUTION = 0.1
 FORMS = ("auto", "full", "separable")
 MAX_ITER = {"fixed_point": 60, "newton": 30}
+#: solver="auto" after a switch to Newton: fixed point is tried again after this many Newton
+#: steps, the wait doubling after each try that fails, up to NEWTON_HOLD_MAX (a try that
+#: fails costs at most one fixed-point iteration's max_iter sweeps; a problem that stays stiff
+#: pays it once every NEWTON_HOLD_MAX steps)
+NEWTON_HOLD, NEWTON_HOLD_MAX = 1, 64
+_SWITCH_WHY = {DIVERGED: "the fixed-point iteration did not converge",
+               NOT_FINITE: "the fixed-point iteration met non-finite values (nan or inf)"}
 
 
 def _is_separable(system) -> bool:
@@ -509,8 +516,10 @@ class Stepper(Counted):
     solver : {"auto", "fixed_point", "newton"}
         ``"fixed_point"``: gamma <- P_s^T Omega f(stages(gamma)).  ``"newton"``: simplified Newton
         with the Gauss matrix I - h X_s (x) J0, J0 refreshed every step.  ``"auto"`` (default):
-        fixed point, switching to Newton for the rest of the run when a fixed-point iteration
-        fails (a stiff problem or a large step).
+        fixed point; a step whose fixed-point iteration fails (a stiff problem, a large step,
+        one bad force) is done with Newton, and fixed point is tried again after NEWTON_HOLD
+        Newton steps, the wait doubling after each try that fails (up to NEWTON_HOLD_MAX):
+        one transient failure costs one Newton step, a stiff problem stays with Newton.
     tol : float, optional
         Relative tolerance of the iteration; default None iterates to round-off.
     max_iter : int, optional
@@ -531,7 +540,13 @@ class Stepper(Counted):
     Attributes
     ----------
     t, y : current time and state (copies; the state is kept as a double-double number).
-    nsteps, nfev, niter, newton_steps, solver_switches : counters.
+    nsteps, nfev, niter, newton_steps, solver_switches : counters (``solver_switches``: the
+        switches from fixed point to Newton under solver="auto").
+    last_switch : dict or None
+        The last switch to Newton: ``t`` and ``h`` of the step, ``why`` (the fixed-point
+        failure, in words); None before any.
+    solver_returns : int
+        The times solver="auto" went back to fixed point after Newton.
     status : "running" after a step succeeded; "failed" after a step raised (a StepError or
         an exception from the system's own function), "interrupted" after KeyboardInterrupt or
         SystemExit; the state and time are those of the last committed step.
@@ -559,6 +574,11 @@ class Stepper(Counted):
         self.tol, self.max_iter = tol, max_iter
         self.energy_tol = energy_tol
         self.solver_switches = 0
+        self.solver_returns = 0
+        self.last_switch = None
+        # solver="auto" under Newton: steps done since the switch, and the wait before fixed
+        # point is tried again
+        self._newton_run, self._newton_hold = 0, NEWTON_HOLD
         self.rejected = 0
         self.status = "running"
 
@@ -591,6 +611,13 @@ class Stepper(Counted):
         """The solver the next step will use."""
         return self._solver
 
+    @property
+    def energy_reference(self) -> float:
+        """H at the end of the last committed step, as the next step's energy check compares
+        it (nan before the first step): a host compares it with H at the state it hands back
+        to see a Hamiltonian changed between steps (ASE's calculator set in place)."""
+        return float(self._eref[0])
+
     def step(self, h: float) -> np.ndarray:
         """Advance by one step of size h and return (a copy of) the new state.
 
@@ -598,10 +625,15 @@ class Stepper(Counted):
         UnresolvedStepError) with the state, time and coefficients unchanged when the step
         fails, also after the automatic switch to Newton."""
         h = check_step(h)
+        auto = self.solver_option == "auto"
+        # solver="auto" under Newton tries fixed point again once it has waited its hold
+        retry = auto and self._solver == "newton" and self._newton_run >= self._newton_hold
+        first = "fixed_point" if retry else self._solver
+        t0 = self.t
         try:
-            status = self._advance(h, self._solver)
-            switch = (status in (DIVERGED, NOT_FINITE) and self.solver_option == "auto"
-                      and self._solver == "fixed_point")
+            status = self._advance(h, first)
+            switch = status in (DIVERGED, NOT_FINITE) and auto and first == "fixed_point"
+            why = status
             if switch:
                 status = self._advance(h, "newton")
         except BaseException as err:        # the system's own function, numpy, Ctrl-C
@@ -610,10 +642,21 @@ class Stepper(Counted):
         if switch:
             if status != OK:
                 self._fail(status, h, "auto")
+            if retry:               # still stiff: wait twice as long before the next try
+                self._newton_hold = min(2 * self._newton_hold, NEWTON_HOLD_MAX)
+            else:
+                self.solver_switches += 1
+                self.last_switch = {"t": t0, "h": h, "why": _SWITCH_WHY[why]}
             self._solver = "newton"
-            self.solver_switches += 1
+            self._newton_run = 0
         elif status != OK:
             self._fail(status, h, self.solver_option)
+        elif retry:                 # fixed point converges again: back to it
+            self._solver = "fixed_point"
+            self._newton_hold = NEWTON_HOLD
+            self.solver_returns += 1
+        if self._solver == "newton":
+            self._newton_run += 1
         self._after_step(h)
         self.status = "running"
         return self._y.copy()
@@ -624,15 +667,16 @@ class Stepper(Counted):
         of a step failed after the engine's succeeded (ASE's forces at the new positions)."""
         return (self._y.copy(), self._cy.copy(), self._gamma.copy(), self._eref.copy(),
                 self._clock.copy(), self.counters.copy(), self._h_prev, self._solver,
-                self.solver_switches, self.rejected, self.status)
+                self.solver_switches, self.rejected, self.status, self.solver_returns,
+                self.last_switch, self._newton_run, self._newton_hold)
 
     def restore_state(self, saved: tuple) -> None:
         """Back to a :meth:`save_state` exactly (in place: the arrays keep their identity)."""
         for mine, kept in zip((self._y, self._cy, self._gamma, self._eref, self._clock,
                                self.counters), saved[:6]):
             mine[...] = kept
-        (self._h_prev, self._solver, self.solver_switches, self.rejected,
-         self.status) = saved[6:]
+        (self._h_prev, self._solver, self.solver_switches, self.rejected, self.status,
+         self.solver_returns, self.last_switch, self._newton_run, self._newton_hold) = saved[6:]
 
     def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
         """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
@@ -680,8 +724,11 @@ class Stepper(Counted):
                                    f"{steps} steps without a failure status")
             if done < steps and status != OK:
                 if self.solver_option == "auto" and status in (DIVERGED, NOT_FINITE):
-                    self._solver = "newton"          # for the rest of the run, as step() does
+                    # the failed step again with Newton, then as step() does
+                    self._solver = "newton"
+                    self._newton_run, self._newton_hold = 0, NEWTON_HOLD
                     self.solver_switches += 1
+                    self.last_switch = {"t": self.t, "h": h, "why": _SWITCH_WHY[status]}
                 else:
                     try:
                         self._fail(status, h, self.solver_option)

@@ -13,7 +13,7 @@ from ase.io import Trajectory
 from ase.md.verlet import VelocityVerlet
 
 from hbvm_md import HBVMDynamics
-from hbvm_md.ase_dynamics import default_k
+from hbvm_md.ase import default_k
 from hbvm_md.reports.md_comparison import default_cluster, maxwell_boltzmann
 from integrators import HBVM, ConvergenceError, NonFiniteError, integrate
 from systems import FPU, PolynomialPairPotential
@@ -141,12 +141,12 @@ def test_default_k_costs_half_of_s_plus_4_for_the_same_energy_error_on_emt():
 
 def test_chosen_k_and_s_are_visible_and_logged(caplog):
     atoms, calc = default_cluster(n_atoms=13)
-    with caplog.at_level("INFO", logger="hbvm_md.ase_dynamics"):
+    with caplog.at_level("INFO", logger="hbvm_md.ase.dynamics"):
         dyn = HBVMDynamics(atoms, 2 * units.fs, s=3)
     assert (dyn.k, dyn.s) == (6, 3) and dyn.todict()["k"] == 6
     assert "HBVM(6, 3), k=6 (chosen: exact for the calculator's polynomial degree 4), s=3" in caplog.text
     atoms.calc = EMT()
-    with caplog.at_level("INFO", logger="hbvm_md.ase_dynamics"):
+    with caplog.at_level("INFO", logger="hbvm_md.ase.dynamics"):
         HBVMDynamics(atoms, 2 * units.fs, s=2, k=3)
     assert "HBVM(3, 2), k=3 (given), s=2 (order 4)" in caplog.text
 
@@ -216,12 +216,14 @@ def test_other_constraints_are_refused():
     atoms = s22.create_s22_system("Water_dimer")
     atoms.calc = TIP3P(rc=9.0)
     atoms.set_constraint(FixBondLengths([(0, 1)]))
-    with pytest.raises(ValueError, match="only FixAtoms constraints \\(got FixBondLengths\\)"):
+    # (issue 35: the message names the holonomic constraint; was "only FixAtoms constraints
+    # (got FixBondLengths)" when every constraint but FixAtoms was refused)
+    with pytest.raises(ValueError, match="holonomic constraint FixBondLength yet"):
         HBVMDynamics(atoms, 1 * units.fs)
     atoms.set_constraint()
     dyn = HBVMDynamics(atoms, 1 * units.fs)
     atoms.set_constraint(FixBondLengths([(0, 1)]))     # added later: refused at the next step
-    with pytest.raises(ValueError, match="got FixBondLengths"):
+    with pytest.raises(ValueError, match="holonomic constraint FixBondLength yet"):
         dyn.run(1)
 
 

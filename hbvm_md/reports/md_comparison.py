@@ -163,7 +163,7 @@ def compare_md(atoms: Atoms, calculator=None, timesteps_fs=(1.0,),
     """
     from ase.md.verlet import VelocityVerlet
 
-    from ..ase_dynamics import HBVMDynamics
+    from ..ase import HBVMDynamics
     from .invariants import atoms_angular_momentum, change_series
 
     calc = atoms.calc if calculator is None else calculator

@@ -295,7 +295,7 @@ def scene_md_cluster(quick=False, k_info=None, bar=None):
     from ase.md.verlet import VelocityVerlet
     from ase import units
 
-    from ..ase_dynamics import HBVMDynamics
+    from ..ase import HBVMDynamics
     from .md_comparison import default_cluster
     from ase.md.velocitydistribution import MaxwellBoltzmannDistribution, Stationary
     atoms0, calc = default_cluster(20 if quick else 38)

@@ -11,20 +11,33 @@ import copy
 import inspect
 import logging
 import re
+import warnings
 
 import numpy as np
 from ase import units
-from ase.constraints import FixAtoms
 from ase.md.md import MolecularDynamics
 
-from integrators import EQUIP, HBVM, ConvergenceError, Stepper
+from integrators import EQUIP, HBVM, ConvergenceError, Stepper, UnresolvedStepError
 from integrators.engine import check_step
 from systems.base import SeparableSystem
+
+from .constraints import AtomsConstraints, signature
 
 _log = logging.getLogger(__name__)
 
 # keyword arguments of ASE's thermostats and barostats: HBVMDynamics conserves energy (NVE)
 METHODS = ("hbvm", "equip")      # the integrators' family: integrators.HBVM, integrators.EQUIP
+#: H at a step's start and the reference the last step ended with differ by more than this
+#: (relative to |T| + |V|; both are computed by the same code and agree bit for bit when
+#: nothing changed): the calculator was changed in place
+CHANGED_H = 64 * np.finfo(float).eps
+
+
+class SolverSwitchWarning(RuntimeWarning):
+    """HBVMDynamics(solver="auto") did a step with Newton's method after the fixed-point
+    iteration failed; the message says why and what Newton costs with this calculator."""
+
+
 _ENSEMBLE_KWARGS = ("temperature_K", "temperature", "friction", "taut", "ttime", "pressure_au",
                     "pressure", "taup", "externalstress")
 
@@ -48,31 +61,35 @@ def default_k(s: int, polynomial_degree: int | None) -> int:
 
 
 class _AtomsSystem(SeparableSystem):
-    """The atoms as a separable system (q, p flattened to (3N,)); fixed atoms feel no force."""
+    """The atoms as a separable system (q, p flattened to (3N,)); the forces are the
+    calculator's plus those of the constraints' energy terms, projected onto the linear
+    constraints' subspace (:class:`hbvm_md.ase.constraints.AtomsConstraints`)."""
 
     polynomial_degree = None
     rows_independent = True     # forces keeps the stage rows apart: no probe (2 calculator calls)
 
-    def __init__(self, atoms, fixed: np.ndarray, batched: bool):
+    def __init__(self, atoms, constraints: AtomsConstraints, batched: bool):
         self.atoms = atoms
         self.calc = atoms.calc
         self.n_atoms = len(atoms)
         self.dim = 3 * self.n_atoms
         self.masses = np.repeat(np.asarray(atoms.get_masses(), dtype=float), 3)
-        self.free = np.ones((self.n_atoms, 1))
-        self.free[fixed] = 0.0
-        self.fixed = np.asarray(fixed, dtype=int)
+        self.constraints = constraints
         self.batched = batched
         self.stage_evaluations = 0
         # a polynomial calculator's degree: the engine's default energy check is then strict
-        self.polynomial_degree = getattr(self.calc, "polynomial_degree", None)
+        # (linear constraints keep H polynomial on their subspace; Hookean and ExternalForce
+        # terms do not)
+        self.polynomial_degree = (None if constraints.terms
+                                  else getattr(self.calc, "polynomial_degree", None))
         # the engine writes the stage forces straight into its array when the calculator's
-        # forces_batch takes out= (PolynomialPairPotential's does) and no atom is fixed
+        # forces_batch takes out= (PolynomialPairPotential's does); the constraints then act
+        # on that array in place
         try:
             takes_out = batched and "out" in inspect.signature(self.calc.forces_batch).parameters
         except (TypeError, ValueError):
             takes_out = False
-        if takes_out and not self.fixed.size:
+        if takes_out:
             self.forces_into = self._forces_into
 
     def _forces_into(self, Q: np.ndarray, out: np.ndarray) -> None:
@@ -80,8 +97,11 @@ class _AtomsSystem(SeparableSystem):
         n = Q.shape[0]
         target = out.view()
         target.shape = (n, self.n_atoms, 3)    # raises rather than reshape into a copy
-        self.calc.forces_batch(Q.reshape(n, self.n_atoms, 3), self.atoms, out=target)
+        X = Q.reshape(n, self.n_atoms, 3)
+        self.calc.forces_batch(X, self.atoms, out=target)
         self.stage_evaluations += n
+        if self.constraints.any:
+            self.constraints.forces(X, target)
 
     def forces(self, Q: np.ndarray) -> np.ndarray:
         Q = np.asarray(Q, dtype=float)
@@ -89,7 +109,7 @@ class _AtomsSystem(SeparableSystem):
         lead = X.shape[:-2]
         X = X.reshape((-1, self.n_atoms, 3))
         if self.batched:
-            F = self.calc.forces_batch(X, self.atoms)
+            F = np.array(self.calc.forces_batch(X, self.atoms), dtype=float)
         else:
             # the real atoms object is moved to each stage (calculators may keep per-atoms
             # state); the step puts it back at the final positions afterwards
@@ -98,20 +118,24 @@ class _AtomsSystem(SeparableSystem):
                 self.atoms.set_positions(X[a], apply_constraint=False)
                 F[a] = self.calc.get_property("forces", self.atoms)
         self.stage_evaluations += X.shape[0]
-        if self.fixed.size:
-            F = F * self.free
+        if self.constraints.any:
+            self.constraints.forces(X, F)
         return F.reshape(lead + (self.dim,))
 
     def potential(self, q: np.ndarray):
         q = np.asarray(q, dtype=float)
+        terms = self.constraints.terms
         if q.ndim == 1:
             # one state (the step's energy check, at the new positions): on the atoms
             # themselves, so that the forces the step then asks there come from the cache (a
             # failed step puts the atoms and the calculator's results back, HBVMDynamics.step)
-            self.atoms.set_positions(q.reshape(self.n_atoms, 3), apply_constraint=False)
-            return float(self.calc.get_property("energy", self.atoms))
+            X = q.reshape(self.n_atoms, 3)
+            self.atoms.set_positions(X, apply_constraint=False)
+            v = float(self.calc.get_property("energy", self.atoms))
+            return v + float(terms.energy(X[None])[0]) if terms else v
         flat = q.reshape((-1, self.dim))
         work = self.atoms.copy()
+        work.set_constraint()
         work.calc = self.calc
         out = np.empty(len(flat))
         saved = (self.calc.atoms, dict(self.calc.results)) if hasattr(self.calc, "results") else None
@@ -120,6 +144,8 @@ class _AtomsSystem(SeparableSystem):
             out[a] = work.get_potential_energy()
         if saved is not None:
             self.calc.atoms, self.calc.results = saved
+        if terms:
+            out += terms.energy(flat.reshape(-1, self.n_atoms, 3))
         return out.reshape(q.shape[:-1]) if q.ndim > 1 else float(out[0])
 
 
@@ -128,13 +154,16 @@ class _AtomsSystemWithHessian(_AtomsSystem):
     e.g. :meth:`systems.PolynomialPairPotential.hessian`), used by the Newton solver."""
 
     def hessian(self, y: np.ndarray) -> np.ndarray:
-        """Jacobian (2m, 2m) of ``gradient`` at one state: [[d^2V/dq^2, 0], [0, M^-1]], with
-        the rows of fixed atoms zero (they feel no force)."""
+        """Jacobian (2m, 2m) of ``gradient`` at one state: [[d^2V/dq^2, 0], [0, M^-1]], the
+        rows of d^2V/dq^2 projected onto the linear constraints (d(P F)/dq = P dF/dq); the
+        energy terms' second derivatives are left out (the simplified Newton iteration
+        converges to the same step with an approximate matrix)."""
         y = np.asarray(y, dtype=float)
         m = self.dim
         H = np.zeros((2 * m, 2 * m))
         K = self.calc.hessian(y[:m].reshape(self.n_atoms, 3), self.atoms)
-        H[:m, :m] = K * np.repeat(self.free[:, 0], 3)[:, None]
+        proj = self.constraints.projector
+        H[:m, :m] = K if proj is None else proj.matrix() @ K
         H[np.arange(m, 2 * m), np.arange(m, 2 * m)] = 1.0 / self.masses
         return H
 
@@ -145,9 +174,13 @@ class HBVMDynamics(MolecularDynamics):
     Parameters
     ----------
     atoms : ase.Atoms
-        With a calculator.  Constraints: only :class:`ase.constraints.FixAtoms` (fixed atoms
-        keep zero displacement and zero momentum; their momenta are set to zero here); others
-        raise ``ValueError``.
+        With a calculator.  Constraints (:mod:`hbvm_md.ase.constraints`): the linear ones
+        (FixAtoms, FixCom, FixSubsetCom, FixedPlane, FixedLine, FixCartesian) by projection
+        of the stage forces and the momenta, kept to round-off, the momenta projected onto
+        them here (fixed atoms at rest, no centre-of-mass drift with FixCom); Hookean and
+        ExternalForce as terms of the energy, which is conserved with them.  Holonomic
+        constraints (FixBondLength(s), FixLinearTriatomic) and any other class raise
+        ``ValueError`` naming the class.
     timestep : float
         In ASE time units (e.g. ``2 * ase.units.fs``).
     s : int
@@ -225,9 +258,10 @@ class HBVMDynamics(MolecularDynamics):
         if method == "equip" and nodes != "gauss":
             raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}): "
                              f"EQUIP perturbs the Gauss method")
+        constraints = AtomsConstraints(atoms)      # refuses what the step cannot run
         if k is None:
             HBVM(s, s, nodes)   # validates s and nodes with their own messages
-            nu = getattr(atoms.calc, "polynomial_degree", None)
+            nu = None if constraints.terms else getattr(atoms.calc, "polynomial_degree", None)
             k = default_k(s, nu)
             why = (f"chosen: exact for the calculator's polynomial degree {nu}" if nu is not None
                    else "chosen: s + 1, the cheapest k for a non-polynomial calculator")
@@ -237,18 +271,16 @@ class HBVMDynamics(MolecularDynamics):
         _log.info("HBVMDynamics: %r, k=%d (%s), s=%d (order %d), solver=%s",
                   self.method, k, why, s, self.method.order, solver)
         self.solver = solver
-        fixed = self._fixed_indices(atoms)
         self._stepper = None
         self._system = None
         self._written = None
         self._stage_total = 0
+        self.hamiltonian_changes = 0
         super().__init__(atoms, timestep, trajectory=trajectory, logfile=logfile,
                          loginterval=loginterval, **kwargs)
-        if fixed.size:
-            # fixed atoms carry no momentum, so that the first logged energy is the conserved one
-            p = atoms.get_momenta()
-            p[fixed] = 0.0
-            atoms.set_momenta(p, apply_constraint=False)
+        # the momenta on the constraints' subspace (fixed atoms at rest, no centre-of-mass
+        # drift with FixCom, ...), so that the first logged energy is the conserved one
+        self._project_momenta(atoms, constraints)
 
     @property
     def k(self) -> int:
@@ -262,6 +294,26 @@ class HBVMDynamics(MolecularDynamics):
     def stage_evaluations(self) -> int:
         return self._stage_total + (self._system.stage_evaluations if self._system else 0)
 
+    @property
+    def solver_in_use(self) -> str:
+        """The iteration the next step starts with: "fixed_point" or "newton" (with
+        solver="auto", Newton after a fixed-point failure until fixed point converges again)."""
+        return self._stepper.solver if self._stepper is not None else (
+            "newton" if self.solver == "newton" else "fixed_point")
+
+    @property
+    def solver_switches(self) -> int:
+        """Steps that solver="auto" did with Newton after the fixed-point iteration failed
+        (each reported by a :class:`SolverSwitchWarning`), over this engine's life."""
+        return self._stepper.solver_switches if self._stepper is not None else 0
+
+    @property
+    def last_switch(self) -> dict | None:
+        """The last switch to Newton: ``t`` and ``h`` in fs, ``why`` in words; None before."""
+        sw = self._stepper.last_switch if self._stepper is not None else None
+        return None if sw is None else {"t": sw["t"] / units.fs, "h": sw["h"] / units.fs,
+                                        "why": sw["why"]}
+
     def todict(self) -> dict:
         d = super().todict()
         d.update({"method": repr(self.method), "k": self.k, "s": self.s,
@@ -270,15 +322,26 @@ class HBVMDynamics(MolecularDynamics):
 
     # -- state ---------------------------------------------------------------------------------
     @staticmethod
-    def _fixed_indices(atoms) -> np.ndarray:
-        fixed = []
-        for c in atoms.constraints:
-            if isinstance(c, FixAtoms):
-                fixed.extend(int(i) for i in c.get_indices())
-            else:
-                raise ValueError(f"HBVMDynamics supports only FixAtoms constraints (got "
-                                 f"{type(c).__name__}); remove it or use VelocityVerlet")
-        return np.array(sorted(set(fixed)), dtype=int)
+    def _project_momenta(atoms, constraints: AtomsConstraints) -> None:
+        """Write the momenta projected onto the linear constraints' subspace, when that
+        changes them (set_momenta without ASE's own adjustments: FixCom's is ours, FixedPlane's
+        has none)."""
+        if constraints.projector is None:
+            return
+        p = atoms.get_momenta()
+        q = constraints.momenta(p)
+        if not np.array_equal(p, q):
+            atoms.set_momenta(q, apply_constraint=False)
+
+    def _constraints(self, atoms) -> AtomsConstraints:
+        """The constraints as the step applies them, rebuilt only when they changed (a new
+        list, or one changed in place: :func:`hbvm_md.ase.constraints.signature`)."""
+        sys_ = self._system
+        if (sys_ is not None and sys_.atoms is atoms and sys_.n_atoms == len(atoms)
+                and sys_.constraints.key == signature(atoms.constraints)
+                and np.array_equal(sys_.masses, np.repeat(atoms.get_masses(), 3))):
+            return sys_.constraints
+        return AtomsConstraints(atoms)
 
     @staticmethod
     def _check_atoms(atoms) -> None:
@@ -316,7 +379,10 @@ class HBVMDynamics(MolecularDynamics):
         else:
             new = copy.copy(err)
         where = f"h={err.h / units.fs:.6g} fs" + ("" if err.t is None else f" at t={err.t / units.fs:.6g} fs")
-        new.args = (re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1),)
+        text = re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1)
+        # the method's own name (EQUIP's steps are not HBVM's), the timestep in ASE's words
+        text = re.sub(r"^HBVM step", f"{type(self.method).__name__} step", text)
+        new.args = (text.replace("use a smaller step", "use a smaller timestep"),)
         return new
 
     def _current_state(self):
@@ -324,7 +390,7 @@ class HBVMDynamics(MolecularDynamics):
         return (np.asarray(atoms.get_positions(), dtype=float).ravel(),
                 np.asarray(atoms.get_momenta(), dtype=float).ravel())
 
-    def _ensure_stepper(self, fixed: np.ndarray) -> Stepper:
+    def _ensure_stepper(self, constraints: AtomsConstraints) -> Stepper:
         atoms = self.atoms
         q, p = self._current_state()
         w = self._written
@@ -332,7 +398,7 @@ class HBVMDynamics(MolecularDynamics):
         fresh = (self._stepper is None or sys_ is None or sys_.calc is not atoms.calc
                  or sys_.n_atoms != len(atoms) or w is None
                  or not (np.array_equal(w[0], q) and np.array_equal(w[1], p))
-                 or not np.array_equal(w[2], fixed)
+                 or sys_.constraints is not constraints
                  or not np.array_equal(sys_.masses, np.repeat(atoms.get_masses(), 3)))
         if fresh:
             self._check_atoms(atoms)
@@ -340,8 +406,9 @@ class HBVMDynamics(MolecularDynamics):
                 self._stage_total += sys_.stage_evaluations
             batched = hasattr(atoms.calc, "forces_batch")
             kind = _AtomsSystemWithHessian if callable(getattr(atoms.calc, "hessian", None)) else _AtomsSystem
-            sys_ = kind(atoms, fixed, batched)
-            p = p.reshape(-1, 3) * sys_.free
+            sys_ = kind(atoms, constraints, batched)
+            self._project_momenta(atoms, constraints)
+            q, p = self._current_state()
             self._system = sys_
             self._stepper = Stepper(self.method, sys_, np.concatenate([q, p.ravel()]),
                                     solver=self.solver, form="separable")
@@ -356,8 +423,10 @@ class HBVMDynamics(MolecularDynamics):
         atoms = self.atoms
         if len(atoms) == 0:
             return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
-        fixed = self._fixed_indices(atoms)
-        st = self._ensure_stepper(fixed)
+        st = self._ensure_stepper(self._constraints(atoms))
+        if self._hamiltonian_changed(st):
+            st = self._new_hamiltonian("the energy at the step's start no longer matches the "
+                                       "last step's")
         pos0 = atoms.get_positions()
         mom0 = atoms.get_momenta()
         calc = atoms.calc
@@ -368,6 +437,8 @@ class HBVMDynamics(MolecularDynamics):
                            for key, v in calc.results.items()})
         saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
+        switches = st.solver_switches
+        per_step = self.stage_evaluations / max(self.nsteps, 1)
         try:
             y = st.step(self.dt)
             n = len(atoms)
@@ -389,8 +460,72 @@ class HBVMDynamics(MolecularDynamics):
                 calc.atoms, calc.results = saved_calc
             else:
                 atoms.get_forces(md=True)
-            if isinstance(err, ConvergenceError):
+            if (isinstance(err, UnresolvedStepError) and saved_calc is not None
+                    and self._changed_under_cache(st, saved_calc)):
+                # calc.set(...) without calc.reset(): the cached results at the start were
+                # the old parameters'; the step again, fresh, with the new ones
+                self._new_hamiltonian("the calculator's results at the step's start, computed "
+                                      "again, no longer match the last step's energy")
+                return self.step()
+            if isinstance(err, (ConvergenceError, UnresolvedStepError)):
                 raise self._in_fs(err) from None
             raise
-        self._written = (*self._current_state(), fixed)
+        if st.solver_switches > switches:
+            self._warn_switch(st, per_step)
+        self._written = self._current_state()
         return forces
+
+    # -- a Hamiltonian changed between steps, the solver policy --------------------------------
+    def _hamiltonian_changed(self, st: Stepper) -> bool:
+        """Does H at the engine's state (the calculator's energy now, plus the kinetic energy
+        and the constraints' terms) differ from the energy the last step ended with?  Both are
+        computed by the same code: bit for bit equal unless H changed (a calculator whose
+        parameters were set and reset, or replaced by one with other results)."""
+        ref = st.energy_reference
+        if not np.isfinite(ref):
+            return False
+        b = st.binding
+        T, V = b.step_code.energy_parts(b.full, st.y, b.kin_w, b.params)
+        return not abs(T + V - ref) <= CHANGED_H * (abs(T) + abs(V))
+
+    def _changed_under_cache(self, st: Stepper, saved_calc) -> bool:
+        """After a step refused for its energy change: is the calculator's energy at the
+        step's start, computed again (``calc.reset()``), other than the reference?  Then its
+        cached results were stale (``calc.set(...)`` alone keeps them).  If not, the cache is
+        put back as it was."""
+        calc = self.atoms.calc
+        if not callable(getattr(calc, "reset", None)):
+            return False
+        calc.reset()
+        try:
+            changed = self._hamiltonian_changed(st)
+        except Exception:
+            changed = False
+        if not changed:
+            calc.atoms, calc.results = saved_calc
+        return changed
+
+    def _new_hamiltonian(self, why: str) -> Stepper:
+        """A fresh engine at the current state for the new H (as a new HBVMDynamics would
+        start: the run goes on exactly as a fresh run on the new parameters)."""
+        self.hamiltonian_changes += 1
+        _log.info("HBVMDynamics: the Hamiltonian changed at t=%.6g fs (%s): the run goes on "
+                  "with the new one", self._stepper.t / units.fs, why)
+        self._stepper = None
+        return self._ensure_stepper(self._constraints(self.atoms))
+
+    def _warn_switch(self, st: Stepper, per_step: float) -> None:
+        sw = st.last_switch
+        n3 = 3 * len(self.atoms)
+        if isinstance(self._system, _AtomsSystemWithHessian):
+            cost = "its matrix comes from the calculator's exact Hessian, one call a step"
+        else:
+            cost = (f"its matrix comes from finite differences of the forces, {2 * n3} extra "
+                    f"force evaluations a step ({len(self.atoms)} atoms), against "
+                    f"{per_step:.0f} a step before")
+        warnings.warn(f"HBVMDynamics(solver='auto'): the step at t={sw['t'] / units.fs:.6g} fs "
+                      f"(h={sw['h'] / units.fs:.6g} fs) was done with Newton's method because "
+                      f"{sw['why']}; {cost}. Fixed point is tried again at the next step and "
+                      f"kept once it converges (switches so far: {st.solver_switches}; see "
+                      f"dyn.solver_in_use, dyn.solver_switches)", SolverSwitchWarning,
+                      stacklevel=3)
