@@ -31,12 +31,21 @@ SOLVERS = ("auto", "fixed_point", "newton")
 #: k changes it by about 1e-16 a step; 1e-10 leaves room for the rounding of H itself.
 DEFAULT_ENERGY_TOL = 1e-10
 #: ... and of a method not exact for H, whose own energy error has no computable bound: a step
-#: that changes H by more than this fraction of |T| + |V| and more than the energy it moved
-#: between the terms of H (:func:`integrators.core.energy_flow`) is refused.  A coarse step's
-#: own error stays below it (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3; on Kepler
-#: e = 0.6 at 50 steps a period: 2e-2); a spurious root lands far beyond it (HBVM(6, 3) on
-#: Kepler at h = 1e6: an escaping state 1.25 (|T| + |V|) off).
-NOT_A_SOLUTION = 0.1
+#: (s >= 2) that changes H by more than this fraction of |T| + |V| and by more than
+#: :data:`integrators.core.FLOW_FRACTION` (1e-3; 1e-2 for s = 2) of the energy it moved between the terms of H
+#: (:func:`integrators.core.energy_flow`) is refused: it flew past what it should have resolved
+#: (Kepler e = 0.999, HBVM(8, 4) at 1000 steps a period took E from -0.5 to +441.9 in its first
+#: step from pericentre, and "finished"), or converged to a spurious root (HBVM(6, 3) on Kepler
+#: at h = 1e6: an escaping state 1.25 (|T| + |V|) off).  A step that resolves its path keeps
+#: its quadrature error far below that fraction of the flow (Gauss s = 2 on Kepler e = 0.6 at
+#: 50 steps a period: 1e-5 a step).  This floor only keeps the flow's cost off steps whose error
+#: is at round-off or near it.
+NOT_A_SOLUTION = 1e-6
+#: ... and for s = 1 (a constant force polynomial, order 2), whose error at a coarse step is of
+#: the order of the flow itself (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3 of |T| + |V|,
+#: above the energy its one stage moves): a change above this fraction that also exceeds all of
+#: the flow is refused.
+NOT_A_SOLUTION_S1 = 0.1
 FORMS = ("auto", "full", "separable")
 MAX_ITER = {"fixed_point": 60, "newton": 30}
 
@@ -153,9 +162,11 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
     host's ``choose_k`` / ``adaptive_k``), +DEFAULT_ENERGY_TOL, a step changing H by more than
     round-off is refused (an unresolved close encounter, a spurious root); otherwise
     -NOT_A_SOLUTION, a change above that fraction of |T| + |V| is refused when it also exceeds
-    the energy the step moved between the terms of H (:func:`integrators.core.energy_flow`):
-    a state that is not a solution (the Kepler problem at h = 1e6 converges to a state 1.25
-    (|T| + |V|) off), where the method's own error passes.  A number: that tolerance,
+    ``core.FLOW_FRACTION`` of the energy the step moved between the terms of H
+    (:func:`integrators.core.energy_flow`): a step that flew past a pericentre it did not
+    resolve, or a state that is not a solution (the Kepler problem at h = 1e6 converges to a
+    state 1.25 (|T| + |V|) off), where the method's own error passes (for s = 1,
+    -NOT_A_SOLUTION_S1 against all of the flow).  A number: that tolerance,
     strictly.  None: 0, no check."""
     if energy_tol is None:
         return 0.0
@@ -164,7 +175,9 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
         exact = (nu is not None and tol is None
                  and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
                                                                      method.nodes).k)
-        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -NOT_A_SOLUTION
+        if exact or (round_off_k and tol is None):
+            return DEFAULT_ENERGY_TOL
+        return -NOT_A_SOLUTION if method.s > 1 else -NOT_A_SOLUTION_S1
     if (isinstance(energy_tol, (bool, str)) or not isinstance(energy_tol, (int, float, np.number))
             or not (np.isfinite(energy_tol) and energy_tol > 0)):
         raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
@@ -524,9 +537,10 @@ class Stepper(Counted):
         Refuse a converged step whose energy change, relative to |T| + |V|, exceeds this
         (:class:`integrators.UnresolvedStepError`, nothing committed); None: no check.
         "auto" (default, :func:`energy_check`): DEFAULT_ENERGY_TOL (1e-10) for a method exact
-        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (0.1) that
-        also exceeds the energy the step moved between the terms of H is refused (a state that
-        is not a solution), and the method's own quadrature error passes.
+        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (1e-6) that
+        also exceeds 1e-3 (s = 2: 1e-2) of the energy the step moved between the terms of H is refused (a
+        step too large for the encounter it crosses, a state that is not a solution), and the
+        method's own quadrature error passes (s = 1: above 0.1 and all of that energy).
 
     Attributes
     ----------
