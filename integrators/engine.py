@@ -47,6 +47,11 @@ NOT_A_SOLUTION = 1e-6
 #: the flow is refused.
 NOT_A_SOLUTION_S1 = 0.1
 FORMS = ("auto", "full", "separable")
+#: a compiled fixed-step run returns to the interpreter about this often (seconds), so that
+#: Ctrl-C is honoured within it (:meth:`Stepper._run_chunks`); a chunk grows at most
+#: CHUNK_GROWTH times over the last
+CHUNK_SECONDS = 0.1
+CHUNK_GROWTH = 8
 MAX_ITER = {"fixed_point": 60, "newton": 30}
 
 
@@ -651,7 +656,9 @@ class Stepper(Counted):
     def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
         """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
 
-        Fixed-point steps run in one call of the step loop (compiled when the kernels are);
+        Fixed-point steps run in calls of the step loop (compiled when the kernels are) of
+        about CHUNK_SECONDS each, so that Ctrl-C stops the run within that time with the
+        committed steps in the exception's ``result`` (the numbers are those of one call);
         on failure with solver="auto" the run goes on with Newton.  A failure raises with the
         samples so far in the exception's ``result``."""
         h = check_step(h)
@@ -678,15 +685,8 @@ class Stepper(Counted):
     def _run(self, h, steps, sample_every, start, t_start, out_t, out_y, out_e):
         b = self.binding
         if self._solver == "fixed_point":
-            E = self._extrapolation(h, self._h_prev)
-            b.step_code.run(b.full, self._y, self._cy, b.minv, b.kin_w,
-                            b.params, h, E, self._gamma, b.c1, b.c2, *b.no_newton,
-                            self._max_iter("fixed_point"), float(self.tol or 0.0),
-                            self._etol, self._eref,
-                            self.counters, b.work, b.cwork, steps, sample_every, self._clock, out_t, out_y, out_e)
+            self._run_chunks(h, steps, sample_every, start, out_t, out_y, out_e)
             done = self.nsteps - start
-            if done > 0:
-                self._h_prev = h
             k = done // sample_every + 1
             status = int(self.counters[C_STATUS])
             if done < steps and status == OK:     # the step loop's contract, checked
@@ -717,6 +717,49 @@ class Stepper(Counted):
                                       "failed", str(err))
             raise
         return self._result(out_t, out_y, out_e, h, t_start, "finished", "")
+
+    def _run_chunks(self, h, steps, sample_every, start, out_t, out_y, out_e) -> None:
+        """The fixed-point steps of :meth:`run` through the step loop, in chunks of about
+        CHUNK_SECONDS each: between two calls the interpreter runs its signal handlers, so
+        that Ctrl-C stops a compiled run within a chunk (a compiled loop never returns to
+        it), with every committed step kept.  The numbers are those of one call bit for bit:
+        each chunk continues from the state, coefficients, energy reference and clock the last
+        left (the same E throughout, as one call uses), and a chunk starting on a sample writes
+        that sample again, the same numbers; a chunk that starts between two samples (a chunk
+        shorter than ``sample_every``) ends at the next one, which is written here with the
+        loop's own energy function.  Stops at the first failed step (its status in the
+        counters)."""
+        b = self.binding
+        E = self._extrapolation(h, self._h_prev)
+        args = (b.full, self._y, self._cy, b.minv, b.kin_w, b.params, h, E, self._gamma,
+                b.c1, b.c2, *b.no_newton, self._max_iter("fixed_point"), float(self.tol or 0.0),
+                self._etol, self._eref, self.counters, b.work, b.cwork)
+        done, chunk = 0, 1
+        while True:
+            end = min(steps, done + chunk)
+            aligned = done % sample_every == 0
+            if not aligned:
+                end = min(end, (done // sample_every + 1) * sample_every)
+            i = done // sample_every if aligned else 0
+            every, n_out = (sample_every, out_t.shape[0]) if aligned else (0, 0)
+            t0 = time.perf_counter()
+            b.step_code.run(*args, end - done, every, self._clock, out_t[i:i + n_out],
+                            out_y[i:i + n_out], out_e[i:i + n_out])
+            took = time.perf_counter() - t0
+            if self.nsteps > start:
+                self._h_prev = h
+            if self.nsteps - start < end:          # a failed step
+                return
+            if not aligned and end % sample_every == 0:
+                j = end // sample_every
+                out_t[j], out_y[j] = self.t, self._y
+                out_e[j] = b.energy(self._y)
+            done = end
+            if done >= steps:
+                return
+            # the next chunk aims at CHUNK_SECONDS, growing at most CHUNK_GROWTH times (the
+            # first is one step: a step of 1e5 atoms can take a fifth of a second)
+            chunk = max(1, min(CHUNK_GROWTH * chunk, int(chunk * CHUNK_SECONDS / max(took, 1e-9))))
 
     def step_adaptive(self, h: float, epsilon: float, min_dt: float) -> tuple[float, float]:
         """One adaptive step: try h, and on rejection (the error estimate from the step's own
