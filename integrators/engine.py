@@ -980,7 +980,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
               solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
               tol: float | None = None, max_iter: int | None = None, form: str = "auto",
               energy_tol: float | str | None = "auto", *, adaptive: bool = False,
-              t_end: float | None = None, epsilon: float = DEFAULT_EPSILON,
+              t_end: float | None = None, epsilon: float | None = None,
               min_dt: float | None = None, sample_times=None, variational=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
     ``adaptive=True`` from t0 to ``t_end`` with h the first step.
@@ -1013,8 +1013,12 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         enough: :func:`integrators.kchoice.adaptive_k`).  The
         default, 1e-3 for s = 6, gives IAS15's energy and position error on the outer solar
         system in about 0.6 of its time (``benchmarks/bench_defaults.py``).
+        The default (None) is DEFAULT_EPSILON.
     t_end, sample_times
         Adaptive runs end exactly at t_end and also land exactly on each of sample_times.
+        A fixed-step run (``adaptive=False``) takes ``steps`` and ``sample_every`` instead:
+        ``t_end``, ``sample_times``, ``epsilon`` and ``min_dt`` given to it are refused with
+        a ValueError naming the argument (they would be ignored).
     variational : array_like, shape (2m,) or (nv, 2m), optional
         Initial tangent vectors, carried by the Jacobian of each step; the result's ``extra``
         then holds them at the samples and the MEGNO (:mod:`integrators.variational`).
@@ -1044,10 +1048,23 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         t0f = check_real("t0", t0, "a finite number")
         t_end = check_real("t_end", t_end, "a finite time other than t0 with adaptive=True",
                            lambda x: x != t0f)
-        epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
+        epsilon, min_dt = check_adaptive(DEFAULT_EPSILON if epsilon is None else epsilon,
+                                         min_dt, method.s)
         sample_every = check_count("sample_every", sample_every, 1)
         st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
         return st.run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
+    for name, value, fix in (
+            ("t_end", t_end, "give steps = round((t_end - t0) / h), or adaptive=True to end "
+                             "exactly at t_end"),
+            ("sample_times", sample_times, "give sample_every (samples every that many "
+                                           "steps), or adaptive=True to land on each time"),
+            ("epsilon", epsilon, "it sets the precision of adaptive steps: pass adaptive=True, "
+                                 "or leave it out for fixed steps of size h"),
+            ("min_dt", min_dt, "it bounds adaptive steps: pass adaptive=True, or leave it out "
+                               "for fixed steps of size h")):
+        if value is not None:
+            raise ValueError(f"`{name}` is an option of adaptive runs; a fixed-step run "
+                             f"(adaptive=False) would ignore it (got {name}={value!r}): {fix}")
     if steps is None:
         raise ValueError("`steps` is required without adaptive=True")
     steps = check_count("steps", steps, 0)
