@@ -734,7 +734,10 @@ class Stepper(Counted):
         args = (b.full, self._y, self._cy, b.minv, b.kin_w, b.params, h, E, self._gamma,
                 b.c1, b.c2, *b.no_newton, self._max_iter("fixed_point"), float(self.tol or 0.0),
                 self._etol, self._eref, self.counters, b.work, b.cwork)
-        done, chunk = 0, 1
+        # the Python step (a user's system, fast=False) returns to the interpreter all the
+        # time: one call, so that its kernels see the calls of one run (no sample written
+        # twice)
+        done, chunk = 0, (1 if b.kind == "compiled" else max(steps, 1))
         while True:
             end = min(steps, done + chunk)
             aligned = done % sample_every == 0
