@@ -31,13 +31,27 @@ SOLVERS = ("auto", "fixed_point", "newton")
 #: k changes it by about 1e-16 a step; 1e-10 leaves room for the rounding of H itself.
 DEFAULT_ENERGY_TOL = 1e-10
 #: ... and of a method not exact for H, whose own energy error has no computable bound: a step
-#: that changes H by more than this fraction of |T| + |V| and more than the energy it moved
-#: between the terms of H (:func:`integrators.core.energy_flow`) is refused.  A coarse step's
-#: own error stays below it (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3; on Kepler
-#: e = 0.6 at 50 steps a period: 2e-2); a spurious root lands far beyond it (HBVM(6, 3) on
-#: Kepler at h = 1e6: an escaping state 1.25 (|T| + |V|) off).
-NOT_A_SOLUTION = 0.1
+#: (s >= 2) that changes H by more than this fraction of |T| + |V| and by more than
+#: :data:`integrators.core.FLOW_FRACTION` (1e-3; 1e-2 for s = 2) of the energy it moved between the terms of H
+#: (:func:`integrators.core.energy_flow`) is refused: it flew past what it should have resolved
+#: (Kepler e = 0.999, HBVM(8, 4) at 1000 steps a period took E from -0.5 to +441.9 in its first
+#: step from pericentre, and "finished"), or converged to a spurious root (HBVM(6, 3) on Kepler
+#: at h = 1e6: an escaping state 1.25 (|T| + |V|) off).  A step that resolves its path keeps
+#: its quadrature error far below that fraction of the flow (Gauss s = 2 on Kepler e = 0.6 at
+#: 50 steps a period: 1e-5 a step).  This floor only keeps the flow's cost off steps whose error
+#: is at round-off or near it.
+NOT_A_SOLUTION = 1e-6
+#: ... and for s = 1 (a constant force polynomial, order 2), whose error at a coarse step is of
+#: the order of the flow itself (the midpoint rule on Henon-Heiles at h = 0.5: 6e-3 of |T| + |V|,
+#: above the energy its one stage moves): a change above this fraction that also exceeds all of
+#: the flow is refused.
+NOT_A_SOLUTION_S1 = 0.1
 FORMS = ("auto", "full", "separable")
+#: a compiled fixed-step run returns to the interpreter about this often (seconds), so that
+#: Ctrl-C is honoured within it (:meth:`Stepper._run_chunks`); a chunk grows at most
+#: CHUNK_GROWTH times over the last
+CHUNK_SECONDS = 0.1
+CHUNK_GROWTH = 8
 MAX_ITER = {"fixed_point": 60, "newton": 30}
 #: solver="auto" after a switch to Newton: fixed point is tried again after this many Newton
 #: steps, the wait doubling after each try that fails, up to NEWTON_HOLD_MAX (a try that
@@ -160,9 +174,11 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
     host's ``choose_k`` / ``adaptive_k``), +DEFAULT_ENERGY_TOL, a step changing H by more than
     round-off is refused (an unresolved close encounter, a spurious root); otherwise
     -NOT_A_SOLUTION, a change above that fraction of |T| + |V| is refused when it also exceeds
-    the energy the step moved between the terms of H (:func:`integrators.core.energy_flow`):
-    a state that is not a solution (the Kepler problem at h = 1e6 converges to a state 1.25
-    (|T| + |V|) off), where the method's own error passes.  A number: that tolerance,
+    ``core.FLOW_FRACTION`` of the energy the step moved between the terms of H
+    (:func:`integrators.core.energy_flow`): a step that flew past a pericentre it did not
+    resolve, or a state that is not a solution (the Kepler problem at h = 1e6 converges to a
+    state 1.25 (|T| + |V|) off), where the method's own error passes (for s = 1,
+    -NOT_A_SOLUTION_S1 against all of the flow).  A number: that tolerance,
     strictly.  None: 0, no check."""
     if energy_tol is None:
         return 0.0
@@ -171,7 +187,9 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
         exact = (nu is not None and tol is None
                  and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
                                                                      method.nodes).k)
-        return DEFAULT_ENERGY_TOL if exact or (round_off_k and tol is None) else -NOT_A_SOLUTION
+        if exact or (round_off_k and tol is None):
+            return DEFAULT_ENERGY_TOL
+        return -NOT_A_SOLUTION if method.s > 1 else -NOT_A_SOLUTION_S1
     if (isinstance(energy_tol, (bool, str)) or not isinstance(energy_tol, (int, float, np.number))
             or not (np.isfinite(energy_tol) and energy_tol > 0)):
         raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
@@ -533,9 +551,10 @@ class Stepper(Counted):
         Refuse a converged step whose energy change, relative to |T| + |V|, exceeds this
         (:class:`integrators.UnresolvedStepError`, nothing committed); None: no check.
         "auto" (default, :func:`energy_check`): DEFAULT_ENERGY_TOL (1e-10) for a method exact
-        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (0.1) that
-        also exceeds the energy the step moved between the terms of H is refused (a state that
-        is not a solution), and the method's own quadrature error passes.
+        for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (1e-6) that
+        also exceeds 1e-3 (s = 2: 1e-2) of the energy the step moved between the terms of H is refused (a
+        step too large for the encounter it crosses, a state that is not a solution), and the
+        method's own quadrature error passes (s = 1: above 0.1 and all of that energy).
 
     Attributes
     ----------
@@ -681,7 +700,9 @@ class Stepper(Counted):
     def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
         """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
 
-        Fixed-point steps run in one call of the step loop (compiled when the kernels are);
+        Fixed-point steps run in calls of the step loop (compiled when the kernels are) of
+        about CHUNK_SECONDS each, so that Ctrl-C stops the run within that time with the
+        committed steps in the exception's ``result`` (the numbers are those of one call);
         on failure with solver="auto" the run goes on with Newton.  A failure raises with the
         samples so far in the exception's ``result``."""
         h = check_step(h)
@@ -708,15 +729,8 @@ class Stepper(Counted):
     def _run(self, h, steps, sample_every, start, t_start, out_t, out_y, out_e):
         b = self.binding
         if self._solver == "fixed_point":
-            E = self._extrapolation(h, self._h_prev)
-            b.step_code.run(b.full, self._y, self._cy, b.minv, b.kin_w,
-                            b.params, h, E, self._gamma, b.c1, b.c2, *b.no_newton,
-                            self._max_iter("fixed_point"), float(self.tol or 0.0),
-                            self._etol, self._eref,
-                            self.counters, b.work, b.cwork, steps, sample_every, self._clock, out_t, out_y, out_e)
+            self._run_chunks(h, steps, sample_every, start, out_t, out_y, out_e)
             done = self.nsteps - start
-            if done > 0:
-                self._h_prev = h
             k = done // sample_every + 1
             status = int(self.counters[C_STATUS])
             if done < steps and status == OK:     # the step loop's contract, checked
@@ -750,6 +764,52 @@ class Stepper(Counted):
                                       "failed", str(err))
             raise
         return self._result(out_t, out_y, out_e, h, t_start, "finished", "")
+
+    def _run_chunks(self, h, steps, sample_every, start, out_t, out_y, out_e) -> None:
+        """The fixed-point steps of :meth:`run` through the step loop, in chunks of about
+        CHUNK_SECONDS each: between two calls the interpreter runs its signal handlers, so
+        that Ctrl-C stops a compiled run within a chunk (a compiled loop never returns to
+        it), with every committed step kept.  The numbers are those of one call bit for bit:
+        each chunk continues from the state, coefficients, energy reference and clock the last
+        left (the same E throughout, as one call uses), and a chunk starting on a sample writes
+        that sample again, the same numbers; a chunk that starts between two samples (a chunk
+        shorter than ``sample_every``) ends at the next one, which is written here with the
+        loop's own energy function.  Stops at the first failed step (its status in the
+        counters)."""
+        b = self.binding
+        E = self._extrapolation(h, self._h_prev)
+        args = (b.full, self._y, self._cy, b.minv, b.kin_w, b.params, h, E, self._gamma,
+                b.c1, b.c2, *b.no_newton, self._max_iter("fixed_point"), float(self.tol or 0.0),
+                self._etol, self._eref, self.counters, b.work, b.cwork)
+        # the Python step (a user's system, fast=False) returns to the interpreter all the
+        # time: one call, so that its kernels see the calls of one run (no sample written
+        # twice)
+        done, chunk = 0, (1 if b.kind == "compiled" else max(steps, 1))
+        while True:
+            end = min(steps, done + chunk)
+            aligned = done % sample_every == 0
+            if not aligned:
+                end = min(end, (done // sample_every + 1) * sample_every)
+            i = done // sample_every if aligned else 0
+            every, n_out = (sample_every, out_t.shape[0]) if aligned else (0, 0)
+            t0 = time.perf_counter()
+            b.step_code.run(*args, end - done, every, self._clock, out_t[i:i + n_out],
+                            out_y[i:i + n_out], out_e[i:i + n_out])
+            took = time.perf_counter() - t0
+            if self.nsteps > start:
+                self._h_prev = h
+            if self.nsteps - start < end:          # a failed step
+                return
+            if not aligned and end % sample_every == 0:
+                j = end // sample_every
+                out_t[j], out_y[j] = self.t, self._y
+                out_e[j] = b.energy(self._y)
+            done = end
+            if done >= steps:
+                return
+            # the next chunk aims at CHUNK_SECONDS, growing at most CHUNK_GROWTH times (the
+            # first is one step: a step of 1e5 atoms can take a fifth of a second)
+            chunk = max(1, min(CHUNK_GROWTH * chunk, int(chunk * CHUNK_SECONDS / max(took, 1e-9))))
 
     def step_adaptive(self, h: float, epsilon: float, min_dt: float) -> tuple[float, float]:
         """One adaptive step: try h, and on rejection (the error estimate from the step's own
@@ -970,7 +1030,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
               solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
               tol: float | None = None, max_iter: int | None = None, form: str = "auto",
               energy_tol: float | str | None = "auto", *, adaptive: bool = False,
-              t_end: float | None = None, epsilon: float = DEFAULT_EPSILON,
+              t_end: float | None = None, epsilon: float | None = None,
               min_dt: float | None = None, sample_times=None, variational=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
     ``adaptive=True`` from t0 to ``t_end`` with h the first step.
@@ -1003,8 +1063,12 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         enough: :func:`integrators.kchoice.adaptive_k`).  The
         default, 1e-3 for s = 6, gives IAS15's energy and position error on the outer solar
         system in about 0.6 of its time (``benchmarks/bench_defaults.py``).
+        The default (None) is DEFAULT_EPSILON.
     t_end, sample_times
         Adaptive runs end exactly at t_end and also land exactly on each of sample_times.
+        A fixed-step run (``adaptive=False``) takes ``steps`` and ``sample_every`` instead:
+        ``t_end``, ``sample_times``, ``epsilon`` and ``min_dt`` given to it are refused with
+        a ValueError naming the argument (they would be ignored).
     variational : array_like, shape (2m,) or (nv, 2m), optional
         Initial tangent vectors, carried by the Jacobian of each step; the result's ``extra``
         then holds them at the samples and the MEGNO (:mod:`integrators.variational`).
@@ -1034,10 +1098,23 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         t0f = check_real("t0", t0, "a finite number")
         t_end = check_real("t_end", t_end, "a finite time other than t0 with adaptive=True",
                            lambda x: x != t0f)
-        epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
+        epsilon, min_dt = check_adaptive(DEFAULT_EPSILON if epsilon is None else epsilon,
+                                         min_dt, method.s)
         sample_every = check_count("sample_every", sample_every, 1)
         st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
         return st.run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
+    for name, value, fix in (
+            ("t_end", t_end, "give steps = round((t_end - t0) / h), or adaptive=True to end "
+                             "exactly at t_end"),
+            ("sample_times", sample_times, "give sample_every (samples every that many "
+                                           "steps), or adaptive=True to land on each time"),
+            ("epsilon", epsilon, "it sets the precision of adaptive steps: pass adaptive=True, "
+                                 "or leave it out for fixed steps of size h"),
+            ("min_dt", min_dt, "it bounds adaptive steps: pass adaptive=True, or leave it out "
+                               "for fixed steps of size h")):
+        if value is not None:
+            raise ValueError(f"`{name}` is an option of adaptive runs; a fixed-step run "
+                             f"(adaptive=False) would ignore it (got {name}={value!r}): {fix}")
     if steps is None:
         raise ValueError("`steps` is required without adaptive=True")
     steps = check_count("steps", steps, 0)

@@ -88,7 +88,9 @@ class UnresolvedStepError(StepError):
     Attributes (besides :class:`StepError`'s): ``change``, |H(y1) - H(y0)| relative to the size
     of the energy terms (|T| + |V|); ``tolerance``, the tolerance it exceeded; ``flow``, True
     when the check was that of a method not exact for H (``energy_tol="auto"``): the change
-    exceeded both the tolerance and the energy the step moved between the terms of H.
+    exceeded both the tolerance and far more of the energy the step moved between the terms of
+    H than the method's own error at a step that resolves its path
+    (:data:`integrators.core.FLOW_FRACTION`).
     """
 
     def __init__(self, h: float, change: float, tolerance: float, iterations: int,
@@ -96,9 +98,13 @@ class UnresolvedStepError(StepError):
                  flow: bool = False):
         self.h, self.t, self.iterations, self.solver = h, t, iterations, solver
         self.change, self.tolerance, self.residual, self.flow = change, tolerance, change, flow
-        self.hint = hint or "use a smaller step"
-        what = (f"more than energy_tol={tolerance:.1e} and more than the energy the step moved "
-                f"between the terms of H: the state is not a solution of the step" if flow else
+        self.hint = hint or ("use a smaller step (one that resolves the encounter: several "
+                             "steps over its closest approach), or adaptive steps" if flow else
+                             "use a smaller step")
+        what = (f"more than energy_tol={tolerance:.1e} and far more than its own error allows "
+                f"against the energy it moved between the terms of H: the state is not a "
+                f"solution of the step (a step too large for the close encounter or pericentre "
+                f"it crosses, or a spurious root)" if flow else
                 f"more than energy_tol={tolerance:.1e}: the step does not resolve the motion")
         super().__init__(f"{self._where()} changed the energy by {change:.3e} (relative), "
                          f"{what}; {self.hint}")

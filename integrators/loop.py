@@ -56,7 +56,7 @@ slope of its energy condition ride in eref[1:3]); the pieces it adds are in
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
-                              C_STEPS, DIVERGED, EPS, FOLLOWER_GROUP, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              C_STEPS, DIVERGED, EPS, FLOW_FRACTION, FOLLOWER_GROUP, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
                               all_finite, all_zero, carve, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
@@ -101,9 +101,11 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     With etol > 0 a converged step whose energy change exceeds etol (relative to |T| + |V|,
     or |H| for the full form) is refused as UNRESOLVED, its change in counters[C_CHANGE]
     (the check of a method exact for H: its energy error is round-off).  With etol < 0 such a
-    step is refused only when its change also exceeds the energy the step moved between the
-    terms of H (:func:`integrators.core.energy_flow`): the check of a method not exact for H,
-    whose own quadrature error stays far below that flow on any step that resolves its path.
+    step is refused only when its change also exceeds a fraction (1e-3 for s >= 3, 1e-2 for
+    s = 2, 1 for s = 1) of the energy the step moved between the terms of H
+    (:func:`integrators.core.energy_flow`):
+    the check of a method not exact for H, whose own quadrature error stays far below that
+    flow on any step that resolves its path (:data:`integrators.core.FLOW_FRACTION`).
     etol = 0: no check.  eref[0] carries the energy between steps (nan: not known yet).
 
     The step is written inside the loop, not called: a call with this many arrays costs about
@@ -343,12 +345,13 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
             if scale > 0.0:
                 change = change / scale
             # etol < 0 (a method not exact for H): a change above |etol| is the method's own
-            # quadrature error unless it exceeds the energy the step moved (core.energy_flow,
-            # at least the kinetic change |T1 - T0| in the separable form: checked first, as
-            # it costs O(m) where the flow costs O(k s m))
+            # quadrature error unless it exceeds FLOW_FRACTION of the energy the step moved
+            # (core.energy_flow, at least the kinetic change |T1 - T0| in the separable form:
+            # checked first, as it costs O(m) where the flow costs O(k s m)); the fraction
+            # depends on s (core.FLOW_FRACTION: a lower order errs more at the same resolution)
             refuse = not change <= abs(etol)
             if refuse and etol < 0.0:
-                moved = abs(t1 + v1 - eref[0])
+                moved = abs(t1 + v1 - eref[0]) / FLOW_FRACTION[min(s, 3) - 1]
                 refuse = not ((not full and moved <= abs(t1 - weighted_kinetic(y[m:], kin_w)))
                               or moved <= energy_flow(full, y, kin_w, h, g, W, I, G))
             if refuse:

@@ -185,7 +185,8 @@ class HBVMIntegrator(Counted):
         (default): the engine's shared default, :func:`integrators.engine.energy_check`:
         ``DEFAULT_ENERGY_TOL`` (1e-10) when k is chosen here (for a round-off quadrature error)
         and ``tol`` is None, else its not-a-solution rule (a change above ``NOT_A_SOLUTION``
-        that also exceeds the energy the step moved; :attr:`energy_tol` then reads
+        that also exceeds 1e-3 of the energy the step moved between kinetic and potential
+        energy: a step too large for the encounter it crosses; :attr:`energy_tol` then reads
         -NOT_A_SOLUTION).  While it is on, a fixed step also checks its test particles: one
         whose own error estimate (the weight of its last Legendre coefficient) exceeds
         max(1e-2, 10 x the gravitating bodies') is refused with UnresolvedStepError naming it.
