@@ -14,11 +14,13 @@ import re
 
 import numpy as np
 from ase import units
-from ase.constraints import FixAtoms
+from ase.constraints import FixAtoms, FixBondLengths
 from ase.md.md import MolecularDynamics
 
 from integrators import EQUIP, HBVM, ConvergenceError, Stepper
 from integrators.engine import check_step
+
+from .ase_holonomic import bond_constraints, check_supported, holonomic_step
 from systems.base import SeparableSystem
 
 _log = logging.getLogger(__name__)
@@ -240,6 +242,12 @@ class HBVMDynamics(MolecularDynamics):
         fixed = self._fixed_indices(atoms)
         self._stepper = None
         self._system = None
+        self._holonomic = None      # the constrained step when the atoms have rigid bonds
+        if bond_constraints(atoms):
+            if method == "equip":
+                raise ValueError("`method` must be 'hbvm' with rigid bonds (FixBondLengths): the "
+                                 "constrained step is HBVM(k, s); EQUIP does not take constraints")
+            check_supported(atoms)
         self._written = None
         self._stage_total = 0
         super().__init__(atoms, timestep, trajectory=trajectory, logfile=logfile,
@@ -260,7 +268,8 @@ class HBVMDynamics(MolecularDynamics):
 
     @property
     def stage_evaluations(self) -> int:
-        return self._stage_total + (self._system.stage_evaluations if self._system else 0)
+        return (self._stage_total + (self._system.stage_evaluations if self._system else 0)
+                + (self._holonomic.system.stage_evaluations if self._holonomic else 0))
 
     def todict(self) -> dict:
         d = super().todict()
@@ -275,9 +284,12 @@ class HBVMDynamics(MolecularDynamics):
         for c in atoms.constraints:
             if isinstance(c, FixAtoms):
                 fixed.extend(int(i) for i in c.get_indices())
+            elif isinstance(c, FixBondLengths):
+                continue        # rigid bonds: the constrained step (hbvm_md.ase_holonomic)
             else:
-                raise ValueError(f"HBVMDynamics supports only FixAtoms constraints (got "
-                                 f"{type(c).__name__}); remove it or use VelocityVerlet")
+                raise ValueError(f"HBVMDynamics supports only FixAtoms and FixBondLengths / "
+                                 f"FixBondLength constraints (got {type(c).__name__}); remove it "
+                                 f"or use VelocityVerlet")
         return np.array(sorted(set(fixed)), dtype=int)
 
     @staticmethod
@@ -356,6 +368,8 @@ class HBVMDynamics(MolecularDynamics):
         atoms = self.atoms
         if len(atoms) == 0:
             return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
+        if bond_constraints(atoms):
+            return holonomic_step(self)     # rigid bonds: hbvm_md.ase_holonomic
         fixed = self._fixed_indices(atoms)
         st = self._ensure_stepper(fixed)
         pos0 = atoms.get_positions()
