@@ -86,6 +86,7 @@ from .errors import ConstraintError, ConvergenceError, NonFiniteError
 from .tableau import HBVM
 
 EPS = np.finfo(float).eps
+RUNAWAY = 1e6               # an increment this many times the first one: diverged
 MAX_ITERATIONS = 100        # fixed-point iterations of one step at most
 NEWTON_SWEEPS = 4           # multiplier sweeps per force evaluation at most
 #: the bond lengths after a step must hold to this, relative to the bond length (a step that
@@ -174,8 +175,15 @@ class BondConstraints:
     def gram(self, r: np.ndarray, minv: np.ndarray):
         """S = G M^-1 G^T at vectors r (P, d), factorised (scipy ``splu``); one block per
         molecule (bonds sharing no atom do not couple)."""
-        C = (self.incidence.T @ sp.diags(minv) @ self.incidence).tocoo()
-        S = sp.csc_matrix((C.data * np.einsum("ak,ak->a", r[C.row], r[C.col]), (C.row, C.col)),
+        key = minv.tobytes()
+        if getattr(self, "_pattern", (None,))[0] != key:
+            # B^T M^-1 B in CSC order: S has its pattern and values times r_a . r_b
+            C = (self.incidence.T @ sp.diags(minv) @ self.incidence).tocsc()
+            C.sort_indices()
+            col = np.repeat(np.arange(C.shape[1]), np.diff(C.indptr))
+            self._pattern = (key, C, C.indices.copy(), col)
+        _, C, row, col = self._pattern
+        S = sp.csc_matrix((C.data * np.einsum("ak,ak->a", r[row], r[col]), C.indices, C.indptr),
                           shape=C.shape)
         return spla.splu(S)
 
@@ -367,7 +375,8 @@ class HolonomicHBVM:
         prev, stalls, nfev = np.inf, 0, 0
         for it in range(1, self.max_iterations + 1):
             U = base + h * h * minv[None] * np.tensordot(C2, delta, axes=1)
-            F = np.asarray(self.force(U), dtype=float)
+            with np.errstate(all="ignore"):       # a runaway is caught below, by name
+                F = np.asarray(self.force(U), dtype=float)
             nfev += U.shape[0]
             if F.shape != U.shape:
                 raise ValueError(f"`force` returned shape {F.shape} for stage positions of shape "
@@ -408,6 +417,12 @@ class HolonomicHBVM:
             # condition), which lies along the bonds and is removed by the projection.
             if inc <= 2 * EPS * scale or (it > 1 and move <= STATE_ULPS * EPS * umax):
                 break
+            if it == 1:
+                first = inc
+            elif inc > RUNAWAY * first:
+                self.force_evaluations += nfev
+                raise ConvergenceError(h, inc, it, "fixed_point", t, "the iteration runs away; "
+                                       "try a smaller timestep")
             if inc >= prev:
                 if move <= ROUNDOFF_ULPS * EPS * umax:
                     break
