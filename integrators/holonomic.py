@@ -315,7 +315,7 @@ class HolonomicHBVM:
             V = pt.sum(axis=0) / self.masses.sum()
         else:
             V = np.zeros(q.shape[1])
-        w = np.where(moving[:, None], pt - self.masses[:, None] * V * moving[:, None], 0.0)
+        w = np.where(moving[:, None], pt - np.where(moving, self.masses, 0.0)[:, None] * V, 0.0)
         t_rel = 0.5 * float(np.sum(minv * w * w))
         if t_rel <= 0.0:
             return pt, removed
@@ -436,7 +436,8 @@ class HolonomicHBVM:
             raise ConvergenceError(h, inc, self.max_iterations, "fixed_point", t, "try a smaller timestep")
         self.force_evaluations += nfev
         q1 = q0 + h * v0 + h * h * minv * np.tensordot(X[0], delta, axes=1)
-        p1 = p0 + h * delta[0]
+        # an atom of infinite mass keeps its momentum (the bond forces on it move nothing)
+        p1 = np.where(minv > 0, p0 + h * delta[0], p0)
         if not (np.all(np.isfinite(q1)) and np.all(np.isfinite(p1))):
             raise NonFiniteError(h, it, "fixed_point", t)
         err = np.abs(con.length_errors(q1, offsets))
