@@ -110,6 +110,22 @@ class UnresolvedStepError(StepError):
                          f"{what}; {self.hint}")
 
 
+class ConstraintError(StepError):
+    """A step with holonomic constraints (rigid bonds, :mod:`integrators.holonomic`) could not
+    keep them: the bond lengths after the step (or after moving a start onto them) are off by
+    more than the tolerance.  Nothing was committed.
+
+    Attributes (besides :class:`StepError`'s): ``violation``, the largest |r - d| found (in the
+    positions' unit).
+    """
+
+    def __init__(self, h: float, t: float | None, violation: float, hint: str):
+        self.h, self.t, self.iterations, self.solver = h, t, 0, "fixed_point"
+        self.violation, self.residual, self.hint = violation, violation, hint
+        super().__init__(f"{self._where()} did not keep the constraints (largest bond-length "
+                         f"error {violation:.3e}): {hint}")
+
+
 class StepSizeError(StepError):
     """An adaptive step could not be resolved even at the smallest step allowed (``min_dt``, or
     the smallest step that still changes t): its error estimate stayed above ``epsilon``, or

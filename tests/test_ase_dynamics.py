@@ -7,7 +7,7 @@ from ase.build import bulk
 from ase.calculators.calculator import Calculator, all_changes
 from ase.calculators.emt import EMT
 from ase.calculators.tip3p import TIP3P
-from ase.constraints import FixAtoms, FixBondLengths
+from ase.constraints import FixAtoms, FixLinearTriatomic
 from ase.data import s22
 from ase.io import Trajectory
 from ase.md.verlet import VelocityVerlet
@@ -215,15 +215,15 @@ def test_fix_atoms_stay_fixed_and_energy_is_conserved():
 def test_other_constraints_are_refused():
     atoms = s22.create_s22_system("Water_dimer")
     atoms.calc = TIP3P(rc=9.0)
-    atoms.set_constraint(FixBondLengths([(0, 1)]))
-    # (issue 35: the message names the holonomic constraint; was "only FixAtoms constraints
-    # (got FixBondLengths)" when every constraint but FixAtoms was refused)
-    with pytest.raises(ValueError, match="holonomic constraint FixBondLength yet"):
+    # (FixBondLengths is taken since issue 35: tests/test_ase_holonomic.py; the message names
+    # the holonomic constraint, where it was "only FixAtoms constraints (got FixBondLengths)")
+    atoms.set_constraint(FixLinearTriatomic(triples=[(0, 1, 2)]))
+    with pytest.raises(ValueError, match="holonomic constraint FixLinearTriatomic yet"):
         HBVMDynamics(atoms, 1 * units.fs)
     atoms.set_constraint()
     dyn = HBVMDynamics(atoms, 1 * units.fs)
-    atoms.set_constraint(FixBondLengths([(0, 1)]))     # added later: refused at the next step
-    with pytest.raises(ValueError, match="holonomic constraint FixBondLength yet"):
+    atoms.set_constraint(FixLinearTriatomic(triples=[(0, 1, 2)]))     # added later: refused at the next step
+    with pytest.raises(ValueError, match="holonomic constraint FixLinearTriatomic yet"):
         dyn.run(1)
 
 

@@ -19,7 +19,8 @@
     (``atoms.get_potential_energy()`` includes them, as for ASE's own integrators).
 ``"holonomic"`` (``FixBondLength(s)``, ``FixLinearTriatomic``)
     Nonlinear constraints of the positions, which need Lagrange multipliers inside the step;
-    refused for now (:func:`refuse`), naming the class as the user wrote it.
+    ``FixBondLength(s)`` runs in the constrained step of :mod:`hbvm_md.ase.holonomic`; here
+    (:func:`refuse`) the holonomic ones are refused, naming the class as the user wrote it.
 ``"unsupported"``
     Anything else: refused naming the class (a silent drop would run a different system).
 """
@@ -38,7 +39,8 @@ KINDS = {FixAtoms: LINEAR, FixCom: LINEAR, FixSubsetCom: LINEAR, FixedPlane: LIN
          FixBondLengths: HOLONOMIC, FixLinearTriatomic: HOLONOMIC}
 
 SUPPORTED = ("FixAtoms, FixCom, FixSubsetCom, FixedPlane, FixedLine, FixCartesian (by "
-             "projection) and Hookean, ExternalForce (as terms of the energy)")
+             "projection), Hookean, ExternalForce (as terms of the energy), and "
+             "FixBondLength(s) with FixAtoms alone (rigid bonds in the constrained step)")
 
 
 def classify(constraint) -> str:
@@ -279,10 +281,13 @@ class EnergyTerms:
 class AtomsConstraints:
     """The constraints of one atoms object as the step applies them.
 
+    ``constraints``: the ones to apply, ``atoms.constraints`` by default (the rigid bonds of
+    :mod:`hbvm_md.ase.holonomic` are left out by its caller: they are the constrained step's).
+
     Attributes
     ----------
     kinds : dict
-        :func:`sort_constraints` of ``atoms.constraints``.
+        :func:`sort_constraints` of those constraints.
     projector : LinearProjector or None
         None without linear constraints.
     terms : EnergyTerms
@@ -291,8 +296,8 @@ class AtomsConstraints:
         :func:`signature` of the constraints: the step compares it to see a change.
     """
 
-    def __init__(self, atoms):
-        self.kinds = sort_constraints(atoms.constraints)
+    def __init__(self, atoms, constraints=None):
+        self.kinds = sort_constraints(atoms.constraints if constraints is None else constraints)
         refuse(self.kinds)
         masses = np.asarray(atoms.get_masses(), dtype=float)
         lin = LinearProjector(self.kinds[LINEAR], masses) if self.kinds[LINEAR] else None

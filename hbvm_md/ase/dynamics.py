@@ -22,6 +22,7 @@ from integrators.engine import check_step
 from systems.base import SeparableSystem
 
 from .constraints import AtomsConstraints, signature
+from .holonomic import bond_constraints, check_supported, holonomic_step, other_constraints
 
 _log = logging.getLogger(__name__)
 
@@ -258,7 +259,13 @@ class HBVMDynamics(MolecularDynamics):
         if method == "equip" and nodes != "gauss":
             raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}): "
                              f"EQUIP perturbs the Gauss method")
-        constraints = AtomsConstraints(atoms)      # refuses what the step cannot run
+        if bond_constraints(atoms):     # rigid bonds: the constrained step of hbvm_md.ase.holonomic
+            if method == "equip":
+                raise ValueError("`method` must be 'hbvm' with rigid bonds (FixBondLengths): the "
+                                 "constrained step is HBVM(k, s); EQUIP does not take constraints")
+            check_supported(atoms)
+        # refuses what the step cannot run (the rigid bonds are the constrained step's)
+        constraints = AtomsConstraints(atoms, other_constraints(atoms))
         if k is None:
             HBVM(s, s, nodes)   # validates s and nodes with their own messages
             nu = None if constraints.terms else getattr(atoms.calc, "polynomial_degree", None)
@@ -273,6 +280,7 @@ class HBVMDynamics(MolecularDynamics):
         self.solver = solver
         self._stepper = None
         self._system = None
+        self._holonomic = None      # the constrained step when the atoms have rigid bonds
         self._written = None
         self._stage_total = 0
         self.hamiltonian_changes = 0
@@ -292,7 +300,8 @@ class HBVMDynamics(MolecularDynamics):
 
     @property
     def stage_evaluations(self) -> int:
-        return self._stage_total + (self._system.stage_evaluations if self._system else 0)
+        return (self._stage_total + (self._system.stage_evaluations if self._system else 0)
+                + (self._holonomic.system.stage_evaluations if self._holonomic else 0))
 
     @property
     def solver_in_use(self) -> str:
@@ -423,6 +432,8 @@ class HBVMDynamics(MolecularDynamics):
         atoms = self.atoms
         if len(atoms) == 0:
             return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
+        if bond_constraints(atoms):
+            return holonomic_step(self)     # rigid bonds: hbvm_md.ase.holonomic
         st = self._ensure_stepper(self._constraints(atoms))
         if self._hamiltonian_changed(st):
             st = self._new_hamiltonian("the energy at the step's start no longer matches the "
