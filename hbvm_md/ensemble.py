@@ -482,7 +482,7 @@ def _result_columns(results) -> dict[str, Any]:
     for name, ks in by_str.items():
         for k in ks:
             col, n = (name if len(ks) == 1 else f"result.{k!r}"), 1
-            while col in out or (len(ks) > 1 and col in by_str):
+            while col in out or (col != name and col in by_str):
                 n += 1
                 col = f"result.{k!r}#{n}"
             out[col] = k
