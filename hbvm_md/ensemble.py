@@ -16,7 +16,21 @@ a temporary name and renamed, so that a crash or Ctrl-C loses only the unfinishe
 rerun with the same ``DIR`` loads the finished ones instead of running them again (a member
 that timed out runs again).  A part holds the member's index, its param (JSON text), the task,
 status, error, wall time and the result pickled (cloudpickle), so that any picklable result is
-kept exactly: mixed types across members, big integers, nested dicts, arrays and objects.  A
+kept exactly: mixed types across members, big integers, nested dicts, arrays and objects.
+
+A member is known by content, not by ``repr``: each part carries the SHA-256 of the task and
+of its param in a canonical form (:mod:`hbvm_md.ensemble_identity`: arrays by their bytes,
+sets and dicts sorted, objects through the pickle protocol), so that ``partial(task,
+w=other_array)`` or an ``Atoms`` with other positions is refused on a rerun rather than handed
+the old records, and an object with the default ``repr`` or a set of strings (another text in
+every process) resumes.  A param without such a form (a lambda, a lock) is refused by name
+before any member runs.  Parts written by an earlier hbvm-md (without these digests) are set
+aside with a warning and their members run again.
+
+When the store cannot be written (a full or read-only disk), the run goes on: every record is
+kept in memory and returned, and one :class:`EnsembleStoreWarning` names the store, the first
+error and the members not stored; a rerun with the same store, once there is room, loads the
+stored members and runs the others.  A
 part or ``meta.json`` that cannot be read (truncated, corrupt, of another format) is named in
 an :class:`EnsembleStoreWarning`; the part is renamed ``*.corrupt`` and its member runs again
 (``meta.json`` is rewritten: each part names its task, so no member is lost with it).
@@ -24,7 +38,8 @@ an :class:`EnsembleStoreWarning`; the part is renamed ``*.corrupt`` and its memb
 At the end of every run (also an interrupted one) the records are joined into
 ``DIR/ensemble.parquet``: one row per finished member with the columns ``member`` (index into
 params), ``param`` (JSON text), ``status``, ``error``, ``wall_time_s``, ``result.<key>`` per key
-of the task's dicts and ``result_pickle``.  A ``result.<key>`` column is typed when every
+of the task's dicts (``result.<repr(key)>`` for keys whose ``str`` collide, e.g. ``result.1``
+and ``result.'1'`` for 1 and "1") and ``result_pickle``.  A ``result.<key>`` column is typed when every
 member's value fits one Arrow type without loss (bool, int64, float64, string, or a list of
 one of them; ints beside floats as float64 when exact); otherwise (mixed types, integers
 beyond int64, nested values) it holds each value as JSON text and is listed in the schema
@@ -624,15 +639,20 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     Raises
     ------
     TypeError
-        The task or a parameter does not pickle, or an argument has the wrong type.
+        The task or a parameter does not pickle, or an argument has the wrong type; with a
+        ``store``, a task or parameter that has no content the store can identify (a lambda,
+        a lock: :mod:`hbvm_md.ensemble_identity`), before any member runs.
     ValueError
-        Empty ``params``; a store that holds another ensemble; a bad ``timeout``.
+        Empty ``params``; a store that holds another ensemble (another task, or a param of
+        other content at a stored index, whatever their repr); a bad ``timeout``.
 
     Warns
     -----
     EnsembleStoreWarning
         A store file (a part, ``meta.json``) cannot be read: the message names it; a part is
-        renamed ``*.corrupt`` and its member runs again.
+        renamed ``*.corrupt`` and its member runs again.  Or the store could not be written
+        (a full or read-only disk): the records are all returned, the message names the store,
+        the first error and the members not stored.
     ConnectionError
         No scheduler answers at the address given within ``connect_timeout``.
     """
