@@ -16,7 +16,7 @@ import warnings
 import numpy as np
 import pytest
 
-from integrators import HBVM, Stepper, integrate
+from integrators import HBVM, NonFiniteError, Stepper, integrate
 from systems import Kepler, NBody
 from systems.base import SeparableSystem
 
@@ -95,6 +95,9 @@ MESSAGES = [
     ("dim = 0", _run(NoDim()), ValueError, r"`dim` of NoDim must be a positive integer.*\(got dim=0\)"),
     ("polynomial_degree = 'four'", _run(WordDegree(0.6)), ValueError,
      r"`polynomial_degree` of WordDegree must be None .* or a non-negative integer.*'four'"),
+    ("test particle on a source, newton", _run(*_bodies([1.0, 0.0], [[0, 0, 0], [0, 0, 0]]),
+                                               solver="newton"), NonFiniteError,
+     r"produced non-finite values .* check the state for coincident particles"),
     ("method as a string", _run(KEP, method="HBVM(4, 2)"), TypeError,
      r"`method` must be a method object such as integrators.HBVM\(4, 2\) .*got str 'HBVM\(4, 2\)'"),
     ("method as a string, adaptive", _run(KEP, method="hbvm", steps=None, adaptive=True, t_end=1.0),
