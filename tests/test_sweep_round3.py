@@ -95,6 +95,7 @@ MESSAGES = [
     ("dim = 0", _run(NoDim()), ValueError, r"`dim` of NoDim must be a positive integer.*\(got dim=0\)"),
     ("polynomial_degree = 'four'", _run(WordDegree(0.6)), ValueError,
      r"`polynomial_degree` of WordDegree must be None .* or a non-negative integer.*'four'"),
+    # (a control: a test particle on a source was already a NonFiniteError; it stays one)
     ("test particle on a source, newton", _run(*_bodies([1.0, 0.0], [[0, 0, 0], [0, 0, 0]]),
                                                solver="newton"), NonFiniteError,
      r"produced non-finite values .* check the state for coincident particles"),
