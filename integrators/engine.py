@@ -82,9 +82,6 @@ def check_state(system, y, name: str = "y0"):
     if y.shape != (2 * system.dim,):
         raise ValueError(f"`{name}` must have shape ({2 * system.dim},) = (q, p) of a system with "
                          f"{system.dim} degrees of freedom (got shape {y.shape})")
-    own = getattr(system, "check_y0", None)       # a model's own check (NBody: no two bodies
-    if callable(own):                             # on top of each other)
-        own(y, name)
     return system, y
 
 

@@ -34,10 +34,6 @@ and optionally
     solver uses finite differences of ``gradient`` (2m extra gradient calls per Newton step).
 ``initial_state()``
     A default starting state.
-``check_y0(y, name)``
-    Raises a ``ValueError`` naming ``name`` when the state y (2m,) is one the model cannot
-    start from (:class:`systems.NBody`: two bodies at the same position); called once by the
-    engine on the initial state.
 Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of
 freedom, positive), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
 engine then iterates on the momentum coefficients only.

@@ -404,26 +404,6 @@ class NBody(SeparableSystem):
                              "NBody(...) or use state(positions, velocities)")
         return self.state(self.positions, self.velocities)
 
-    def check_y0(self, y: np.ndarray, name: str = "y0") -> None:
-        """A ValueError naming ``name`` and the bodies when two gravitating bodies are at the
-        same position (their force is infinite: the first step would fail with non-finite
-        numbers, or the Newton solver on a singular matrix).  Test particles may coincide
-        (they do not feel each other); one on a source fails its first step
-        (:class:`integrators.NonFiniteError`, which names coincident particles).  O(N log N)."""
-        X = np.asarray(y, dtype=float)[: self.dim].reshape(self.N, 3)
-        _, first, inverse, counts = np.unique(X, axis=0, return_index=True,
-                                              return_inverse=True, return_counts=True)
-        inverse = inverse.reshape(-1)
-        for group in np.flatnonzero(counts > 1):
-            members = np.flatnonzero(inverse == group)
-            sources = members[self.is_source[members]]
-            if sources.size > 1:
-                i, j = int(sources[0]), int(sources[1])
-                raise ValueError(f"`{name}` puts bodies {i} ({self.names[i]}) and {j} "
-                                 f"({self.names[j]}) of NBody at the same position "
-                                 f"{X[i].tolist()}: the gravity between them is infinite; "
-                                 f"move them apart")
-
     # -- the model ---------------------------------------------------------------------
     def potential(self, q):
         q = np.asarray(q, dtype=float)
