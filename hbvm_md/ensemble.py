@@ -16,7 +16,21 @@ a temporary name and renamed, so that a crash or Ctrl-C loses only the unfinishe
 rerun with the same ``DIR`` loads the finished ones instead of running them again (a member
 that timed out runs again).  A part holds the member's index, its param (JSON text), the task,
 status, error, wall time and the result pickled (cloudpickle), so that any picklable result is
-kept exactly: mixed types across members, big integers, nested dicts, arrays and objects.  A
+kept exactly: mixed types across members, big integers, nested dicts, arrays and objects.
+
+A member is known by content, not by ``repr``: each part carries the SHA-256 of the task and
+of its param in a canonical form (:mod:`hbvm_md.ensemble_identity`: arrays by their bytes,
+sets and dicts sorted, objects through the pickle protocol), so that ``partial(task,
+w=other_array)`` or an ``Atoms`` with other positions is refused on a rerun rather than handed
+the old records, and an object with the default ``repr`` or a set of strings (another text in
+every process) resumes.  A param without such a form (a lambda, a lock) is refused by name
+before any member runs.  Parts written by an earlier hbvm-md (without these digests) are set
+aside with a warning and their members run again.
+
+When the store cannot be written (a full or read-only disk), the run goes on: every record is
+kept in memory and returned, and one :class:`EnsembleStoreWarning` names the store, the first
+error and the members not stored; a rerun with the same store, once there is room, loads the
+stored members and runs the others.  A
 part or ``meta.json`` that cannot be read (truncated, corrupt, of another format) is named in
 an :class:`EnsembleStoreWarning`; the part is renamed ``*.corrupt`` and its member runs again
 (``meta.json`` is rewritten: each part names its task, so no member is lost with it).
@@ -24,7 +38,8 @@ an :class:`EnsembleStoreWarning`; the part is renamed ``*.corrupt`` and its memb
 At the end of every run (also an interrupted one) the records are joined into
 ``DIR/ensemble.parquet``: one row per finished member with the columns ``member`` (index into
 params), ``param`` (JSON text), ``status``, ``error``, ``wall_time_s``, ``result.<key>`` per key
-of the task's dicts and ``result_pickle``.  A ``result.<key>`` column is typed when every
+of the task's dicts (``result.<repr(key)>`` for keys whose ``str`` collide, e.g. ``result.1``
+and ``result.'1'`` for 1 and "1") and ``result_pickle``.  A ``result.<key>`` column is typed when every
 member's value fits one Arrow type without loss (bool, int64, float64, string, or a list of
 one of them; ints beside floats as float64 when exact); otherwise (mixed types, integers
 beyond int64, nested values) it holds each value as JSON text and is listed in the schema
@@ -62,6 +77,8 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 from distributed.diagnostics.plugin import WorkerPlugin
+
+from .ensemble_identity import identity
 
 __all__ = ["run_ensemble", "load_store", "EnsembleStoreWarning"]
 
@@ -245,7 +262,11 @@ def _column(values: list):
     return pa.array([None if v is None else _cell_text(v) for v in values], pa.string()), False
 
 
-_PART_FIELDS = ("member", "param", "task", "status", "error", "wall_time_s", "result_pickle")
+_PART_FIELDS = ("member", "param", "task", "status", "error", "wall_time_s", "result_pickle",
+                "task_sha256", "param_sha256")
+_IDENTITY_FIX = ("the store knows each member by the content of the task and its param; pass "
+                 "picklable values (numbers, strings, tuples, dicts, arrays, objects of "
+                 "module-level classes), or run without `store`")
 
 
 def _digest(row: dict) -> str:
@@ -263,12 +284,21 @@ class _Store:
         if self.path.exists() and not self.path.is_dir():
             raise ValueError(f"`store` must be a folder (got the file {str(self.path)!r}); pass a "
                              "folder path, it is created when missing")
+        # the members' identities first: a param the store cannot identify is refused on the
+        # first run, before anything is written (not on the rerun, with the work done)
+        self.task_id = identity(task, "task", _IDENTITY_FIX)
+        self.ids = [identity(p, f"params[{i}]", _IDENTITY_FIX) for i, p in enumerate(params)]
         self.parts = self.path / "parts"
-        self.parts.mkdir(parents=True, exist_ok=True)
+        try:
+            self.parts.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OSError(exc.errno, f"`store` {str(self.path)!r} cannot be created "
+                          f"({type(exc).__name__}: {exc}); pass a folder you can write to") from None
         self.texts = [_json_text(p) for p in params]
         self.task = _task_text(task)
         self.saved: dict[int, dict] = {}       # index -> stored record (what consolidate joins)
-        meta = {"task": self.task, "n_members": len(params)}
+        self.write_error: tuple[Path, BaseException] | None = None     # the first failed write
+        meta = {"task": self.task, "task_sha256": self.task_id, "n_members": len(params)}
         mfile = self.path / "meta.json"
         if mfile.exists():
             try:
@@ -283,9 +313,24 @@ class _Store:
                 raise ValueError(f"`store` {str(self.path)!r} holds the ensemble of task "
                                  f"{old.get('task')!r}, not {self.task!r}; pass another store "
                                  "folder or delete this one")
+            if old.get("task_sha256", self.task_id) != self.task_id:
+                raise ValueError(self._same_text_message("the ensemble of task", self.task))
+            if old == meta:
+                return          # (nothing to write: a finished store on a read-only disk loads)
         tmp = mfile.with_suffix(".tmp")
-        tmp.write_text(json.dumps(meta, indent=1))
-        os.replace(tmp, mfile)
+        try:
+            tmp.write_text(json.dumps(meta, indent=1))
+            os.replace(tmp, mfile)
+        except OSError as exc:      # nothing has run yet: say so before any member does
+            raise OSError(exc.errno, f"`store` {str(self.path)!r} cannot be written "
+                          f"({type(exc).__name__}: {exc}); free space, make the folder "
+                          "writable or pass another one") from None
+
+    def _same_text_message(self, what: str, text: str) -> str:
+        return (f"`store` {str(self.path)!r} holds {what} {text}, written the same but with "
+                "other content (an argument that repr() shortens or leaves out: a long array, "
+                "the positions of an Atoms, an object's attributes); pass another store folder "
+                "for this ensemble, or delete this one to compute it again")
 
     def _file(self, i: int) -> Path:
         return self.parts / f"member-{i:07d}.parquet"
@@ -300,6 +345,10 @@ class _Store:
         import pyarrow.parquet as pq
         table = pq.read_table(f, page_checksum_verification=True)
         missing = [c for c in _PART_FIELDS if c not in table.column_names]
+        if set(missing) == {"task_sha256", "param_sha256"}:
+            raise ValueError("written by an earlier hbvm-md, which identified a member by "
+                             "repr() (and could mistake another task's or param's records for "
+                             "its own)")
         if missing or table.num_rows != 1:
             raise ValueError(f"not a part of this store's format (columns {table.column_names}, "
                              f"{table.num_rows} rows)")
@@ -331,20 +380,30 @@ class _Store:
                 raise ValueError(f"`store` {str(self.path)!r} holds member {i} of task "
                                  f"{row['task']!r}, not {self.task!r}; pass another store folder "
                                  "or delete this one")
-            if i >= len(self.texts) or row["param"] != self.texts[i]:
+            if row["task_sha256"] != self.task_id:
+                raise ValueError(self._same_text_message(f"member {i} of task", self.task))
+            if i >= len(self.texts) or (row["param"] != self.texts[i]
+                                        and row["param_sha256"] != self.ids[i]):
                 have = self.texts[i] if i < len(self.texts) else "no member"
                 raise ValueError(f"`store` {str(self.path)!r} holds member {i} with param "
                                  f"{row['param']}, but this ensemble has {have} there; pass "
                                  "another store folder or delete this one")
+            if row["param_sha256"] != self.ids[i]:
+                raise ValueError(self._same_text_message(f"member {i} with param", row["param"]))
             self.saved[i] = row
             if row["status"] != "timeout":
                 done[i] = {k: row[k] for k in ("status", "error", "result", "wall_time_s")}
         return done
 
     def save(self, i: int, rec: dict) -> None:
+        """Journal member ``i``.  A write that fails (a full or read-only disk) is kept in
+        ``write_error`` (the first one) and ends the journaling: the caller keeps the records
+        in memory and :meth:`warn_unwritten` names the store and that error at the end."""
         import cloudpickle
         import pyarrow as pa
         import pyarrow.parquet as pq
+        if self.write_error is not None:
+            return
         blob = None if rec["result"] is None else cloudpickle.dumps(rec["result"])
         row = {"member": i, "param": self.texts[i], "task": self.task, "status": rec["status"],
                "error": rec["error"], "wall_time_s": float(rec["wall_time_s"]),
@@ -353,12 +412,42 @@ class _Store:
                           "task": [self.task], "status": [row["status"]],
                           "error": pa.array([row["error"]], pa.string()),
                           "wall_time_s": pa.array([row["wall_time_s"]], pa.float64()),
-                          "result_pickle": pa.array([blob], pa.binary())})
+                          "result_pickle": pa.array([blob], pa.binary()),
+                          "task_sha256": [self.task_id], "param_sha256": [self.ids[i]]})
         table = table.replace_schema_metadata({"hbvm_md.sha256": _digest(table.to_pylist()[0])})
         tmp = self._file(i).with_suffix(".tmp")
-        pq.write_table(table, tmp, write_page_checksum=True)
-        os.replace(tmp, self._file(i))      # a crash leaves the old part or the new, never half
+        try:
+            pq.write_table(table, tmp, write_page_checksum=True)
+            os.replace(tmp, self._file(i))      # a crash leaves the old part or the new, never half
+        except OSError as exc:
+            self._write_failed(tmp, exc)
+            return
         self.saved[i] = row
+
+    def _write_failed(self, f: Path, exc: OSError) -> None:
+        if self.write_error is None:
+            self.write_error = (f, exc)
+        try:
+            f.unlink(missing_ok=True)       # no half-written temporary left behind
+        except OSError:
+            pass
+
+    def warn_unwritten(self, records: list, lost: set) -> None:
+        """After a run whose store could not be written: one warning naming the store, the
+        first error and the members computed but not stored (returned all the same; ``lost``:
+        members a rerun tries again anyway, see the module docstring)."""
+        if self.write_error is None:
+            return
+        f, exc = self.write_error
+        unstored = [i for i, r in enumerate(records)
+                    if r is not None and i not in self.saved and i not in lost]
+        warnings.warn(f"ensemble store {str(self.path)!r} could not be written ({type(exc).__name__}: "
+                      f"{exc}, writing {f.name}); the {sum(r is not None for r in records)} records "
+                      f"computed are returned, {len(unstored)} of them not stored (members "
+                      f"{_ranges(unstored)}): free space or make the folder writable and run again "
+                      "with the same store to journal them (the stored members are loaded, the "
+                      "others run again), or pass another store folder",
+                      EnsembleStoreWarning, stacklevel=3)
 
     def consolidate(self) -> Path | None:
         """Join the stored records into one table (see the module docstring)."""
@@ -367,10 +456,7 @@ class _Store:
         if not self.saved:
             return None
         rows = [self.saved[i] for i in sorted(self.saved)]
-        keys: dict[str, Any] = {}
-        for r in rows:
-            for k in (r["result"] or {}):
-                keys.setdefault(f"result.{k}", k)
+        keys = _result_columns(r["result"] for r in rows)
         cols = {"member": pa.array([r["member"] for r in rows], pa.int64()),
                 "param": pa.array([r["param"] for r in rows], pa.string()),
                 "status": pa.array([r["status"] for r in rows], pa.string()),
@@ -386,9 +472,48 @@ class _Store:
             {"hbvm_md.json_columns": json.dumps(text_columns), "hbvm_md.task": self.task})
         out = self.path / _STORE_TABLE
         tmp = out.with_suffix(".tmp")
-        pq.write_table(table, tmp, write_page_checksum=True)
-        os.replace(tmp, out)
+        try:
+            pq.write_table(table, tmp, write_page_checksum=True)
+            os.replace(tmp, out)
+        except OSError as exc:
+            self._write_failed(tmp, exc)
+            return None
         return out
+
+
+def _result_columns(results) -> dict[str, Any]:
+    """column name -> key of the task's dicts, in the order first met: ``result.<key>``, or
+    ``result.<repr(key)>`` for keys whose ``str`` collide (1 and "1" are ``result.1`` and
+    ``result.'1'``): every key keeps a column of its own (``#n`` appended when even the reprs
+    collide)."""
+    seen: dict = {}                  # (type, key) -> key: 1 and 1.0 are two keys here
+    for res in results:
+        for k in (res if isinstance(res, dict) else {}):
+            seen.setdefault((type(k), k), k)
+    by_str: dict[str, list] = {}
+    for k in seen.values():
+        by_str.setdefault(f"result.{k}", []).append(k)
+    out: dict[str, Any] = {}
+    for name, ks in by_str.items():
+        for k in ks:
+            col, n = (name if len(ks) == 1 else f"result.{k!r}"), 1
+            while col in out or (col != name and col in by_str):
+                n += 1
+                col = f"result.{k!r}#{n}"
+            out[col] = k
+    return out
+
+
+def _ranges(indices: list[int]) -> str:
+    """[0, 1, 2, 5, 7, 8] -> "0-2, 5, 7-8"."""
+    out, start = [], None
+    for k, i in enumerate(indices):
+        if start is None:
+            start = i
+        if k + 1 == len(indices) or indices[k + 1] != i + 1:
+            out.append(f"{start}" if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(out) or "none"
 
 
 def load_store(path) -> list[dict]:
@@ -413,19 +538,22 @@ def load_store(path) -> list[dict]:
         raise ValueError(f"the store table {str(f)!r} cannot be read ({type(exc).__name__}: {exc}); "
                          "run run_ensemble with the same task, params and store again to rebuild it "
                          "from the parts") from None
-    for row in rows:
+    results = {}
+    for n, row in enumerate(rows):
         blob = row.pop("result_pickle", None)
         if blob is None:
             continue
         try:
-            result = pickle.loads(blob)
+            results[n] = pickle.loads(blob)
         except Exception as exc:  # noqa: BLE001 - keep the columns rather than fail the read
             warnings.warn(f"{str(f)!r}: the result of member {row['member']} does not unpickle "
                           f"({type(exc).__name__}: {exc}); its row keeps the column values",
                           EnsembleStoreWarning, stacklevel=2)
-            continue
+    # the columns consolidate named: keys whose str() collide keep one each
+    columns = {(type(k), k): name for name, k in _result_columns(results.values()).items()}
+    for n, result in results.items():
         for k, v in result.items():
-            row[f"result.{k}"] = v
+            rows[n][columns.get((type(k), k), f"result.{k}")] = v
     return rows
 
 
@@ -511,15 +639,20 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     Raises
     ------
     TypeError
-        The task or a parameter does not pickle, or an argument has the wrong type.
+        The task or a parameter does not pickle, or an argument has the wrong type; with a
+        ``store``, a task or parameter that has no content the store can identify (a lambda,
+        a lock: :mod:`hbvm_md.ensemble_identity`), before any member runs.
     ValueError
-        Empty ``params``; a store that holds another ensemble; a bad ``timeout``.
+        Empty ``params``; a store that holds another ensemble (another task, or a param of
+        other content at a stored index, whatever their repr); a bad ``timeout``.
 
     Warns
     -----
     EnsembleStoreWarning
         A store file (a part, ``meta.json``) cannot be read: the message names it; a part is
-        renamed ``*.corrupt`` and its member runs again.
+        renamed ``*.corrupt`` and its member runs again.  Or the store could not be written
+        (a full or read-only disk): the records are all returned, the message names the store,
+        the first error and the members not stored.
     ConnectionError
         No scheduler answers at the address given within ``connect_timeout``.
     """
@@ -561,10 +694,12 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     if not todo:
         if journal is not None:
             journal.consolidate()
+            journal.warn_unwritten(records, set())
         return records
 
     cl, cluster = _connect(client, workers, connect_timeout)
     futures = []
+    lost_members = set()
     bar = progress_bar(total=len(params), desc="ensemble", enabled=progress)
     bar.update(len(params) - len(todo))
     try:
@@ -599,9 +734,11 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
                        "wall_time_s": math.nan}
                 lost = True
             f.release()
-            if journal is not None and not lost:     # a lost member is tried again by a rerun
+            records[i] = {"param": params[i], **rec}      # (kept whatever the disk does)
+            if lost:
+                lost_members.add(i)
+            elif journal is not None:     # a lost member is tried again by a rerun
                 journal.save(i, rec)
-            records[i] = {"param": params[i], **rec}
             bar.update(1)
             bar.set_postfix_str(f"{sum(r is not None and r['status'] != 'ok' for r in records)} not ok")
     finally:
@@ -611,6 +748,7 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
             cl.cancel(unfinished)
         if journal is not None:
             journal.consolidate()
+            journal.warn_unwritten(records, lost_members)
         if cluster is not None:
             cl.close()
             cluster.close()

@@ -7,8 +7,11 @@ Like scipy's ``OdeSolver``: the public ``step`` owns time, counters and status; 
 """
 from __future__ import annotations
 
+import functools
 import math
 import numbers
+import os
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -91,10 +94,55 @@ def check_state(system, y, name: str = "y0"):
         raise ValueError(f"`{name}` must be finite (got {y.flat[bad[0]]} at index {bad[0]}, {bad.size} "
                          f"non-finite of {y.size}); check the initial state for nan or inf")
     system = adapt_system(system, y)
+    dim = getattr(system, "dim", None)
+    if isinstance(dim, bool) or not isinstance(dim, (int, np.integer)) or dim < 1:
+        name_ = type(system._system if isinstance(system, _Adapted) else system).__name__
+        raise ValueError(f"`dim` of {name_} must be a positive integer, the number of degrees "
+                         f"of freedom (got dim={dim!r}); set it to len(q), half the length of "
+                         f"the state (q, p), or leave it out to take len(y0) // 2")
     if y.shape != (2 * system.dim,):
         raise ValueError(f"`{name}` must have shape ({2 * system.dim},) = (q, p) of a system with "
                          f"{system.dim} degrees of freedom (got shape {y.shape})")
     return system, y
+
+
+def check_method(method) -> None:
+    """A TypeError naming ``method`` when it is not a method object (a string, the class)."""
+    if isinstance(method, type) or not all(hasattr(method, a) for a in ("k", "s", "tau", "X")):
+        got = (f"the class {method.__name__}" if isinstance(method, type)
+               else f"{type(method).__name__} {method!r:.60}")
+        raise TypeError(f"`method` must be a method object such as integrators.HBVM(4, 2) or "
+                        f"EQUIP(4, 2) (got {got}); build it with HBVM(k, s)")
+
+
+def check_fast(fast) -> None:
+    """A ValueError naming ``fast`` unless it is True, False or None ("no" is not False)."""
+    if fast is not None and not isinstance(fast, (bool, np.bool_)):
+        raise ValueError(f"`fast` must be True (compiled kernels required), False (the Python "
+                         f"step) or None (compiled when the system has kernels) (got "
+                         f"fast={fast!r})")
+
+
+#: a run's samples may take at most this fraction of the machine's memory
+SAMPLES_MEMORY = 0.5
+
+
+def check_samples(steps: int, sample_every: int, size: int) -> None:
+    """A ValueError naming ``steps`` and ``sample_every`` when the samples of a run would not
+    fit in memory (instead of numpy's MemoryError, or the out-of-memory killer later)."""
+    nsamp = steps // sample_every + 1
+    need = 8.0 * nsamp * (size + 2)
+    try:
+        have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):       # (not on every platform)
+        have = 2.0 ** 40
+    if need > SAMPLES_MEMORY * have:
+        every = int(math.ceil(8.0 * steps * (size + 2) / (0.01 * have)))
+        raise ValueError(f"`steps`={steps} with sample_every={sample_every} keeps {nsamp} samples "
+                         f"of {size + 2} numbers ({need / 2**30:.3g} GiB, more than "
+                         f"{SAMPLES_MEMORY:g} of this machine's {have / 2**30:.3g} GiB); raise "
+                         f"sample_every (e.g. sample_every={every} keeps 1 % of memory) or run "
+                         f"in pieces")
 
 
 def is_real(value) -> bool:
@@ -184,6 +232,11 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
         return 0.0
     if isinstance(energy_tol, str) and energy_tol == "auto":
         nu = getattr(system, "polynomial_degree", None)
+        if nu is not None and (isinstance(nu, bool) or not isinstance(nu, (int, np.integer))
+                               or nu < 0):
+            raise ValueError(f"`polynomial_degree` of {type(system).__name__} must be None (H "
+                             f"is not a polynomial) or a non-negative integer, the degree of "
+                             f"H in q and p (got polynomial_degree={nu!r})")
         exact = (nu is not None and tol is None
                  and method.k >= type(method).for_polynomial_degree(max(int(nu), 1), method.s,
                                                                      method.nodes).k)
@@ -345,6 +398,7 @@ class Binding:
         if form == "separable" and not _is_separable(system):
             raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
                              "`potential`; use form='full'")
+        check_fast(fast)
         self.full = not (form == "separable" or (form == "auto" and _is_separable(system)))
         self.method, self.system = method, system
         self._watch = None
@@ -381,6 +435,13 @@ class Binding:
             if masses.shape != (m,):
                 raise ValueError(f"`masses` of the system must have shape ({m},) "
                                  f"(got {masses.shape})")
+            if not np.all(np.isfinite(masses) & (masses > 0)):
+                bad = int(np.flatnonzero(~(np.isfinite(masses) & (masses > 0)))[0])
+                raise ValueError(f"`masses` of {type(system).__name__} must be positive and "
+                                 f"finite, one per coordinate (got masses[{bad}]={float(masses[bad])!r}): "
+                                 f"a coordinate of zero mass has no velocity p / m; give it a "
+                                 f"mass (NBody gives a massless test particle 1 per coordinate) "
+                                 f"or use the full form (form='full', gradient and energy)")
             self.minv = 1.0 / masses
             self.kin_w = np.ascontiguousarray(getattr(system, "kinetic_weights", self.minv),
                                               dtype=float)
@@ -495,6 +556,8 @@ class Binding:
             counters[C_NFEV] += 2 * u
             jac = ((vals[:u] - vals[u:]) / (2 * e[:, None])).T
             L = np.concatenate([jac[d:], -jac[:d]]) if self.full else jac * self.minv[None, :]
+        if not np.all(np.isfinite(L)):
+            return None           # (the caller fails the step as NonFiniteError)
         if self._eig is None:
             lam, V = np.linalg.eig(self.method.X)
             self._eig = (lam, np.ascontiguousarray(V, dtype=complex),
@@ -505,7 +568,10 @@ class Binding:
         NM = np.empty((lam.size, u, u), dtype=complex)
         for i, m_i in enumerate(mu):
             j = next((j for j in range(i) if abs(mu[j] - np.conj(m_i)) <= 1e-14 * (1 + abs(m_i))), None)
-            NM[i] = np.conj(NM[j]) if j is not None else np.linalg.inv(eye - m_i * L)
+            try:
+                NM[i] = np.conj(NM[j]) if j is not None else np.linalg.inv(eye - m_i * L)
+            except np.linalg.LinAlgError:   # h at an eigenvalue of the Jacobian: no Newton step
+                return None
         return V, Vinv, NM
 
 
@@ -520,6 +586,25 @@ def _attach(err: BaseException, result) -> None:
         end = f" (t = {float(result.t[-1])!r})" if len(result.t) else ""
         err.add_note(f"hbvm-md: the run stopped after {result.steps} committed steps{end}; "
                      f"their samples are in this exception's `.result`")
+
+
+def _one_thread(fn):
+    """A Stepper method that refuses a second thread while another one runs it: a Stepper
+    holds one state, and two threads stepping it at once would mix their iterations in its
+    work arrays (and fail with a misleading hint, or not at all)."""
+    @functools.wraps(fn)
+    def guarded(self, *args, **kwargs):
+        busy = self.__dict__.get("_busy") or self.__dict__.setdefault("_busy", threading.RLock())
+        if not busy.acquire(blocking=False):
+            raise RuntimeError(f"this Stepper is already running `{fn.__name__}` in another "
+                               f"thread: a Stepper holds one state and steps it in one thread "
+                               f"at a time; give each thread its own Stepper (or integrate "
+                               f"call), or serialise the calls with a lock")
+        try:
+            return fn(self, *args, **kwargs)
+        finally:
+            busy.release()
+    return guarded
 
 
 class Stepper(Counted):
@@ -574,6 +659,7 @@ class Stepper(Counted):
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto",
                  fast: bool | None = None, energy_tol: float | str | None = "auto"):
+        check_method(method)
         t0 = check_options(solver, form, tol, max_iter, t0)
         energy_check(method, None, energy_tol, tol)        # checks the argument first
         system, self._y = check_state(system, y0)
@@ -637,6 +723,12 @@ class Stepper(Counted):
         to see a Hamiltonian changed between steps (ASE's calculator set in place)."""
         return float(self._eref[0])
 
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("_busy", None)          # (a lock does not pickle; a copy gets its own)
+        return state
+
+    @_one_thread
     def step(self, h: float) -> np.ndarray:
         """Advance by one step of size h and return (a copy of) the new state.
 
@@ -697,6 +789,7 @@ class Stepper(Counted):
         (self._h_prev, self._solver, self.solver_switches, self.rejected, self.status,
          self.solver_returns, self.last_switch, self._newton_run, self._newton_hold) = saved[6:]
 
+    @_one_thread
     def run(self, h: float, steps: int, sample_every: int = 1) -> "IntegrationResult":
         """``steps`` steps of size h with samples every ``sample_every`` steps (and at step 0).
 
@@ -708,6 +801,7 @@ class Stepper(Counted):
         h = check_step(h)
         steps = check_count("steps", steps, 0)
         sample_every = check_count("sample_every", sample_every, 1)
+        check_samples(steps, sample_every, self._y.size)
         nsamp = steps // sample_every + 1
         # t and H start as nan: a run stopped by an exception keeps the samples written
         out_t, out_y, out_e = np.full(nsamp, np.nan), np.empty((nsamp, self._y.size)), np.full(nsamp, np.nan)
@@ -842,6 +936,7 @@ class Stepper(Counted):
                 raise StepSizeError(h, min_dt, self.t, cause)
             h = h_new
 
+    @_one_thread
     def run_adaptive(self, h: float, t_end: float, epsilon: float, min_dt: float,
                      sample_every: int = 1, sample_times=None) -> "IntegrationResult":
         """Adaptive steps from t to t_end, h the first step tried: samples every
@@ -909,6 +1004,9 @@ class Stepper(Counted):
         if solver == "newton":
             nfev = self.counters[C_NFEV]
             newton = b.newton_matrices(self._y, h, self.counters)
+            if newton is None:
+                self.counters[C_NFEV] = nfev
+                return NOT_FINITE
         else:
             newton = b.no_newton
         status = b.step_code.advance(b.full, self._y, self._cy, b.minv,
@@ -1086,6 +1184,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         (``status`` "failed", or "interrupted" for KeyboardInterrupt and SystemExit).
     """
     h = check_step(h)
+    check_method(method)
     if variational is not None:
         from .variational import variational_stepper
         Stepper_ = variational_stepper(variational)

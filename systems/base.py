@@ -19,15 +19,15 @@ A system is any object with
 and optionally
 
 ``dim``
-    Number of degrees of freedom m; states are y = (q, p) flat, shape (2m,).  Default
-    ``len(y0) // 2``.
+    Number of degrees of freedom m (a positive integer); states are y = (q, p) flat, shape
+    (2m,).  Default ``len(y0) // 2``.
 ``stack_protocol``
     True declares that ``dim`` is set and ``energy`` and ``gradient`` both take stacks: the
     system is then used as it is, without the one-time check of :mod:`integrators.protocol`
     (:class:`HamiltonianSystem` sets it).
 ``polynomial_degree``
-    Degree of H as a polynomial in y, or None when H is not a polynomial.  Used to choose the
-    smallest k that conserves H exactly.
+    Degree of H as a polynomial in y (a non-negative integer), or None when H is not a
+    polynomial.  Used to choose the smallest k that conserves H exactly.
 ``hessian(y)``
     The Hessian of H at one state y of shape (2m,): an array of shape (2m, 2m), rows and
     columns ordered like y = (q, p), entry (i, j) = d^2 H / dy_i dy_j.  Without it the Newton
@@ -35,7 +35,7 @@ and optionally
 ``initial_state()``
     A default starting state.
 Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of
-freedom), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
+freedom, positive), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
 engine then iterates on the momentum coefficients only.
 ``forces_into(Q, out)``
     Optional, separable form: writes ``forces(Q)`` for a stack Q (n, m) into the C-contiguous

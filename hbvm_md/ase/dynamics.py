@@ -110,18 +110,32 @@ class _AtomsSystem(SeparableSystem):
         lead = X.shape[:-2]
         X = X.reshape((-1, self.n_atoms, 3))
         if self.batched:
-            F = np.array(self.calc.forces_batch(X, self.atoms), dtype=float)
+            F = np.array(self._checked(self.calc.forces_batch(X, self.atoms), X.shape,
+                                       "forces_batch"), dtype=float)
         else:
             # the real atoms object is moved to each stage (calculators may keep per-atoms
             # state); the step puts it back at the final positions afterwards
             F = np.empty_like(X)
             for a in range(X.shape[0]):
                 self.atoms.set_positions(X[a], apply_constraint=False)
-                F[a] = self.calc.get_property("forces", self.atoms)
+                F[a] = self._checked(self.calc.get_property("forces", self.atoms), X.shape[1:],
+                                     "get_property('forces')")
         self.stage_evaluations += X.shape[0]
         if self.constraints.any:
             self.constraints.forces(X, F)
         return F.reshape(lead + (self.dim,))
+
+    def _checked(self, F, shape: tuple, call: str) -> np.ndarray:
+        """The calculator's forces, or a ValueError naming it and the shapes (numpy would say
+        only that it cannot broadcast, or broadcast a wrong shape silently)."""
+        F = np.asarray(F)
+        if F.shape != shape:
+            raise ValueError(f"the calculator {type(self.calc).__name__} returned forces of shape "
+                             f"{F.shape} from {call} for {self.n_atoms} atoms (shape {shape} "
+                             f"expected): one row of 3 components per atom of the Atoms it is "
+                             f"given; check that it computes for these atoms (no extra ghost "
+                             f"or dummy atom, no atom left out)")
+        return F
 
     def potential(self, q: np.ndarray):
         q = np.asarray(q, dtype=float)

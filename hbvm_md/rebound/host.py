@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+import threading
 import warnings
 
 import numpy as np
@@ -187,6 +188,40 @@ def _create() -> int:
 
 
 # -- the integrate and steps of rebound.Simulation ------------------------------------------------
+# simulation address -> (thread, depth) of the run in progress: REBOUND's run loop releases
+# the GIL, and two threads integrating one simulation step one state from two places (the
+# step then finds the state changed under it)
+_RUNNING: dict[int, tuple[int, int]] = {}
+_RUNNING_LOCK = threading.Lock()
+
+
+class _OneThread:
+    """The run of one simulation in one thread at a time: a second thread is refused by name."""
+
+    def __init__(self, addr: int):
+        self.addr = addr
+
+    def __enter__(self):
+        me = threading.get_ident()
+        with _RUNNING_LOCK:
+            owner, depth = _RUNNING.get(self.addr, (me, 0))
+            if owner != me:
+                raise RuntimeError("this REBOUND simulation is being integrated by another "
+                                   "thread (sim.integrator = 'hbvm'): a simulation holds one "
+                                   "state and is stepped by one thread at a time; give each "
+                                   "thread its own simulation (sim.copy()), or serialise the "
+                                   "integrate calls with a lock")
+            _RUNNING[self.addr] = (me, depth + 1)
+
+    def __exit__(self, *exc):
+        with _RUNNING_LOCK:
+            owner, depth = _RUNNING[self.addr]
+            if depth > 1:
+                _RUNNING[self.addr] = (owner, depth - 1)
+            else:
+                del _RUNNING[self.addr]
+
+
 def _install_runs(rebound) -> None:
     """``rebound.Simulation.integrate`` and ``steps`` raise a failed HBVM step's own exception.
 
@@ -214,16 +249,18 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_integrate(self, tmax, exact_finish_time)
-        _PENDING.pop(addr, None)
-        c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
-        _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
+        with _OneThread(addr):
+            _PENDING.pop(addr, None)
+            c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
+            _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
 
     def steps(self, N_steps):
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_steps(self, N_steps)
-        _PENDING.pop(addr, None)
-        _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
+        with _OneThread(addr):
+            _PENDING.pop(addr, None)
+            _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
