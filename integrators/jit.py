@@ -28,7 +28,7 @@ class _Ids:
     compilations: ``core.carve`` cached alone, and inlined into the generated step module.
     Loaded into one process, the second binds to the first's environment, and boxing its
     result fails ("descr is NULL", "returned a result with an exception set"; measured in a
-    dask worker that ran the REBOUND step and then the ASE step, numba 0.60-0.61).
+    dask worker that ran the REBOUND step and then the ASE step).
 
     So the project's own compilations (:func:`jit`'s dispatchers, :func:`cjit`'s callbacks,
     and whatever numba compiles inside them) draw their ids from a counter of this process

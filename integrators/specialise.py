@@ -193,7 +193,7 @@ def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
         parts.append("tangent map")
     if glue is not None:
         parts.append(f"host {glue[0].stem}")
-    _log.warning("hbvm-md: compiling HBVM's step for this scene, once: %s (about a minute at "
+    _log.warning("hbvm-md: compiling HBVM's step for this scene, once: %s (tens of seconds at "
                  "most; cached in %s for every later run; `hbvm-md compile` compiles ahead)",
                  ", ".join(parts), path.parent)
 
