@@ -95,10 +95,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--compare", default=None, help="another hbvm-md source tree, run alternately")
+    ap.add_argument("--label", default="compared", help="its name in the table (a commit, say)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "cold_start.md"))
     args = ap.parse_args(argv)
-    trees = [("this tree", ROOT)] + ([("compared", os.path.abspath(args.compare))]
+    trees = [("this tree", ROOT)] + ([(args.label, os.path.abspath(args.compare))]
                                      if args.compare else [])
+    load = os.getloadavg()
     rows: dict = {}
     for r in range(args.rounds):
         for label, tree in trees:
@@ -123,7 +125,8 @@ def main(argv=None) -> int:
              f"{args.rounds} rounds; the trees alternate within a round. Wall times exclude the "
              "import; CPU times are the whole process's (on a loaded machine the steadier "
              "figure).", "",
-             f"Machine: {machine()}", "",
+             f"Machine: {machine()}; load average at the start (1, 5, 15 min): "
+             f"{load[0]:.1f}, {load[1]:.1f}, {load[2]:.1f}.", "",
              "| scene | code | first run wall (s) | first run CPU (s) | cached run wall (s) |",
              "|---|---|---:|---:|---:|"]
     for (scene, label), v in rows.items():
