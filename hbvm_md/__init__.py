@@ -23,6 +23,7 @@ _LAZY = {
     "compare_rebound": "hbvm_md.reports.rebound_comparison",
     "ReboundComparison": "hbvm_md.reports.rebound_comparison",
     "run_ensemble": "hbvm_md.ensemble",
+    "precompile": "hbvm_md.compile_ahead",
 }
 
 __all__ = ["HBVM", "ConvergenceError", "UnresolvedStepError", "integrate", *_LAZY]
@@ -36,7 +37,7 @@ def __getattr__(name):
 
 def _register_with_rebound() -> None:
     try:
-        import rebound  # noqa: F401
+        import_module("rebound")
     except ImportError:          # REBOUND is optional
         return
     from hbvm_md.rebound import register

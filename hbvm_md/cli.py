@@ -1,4 +1,4 @@
-"""The ``hbvm-md`` command line: demo, bench, spectrum, hard-cases.
+"""The ``hbvm-md`` command line: demo, bench, spectrum, hard-cases, ensemble, compile.
 
 ``hbvm-md demo`` is the quick start: the outer solar system through REBOUND and a
 polynomial-pair cluster through ASE, each with HBVM and with the host's own integrators; it
@@ -106,6 +106,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .ensemble_cli import add_ensemble_parser
     add_ensemble_parser(sub)
+
+    from .compile_ahead import DEFAULT_SCENES, SCENES
+    c = sub.add_parser("compile", help="compile and cache HBVM's steps ahead (CI, containers, "
+                       "dask workers)", description="Run a tiny scene of each kind so that numba "
+                       "compiles and caches HBVM's step for it (HBVM_MD_CACHE_DIR and "
+                       "NUMBA_CACHE_DIR say where); later processes using the same folders start "
+                       "without compiling.")
+    c.add_argument("scenes", nargs="*", choices=[*SCENES, "all"], default=list(DEFAULT_SCENES),
+                   metavar="SCENE", help=f"scenes to compile: {', '.join(SCENES)} or all "
+                   f"(default: {' '.join(DEFAULT_SCENES)})")
     return p
 
 
@@ -286,6 +296,16 @@ def cmd_ensemble(args) -> int:
     return run(args)
 
 
+# -- compile (hbvm_md/compile_ahead.py) ------------------------------------------------------
+def cmd_compile(args) -> int:
+    from integrators.specialise import cache_dir
+    from .compile_ahead import precompile
+    for name, took in precompile(args.scenes).items():
+        _say(f"{name}: {took:.1f} s")
+    _say(f"cached in {cache_dir()} (steps) and numba's cache folder")
+    return 0
+
+
 class _UsageError(Exception):
     pass
 
@@ -295,7 +315,7 @@ def _fail(message: str):
 
 
 COMMANDS = {"demo": cmd_demo, "bench": cmd_bench, "spectrum": cmd_spectrum, "hard-cases": cmd_hard_cases,
-            "ensemble": cmd_ensemble}
+            "ensemble": cmd_ensemble, "compile": cmd_compile}
 
 
 def main(argv=None) -> int:

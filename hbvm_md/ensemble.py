@@ -279,7 +279,8 @@ class _Store:
     """The journal of one ensemble (see the module docstring)."""
 
     def __init__(self, path, task, params: list):
-        import pyarrow  # noqa: F401 - fail before any member runs when pyarrow is missing
+        import importlib
+        importlib.import_module("pyarrow")   # fail before any member runs when it is missing
         self.path = Path(path)
         if self.path.exists() and not self.path.is_dir():
             raise ValueError(f"`store` must be a folder (got the file {str(self.path)!r}); pass a "

@@ -70,7 +70,7 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
     _check_run(t_end, dt, n_samples)
     sims = [nb.to_rebound(y_a), nb.to_rebound(y_b)]
     drv_a = HBVMIntegrator(sims[0], s=s, k=k, dt=dt)
-    drv_b = HBVMIntegrator(sims[1], s=s, k=drv_a.method.k, dt=dt)     # the same method for both
+    HBVMIntegrator(sims[1], s=s, k=drv_a.method.k, dt=dt)     # the same method for both
     watch = np.asarray(watch)
     N = nb.N
 

@@ -422,8 +422,10 @@ class Binding:
                        if has_kernels and not self.full
                        and callable(getattr(system, "separable_followers", None))
                        else None)
+        # (the form and the method are fixed for a binding: the step leaves the others out)
+        self.equip = hasattr(method, "step_arrays")         # EQUIP packs its own arrays
         self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp,
-                                    follow=self.follow)
+                                    follow=self.follow, full=self.full, equip=self.equip)
         self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"

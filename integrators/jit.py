@@ -7,49 +7,122 @@ runs as plain Python.
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import secrets
 import warnings
 
 from numba import njit
+from numba.core import sigutils, types
+from numba.core.registry import CPUDispatcher
 
 _warned = False
 
 
-def _distinct_symbol_ids() -> None:
-    """Start numba's function-id counter at a random offset in this process.
+class _Ids:
+    """numba issue #10486, scoped to this project's compilations.
 
     numba names every compilation of a function ``qualname$uid`` with uid from a counter that
-    starts at 1 in each process, and cached code keeps the names it was compiled with.  Code
-    cached by two processes can then carry one symbol for two compilations: ``core.carve``
-    cached alone, and inlined into the generated step module.  Loaded into one process, the
-    second binds to the first's environment, and boxing its result fails ("descr is NULL",
-    "returned a result with an exception set"; measured in a dask worker that ran the REBOUND
-    step and then the ASE step; numba issue #10486).  With a random 40-bit start, processes
-    almost never share ids.  Ids already given in this process stay below the new start."""
-    try:
-        from numba.core.bytecode import FunctionIdentity
-    except ImportError:              # another numba layout: keep its counter
-        return
-    if isinstance(getattr(FunctionIdentity, "_unique_ids", None), itertools.count):
-        FunctionIdentity._unique_ids = itertools.count(2 ** 40 + secrets.randbits(40))
+    starts at 1 in each process (``FunctionIdentity._unique_ids``), and cached code keeps the
+    names it was compiled with.  Code cached by two processes can then carry one symbol for two
+    compilations: ``core.carve`` cached alone, and inlined into the generated step module.
+    Loaded into one process, the second binds to the first's environment, and boxing its
+    result fails ("descr is NULL", "returned a result with an exception set"; measured in a
+    dask worker that ran the REBOUND step and then the ASE step).
+
+    So the project's own compilations (:func:`jit`'s dispatchers, :func:`cjit`'s callbacks,
+    and whatever numba compiles inside them) draw their ids from a counter of this process
+    that starts at a random 40-bit offset above 2**40: processes almost never share ids, and
+    numba's own counter is swapped back after each compile, untouched (importing hbvm-md, or
+    compiling with it, changes nothing for the other libraries a user has loaded).  When
+    numba's layout has changed and the counter cannot be scoped, the first compile says so
+    once (a RuntimeWarning) and numba's counter is left as it is."""
+
+    counter = itertools.count(2 ** 40 + secrets.randbits(40))
+    warned = False
+
+    @classmethod
+    def identity(cls):
+        """numba's ``FunctionIdentity`` class when its counter can be scoped, else None."""
+        try:
+            from numba.core.bytecode import FunctionIdentity
+        except ImportError:
+            FunctionIdentity = None
+        if FunctionIdentity is None or not isinstance(getattr(FunctionIdentity, "_unique_ids",
+                                                              None), itertools.count):
+            if not cls.warned:
+                cls.warned = True
+                warnings.warn("hbvm-md: numba's function ids (numba.core.bytecode."
+                              "FunctionIdentity._unique_ids) are not where this version expects "
+                              "them, so compiled code cached by two processes may share symbol "
+                              "names (numba issue #10486): if a process that loads both the "
+                              "REBOUND and the ASE step fails with 'descr is NULL', clear "
+                              "HBVM_MD_CACHE_DIR and NUMBA_CACHE_DIR", RuntimeWarning,
+                              stacklevel=4)
+            return None
+        return FunctionIdentity
+
+    @classmethod
+    @contextlib.contextmanager
+    def scoped(cls):
+        """numba compiles with the project's counter inside this block (under numba's compiler
+        lock: compilations of other threads wait, as they would for numba's own)."""
+        from numba.core.compiler_lock import global_compiler_lock
+        fid = cls.identity()
+        if fid is None:
+            yield
+            return
+        with global_compiler_lock:
+            saved = fid._unique_ids
+            fid._unique_ids = cls.counter
+            try:
+                yield
+            finally:
+                fid._unique_ids = saved
 
 
-_distinct_symbol_ids()
+class Dispatcher(CPUDispatcher):
+    """numba's dispatcher, compiling with the project's function ids (:class:`_Ids`), each
+    function once per argument *types*: numba would also compile a copy for each constant a
+    compiled caller passes (``exact=True``, and ``polish``'s first value False while it types
+    the loop), a second or two each on a cold cache; a constant argument selects the compiled
+    function of its type instead (the same code: no function here branches on its argument's
+    type being a constant)."""
+
+    def compile(self, sig):
+        args, return_type = sigutils.normalize_signature(sig)
+        plain = tuple(types.unliteral(a) for a in args)
+        if plain != tuple(args):
+            sig = plain if return_type is None else return_type(*plain)
+        with _Ids.scoped():
+            return super().compile(sig)
 
 
-def jit(fn=None, *, nogil: bool = False):
+def _own(dispatcher):
+    """The dispatcher numba made, as a :class:`Dispatcher` (the same object: numba's options,
+    cache and typing unchanged)."""
+    if type(dispatcher) is CPUDispatcher:
+        dispatcher.__class__ = Dispatcher
+    return dispatcher
+
+
+def jit(fn=None, *, nogil: bool = False, inline: bool = False):
     """``njit(cache=True, error_model="numpy")(fn)``, or without the cache when none can be
     written.  numpy's error model makes a division by zero an inf or a nan, which the step
     reports as a clear error, instead of an exception raised inside compiled code.
     ``@jit(nogil=True)``: the compiled function releases the GIL while it runs (for one that
-    calls into a C library, as ctypes would)."""
+    calls into a C library, as ctypes would).  ``inline=True``: a compiled caller takes the
+    function's code into its own (numba's ``inline="always"``) instead of linking a separately
+    compiled copy; called from Python it is compiled as usual (see
+    :mod:`integrators.specialise`, "Compile time")."""
     global _warned
     if fn is None:
-        return lambda f: jit(f, nogil=nogil)
+        return lambda f: jit(f, nogil=nogil, inline=inline)
     options = dict(error_model="numpy", nogil=True) if nogil else dict(error_model="numpy")
+    if inline:
+        options["inline"] = "always"
     try:
-        return njit(cache=True, **options)(fn)
+        return _own(njit(cache=True, **options)(fn))
     except RuntimeError as exc:       # numba: "cannot cache function ...: no locator available"
         if "cache" not in str(exc):
             raise
@@ -58,7 +131,7 @@ def jit(fn=None, *, nogil: bool = False):
             warnings.warn(f"hbvm-md: compiled code cannot be cached on disk ({exc}); it is "
                           "compiled in memory in every process. Set NUMBA_CACHE_DIR to a writable "
                           "folder to cache it.", RuntimeWarning, stacklevel=2)
-        return njit(**options)(fn)
+        return _own(njit(**options)(fn))
 
 
 def cjit(signature, cache: bool = True):
@@ -68,14 +141,15 @@ def cjit(signature, cache: bool = True):
     from numba import cfunc
 
     def deco(fn):
-        if not cache:
-            return cfunc(signature, error_model="numpy")(fn)
-        try:
-            return cfunc(signature, cache=True, error_model="numpy")(fn)
-        except RuntimeError as exc:
-            if "cache" not in str(exc):
-                raise
-            return cfunc(signature, error_model="numpy")(fn)
+        with _Ids.scoped():           # (a cfunc compiles when it is made)
+            if not cache:
+                return cfunc(signature, error_model="numpy")(fn)
+            try:
+                return cfunc(signature, cache=True, error_model="numpy")(fn)
+            except RuntimeError as exc:
+                if "cache" not in str(exc):
+                    raise
+                return cfunc(signature, error_model="numpy")(fn)
     return deco
 
 

@@ -18,11 +18,26 @@ once (``integrators/loop.py``) with the kernels as two module globals, and:
 * **anything else** (a user's Python ``gradient``, an ASE calculator): the same text is
   executed as Python, the kernels bound to Python callables; it calls the compiled pieces of
   :mod:`integrators.core`.  Under ``NUMBA_DISABLE_JIT=1`` every path is this one.
+
+Compile time.  A generated module is compiled once per scene *variant* and cached: the
+followers only for a system with test particles, the full or the separable form only as the
+binding uses it, EQUIP only for EQUIP, the tangent map only when a ``jvp`` is bound (REBOUND:
+variational particles); what a variant leaves out is bound to the stand-ins of
+:mod:`integrators.absent`, never reached (the variant is part of the module's name).  numba
+optimises and translates a caller together with every compiled function it calls, so a chain
+of calls compiles the callee's code once per level: the wrapper ``advance`` around
+:func:`loop.run` is inlined into its compiled callers instead (:func:`integrators.jit.jit`,
+``inline=True``; the same floating-point operations in the same order, so the same numbers bit
+for bit).  Measured on REBOUND's three-body scene with
+empty caches: see ``benchmarks/results/cold_start.md`` (``benchmarks/bench_cold_start.py``).
+A compile that is about to run logs one line (logger ``hbvm_md``) saying so;
+:func:`hbvm_md.precompile` (``hbvm-md compile``) compiles the usual variants ahead.
 """
 from __future__ import annotations
 
 import hashlib
 import importlib.util
+import logging
 import os
 import sys
 import tempfile
@@ -33,7 +48,7 @@ from pathlib import Path
 
 import numba
 
-from . import core, equip_core, jit as _jitmod, loop, pointers as _pointersmod, tangent
+from . import absent, core, equip_core, jit as _jitmod, loop, pointers as _pointersmod, tangent
 
 LOOP_FUNCTIONS = ("evaluate", "energy_parts", "follower_stages", "gather_followers", "follow", "run",
                   "advance", "attempt")
@@ -44,6 +59,15 @@ _LOOP_PATH = Path(loop.__file__)
 TANGENT_FUNCTIONS = ("evaluate_jvp", "tangent_converged", "tangent_sizes", "stages", "tangent_map",
                      "megno_step", "run_variational")
 _TANGENT_PATH = Path(tangent.__file__)
+# wrappers inlined into their compiled callers (module docstring, "Compile time"); numba
+# cannot inline a call of more than 30 arguments (Python passes them as *args), as
+# loop.attempt's and glue.step_arrays' are
+INLINED = ("advance",)
+# the full form's pieces of integrators.core, bound to integrators.absent in a separable step
+FULL_FUNCTIONS = ("full_stages", "full_stages_narrow", "symplectic", "commit_full")
+# what a host's glue calls for variational particles, bound to integrators.absent without
+TANGENT_GLUE = ("tangent_map", "read_tangents", "write_tangents", "delta2")
+_log = logging.getLogger("hbvm_md")
 _CACHE: dict = {}
 _LOCK = threading.Lock()
 _cache_dir: Path | None = None
@@ -103,10 +127,10 @@ def _glue(glue):
             dict(getattr(module, "GLUE_CFUNCS", {})), depends)
 
 
-def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS) -> str:
+def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None)) -> str:
     h = hashlib.sha256()
     paths = [_LOOP_PATH, Path(core.__file__), Path(equip_core.__file__), Path(_jitmod.__file__),
-             Path(_pointersmod.__file__)]
+             Path(_pointersmod.__file__), Path(absent.__file__), Path(__file__)]
     if glue is not None:
         paths += [glue[0], *glue[3]]
     if len(refs) > 2:                  # a jvp kernel: the tangent map is compiled with the step
@@ -116,12 +140,67 @@ def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS) -> str:
     for mod, name in list(refs) + list(frefs):
         h.update(f"{mod}:{name}".encode())
         h.update(Path(sys.modules[mod].__file__).read_bytes())
-    h.update(f"{numba.__version__} {sys.version}".encode())
+    h.update(f"{numba.__version__} {sys.version} full={variant[0]} equip={variant[1]}".encode())
     return h.hexdigest()[:24]
 
 
-def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS) -> types.ModuleType:
-    digest = _source_hash(refs, glue, frefs)
+def _variant_lines(refs, glue, frefs, variant) -> str:
+    """The generated module's lines binding what this variant leaves out to the stand-ins of
+    :mod:`integrators.absent` (module docstring, "Compile time")."""
+    full, equip = variant
+    lines = ["from integrators import absent as _absent  # noqa: E402"]
+    if frefs == NO_FOLLOWERS:
+        lines.append("follow = _absent.follow")
+    if full is False:
+        lines += [f"{f} = _absent.{f}" for f in FULL_FUNCTIONS]
+    if equip is False:
+        lines.append("eq = _absent")
+    if glue is not None and len(refs) <= 2:
+        lines += [f"{f} = _absent.{f}" for f in TANGENT_GLUE if hasattr(absent, f)]
+    return "\n".join(lines) + "\n"
+
+
+def _is_cached(name: str, path: Path) -> bool | None:
+    """Has numba cached compiled code of the generated module ``name`` (at ``path``)?  Looks
+    where numba's own cache locators would put it; None when that cannot be told."""
+    try:
+        from numba.core import caching
+        impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl")
+        for cls in impl._locator_classes:
+            loc = cls.from_function(_announce, str(path))    # (any function: its line)
+            if loc is None:
+                continue
+            try:
+                loc.ensure_cache_path()
+            except OSError:
+                continue
+            return any(Path(loc.get_cache_path()).glob(f"{name}.*.nbi"))
+    except Exception:                # numba's private layout changed: say nothing
+        return None
+    return None
+
+
+def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
+    """One line before a compile that takes tens of seconds (a cold cache)."""
+    if _is_cached(name, path) is not False:
+        return
+    parts = [f"kernel {refs[0][0]}.{refs[0][1]}", "separable form" if variant[0] is False
+             else "full form" if variant[0] else "both forms",
+             "EQUIP" if variant[1] else "HBVM" if variant[1] is False else "HBVM and EQUIP"]
+    if frefs != NO_FOLLOWERS:
+        parts.append("test particles")
+    if len(refs) > 2:
+        parts.append("tangent map")
+    if glue is not None:
+        parts.append(f"host {glue[0].stem}")
+    _log.warning("hbvm-md: compiling HBVM's step for this scene, once: %s (tens of seconds at "
+                 "most; cached in %s for every later run; `hbvm-md compile` compiles ahead)",
+                 ", ".join(parts), path.parent)
+
+
+def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
+                        variant=(None, None)) -> types.ModuleType:
+    digest = _source_hash(refs, glue, frefs, variant)
     name = f"_hbvm_md_step_{digest}"
     if name in sys.modules:
         return sys.modules[name]
@@ -143,7 +222,9 @@ def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS) -> types.ModuleType
              + f"from {frefs[0][0]} import {frefs[0][1]} as _followers  # noqa: E402\n"
              + f"from {frefs[1][0]} import {frefs[1][1]} as _field  # noqa: E402\n"
              + "from integrators.jit import cjit as _cjit, jit as _jit  # noqa: E402\n"
-             + "".join(f"{f} = _jit({f})\n" for f in functions)
+             + "".join(f"{f} = _jit({f}{', inline=True' if f in INLINED else ''})\n"
+                       for f in functions)
+             + _variant_lines(refs, glue, frefs, variant)
              + "".join(f"{f} = _cjit({sig!r})({f})\n" for f, sig in cfuncs.items()))
     folder = cache_dir()
     path = folder / f"{name}.py"
@@ -151,6 +232,7 @@ def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS) -> types.ModuleType
         tmp = folder / f".{name}.{os.getpid()}.tmp"
         tmp.write_text(text)
         os.replace(tmp, path)          # atomic: parallel workers never see half a file
+    _announce(name, path, refs, glue, frefs, variant)    # (numba's locators need the file)
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
@@ -175,16 +257,17 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
                                                                         core.no_field)
     if compile_:
         for f in functions:
-            ns[f] = numba.njit(error_model="numpy")(ns[f])
+            ns[f] = _jitmod._own(numba.njit(error_model="numpy")(ns[f]))
         if glue is not None:
             for f, sig in glue[2].items():
-                ns[f] = numba.cfunc(sig, error_model="numpy")(ns[f])
+                with _jitmod._Ids.scoped():
+                    ns[f] = numba.cfunc(sig, error_model="numpy")(ns[f])
                 functions = functions + (f,)
     return types.SimpleNamespace(**{f: ns[f] for f in functions})
 
 
 def specialise(force, potential, python: bool = False, glue: str | None = None, jvp=None,
-               follow=None):
+               follow=None, *, full: bool | None = None, equip: bool | None = None):
     """The step bound to these kernels: an object with ``advance``, ``run``, ``attempt`` (see
     :mod:`integrators.loop`) and ``kind`` ("compiled" or "python"); ``python=True`` executes
     the step as Python even when the kernels are compiled.
@@ -203,7 +286,11 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
     ``follow``: the followers hooks ``(followers(params), field(Xt, Xs, params, out))`` of a
     separable system whose unknowns split into sources and followers (test particles, see
     :mod:`integrators.loop`), bound like the force kernel (Python ones make the step Python);
-    None: none."""
+    None: none.
+
+    ``full``, ``equip``: the form the step will be called with (True: full, False: separable)
+    and whether the method is EQUIP; a compiled step then leaves the other form (EQUIP) out
+    (module docstring, "Compile time").  None: both, as a step called either way needs."""
     if jvp is not None and not _is_compiled(jvp):
         python = True
     if follow is not None and not all(_is_compiled(f) for f in follow):
@@ -212,7 +299,8 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
         out = _executed(force, potential, False, _glue(glue), jvp, follow)
         out.kind = "python"
         return out
-    key = (force, potential, glue, jvp, follow)
+    variant = (None if full is None else bool(full), None if equip is None else bool(equip))
+    key = (force, potential, glue, jvp, follow, variant)
     try:
         hit = _CACHE.get(key)
     except TypeError:            # unhashable callables: no cache
@@ -227,7 +315,7 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
                 refs.append(_import_ref(jvp))
             frefs = NO_FOLLOWERS if follow is None else tuple(_import_ref(f) for f in follow)
             if None not in refs and None not in frefs:
-                mod = _compiled_from_file(refs, glue_, frefs)
+                mod = _compiled_from_file(refs, glue_, frefs, variant)
                 names = (LOOP_FUNCTIONS + (TANGENT_FUNCTIONS if jvp is not None else ())
                          + (glue_[1] + tuple(glue_[2]) if glue_ else ()))
                 out = types.SimpleNamespace(**{f: getattr(mod, f) for f in names})

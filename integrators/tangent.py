@@ -32,6 +32,8 @@ The initial guess of each tangent's d gamma is the previous step's, extrapolated
 step's own matrix E (as the step guesses gamma): a tangent vector changes by O(h) a step, so
 the guess starts as close as the step's own.
 """
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, ROUNDOFF_ULPS,
@@ -43,8 +45,11 @@ from integrators.pointers import view1
 
 _force_jvp = None    # bound by integrators.specialise
 TANGENT_FAILED = 16  # run_variational's return for a step whose tangent map failed: + status
-# (run_variational calls the loop's advance and energy_parts: this text is appended to the
-# loop's, see integrators.specialise)
+if TYPE_CHECKING:
+    # run_variational calls the loop's advance and energy_parts: integrators.specialise appends
+    # this text to the loop's, where they are the loop's bound to the same kernels (imported
+    # here for readers and linters only: integrators.loop's own are not bound to any kernel)
+    from integrators.loop import advance, energy_parts
 
 
 def evaluate_jvp(full, X, dX, params, dF, dG):

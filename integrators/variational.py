@@ -225,7 +225,7 @@ class VariationalStepper(Stepper):
         jvp = jvp_for(b, self.system)
         # the step rebound with the jvp: one module holds the step and its tangent map
         b.step_code = specialise(b.force, b.potential, python=b.kind == "python", jvp=jvp,
-                                 follow=b.follow)
+                                 follow=b.follow, full=b.full, equip=b.equip)
         b.kind = b.step_code.kind
         b.name = f"{b.kind}-{'full' if b.full else 'separable'}"
         nv, s, u = self._V.shape[0], method.s, b.u

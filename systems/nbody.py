@@ -483,7 +483,11 @@ class NBody(SeparableSystem):
     def separable_followers(self):
         """The step's hooks for solving the sources first and each test particle after them
         (:mod:`integrators.loop`, "Followers"): :func:`nbody_followers` and
-        :func:`nbody_field`, params as :meth:`separable_kernels`."""
+        :func:`nbody_field`, params as :meth:`separable_kernels`; None without both sources
+        and test particles (:func:`followers_block` is then empty: the step compiles no
+        followers)."""
+        if self.is_source.all() or not self.is_source.any():
+            return None
         return nbody_followers, nbody_field
 
     def separable_jvp(self):

@@ -390,12 +390,11 @@ def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():
 
 
 def test_numba_function_ids_start_at_a_random_offset_in_every_process():
-    """Cached code from two processes must not share symbol names (see integrators.jit
-    ._distinct_symbol_ids): the id counter starts above 2^40, at a different place in each
-    process."""
+    """Cached code from two processes must not share symbol names (see integrators.jit._Ids):
+    the project's compilations draw ids from a counter that starts above 2^40, at a different
+    place in each process (numba's own counter is left alone: tests/test_compile.py)."""
     code = ("import integrators.jit\n"
-            "from numba.core.bytecode import FunctionIdentity\n"
-            "print(next(FunctionIdentity._unique_ids))\n")
+            "print(next(integrators.jit._Ids.counter))\n")
     ids = [int(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                               text=True, check=True).stdout) for _ in range(2)]
     assert min(ids) > 2 ** 40 and ids[0] != ids[1]

@@ -16,6 +16,8 @@ method's packed arrays (their shapes in the context block's header) and in the l
 :func:`step_arrays` is the same step on arrays: the compiled :func:`core_step` views the memory
 and calls it; with ``NUMBA_DISABLE_JIT`` the host calls it as Python.
 """
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import carray
 
@@ -293,3 +295,11 @@ def core_step(r, p):
         f2(A_VT, nv, 2 * m), f3(A_DG, nv, s, m), f3(A_DGT, nv, s, m), f3(A_DGS, nv, s, m),
         f(A_TW, ctx[D_TGF]), carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
         f(A_VIDX, nv))
+
+
+if TYPE_CHECKING:
+    # integrators.specialise compiles this text after the step's (integrators.loop, and
+    # integrators.tangent or its stand-in in integrators.absent), where these are the step's
+    # own, bound to the N-body kernel (imported here for readers and linters only)
+    from integrators.loop import attempt
+    from integrators.tangent import tangent_map

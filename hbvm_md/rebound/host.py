@@ -530,10 +530,10 @@ def _prepare(sim, p: int) -> None:
         raise ValueError(f"{sim.N_var} variational particles with method='equip': the tangent "
                          "map is the derivative of the HBVM step, and EQUIP's step adds a "
                          "correction whose derivative it does not take; use method='hbvm'")
-    # the step is always built with its tangent map: one compiled module serves simulations
-    # with and without variational particles
+    # the tangent map is compiled only for a simulation with variational particles (a change of
+    # N_var moves particles_var: the compiled step asks for a resync, and this builds it again)
     binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue",
-                      jvp=nbody_force_jvp)
+                      jvp=nbody_force_jvp if sim.N_var > 0 else None)
     minv = binding.minv
     y, g, c = (_doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))

@@ -1,0 +1,103 @@
+"""Compile HBVM's steps ahead of a deployment: ``hbvm-md compile`` or :func:`precompile`.
+
+numba compiles HBVM's step for a scene once and caches it on disk (``HBVM_MD_CACHE_DIR`` for
+the generated step modules, ``NUMBA_CACHE_DIR`` for numba's compiled code; see
+:mod:`integrators.specialise`).  The first run on a fresh machine pays that compile; a CI job,
+a container image or a dask worker can pay it ahead instead, by running a tiny scene of each
+kind it will use:
+
+* ``"rebound"``: ``sim.integrator = "hbvm"`` on point masses (the step every REBOUND scene
+  without test particles or variational particles runs, fixed or adaptive, any k and s);
+* ``"test-particles"``: the same with test particles (``N_active`` < N, or massless bodies);
+* ``"variational"``: the same with variational particles (``sim.add_variation()``, MEGNO);
+* ``"equip"``: REBOUND with ``sim.integrator.method = "equip"``;
+* ``"ase"``: :class:`hbvm_md.HBVMDynamics` (the compiled pieces its step calls).
+
+The caches are then filled for every later process that uses the same folders, the same
+hbvm-md, numba and Python versions.
+"""
+from __future__ import annotations
+
+import time
+
+#: what :func:`precompile` compiles when not told (the scenes most runs use)
+DEFAULT_SCENES = ("rebound", "ase")
+
+
+def _rebound(test_particles: bool = False, variational: bool = False, method: str = "hbvm"):
+    import importlib
+
+    import rebound
+    importlib.import_module("hbvm_md")      # registers "hbvm" with REBOUND
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.05)
+    sim.add(m=1e-3, a=1.6, e=0.02, inc=0.1)
+    if test_particles:
+        sim.add(a=2.5, e=0.1)
+        sim.N_active = 3
+    if variational:
+        sim.init_megno()
+    sim.integrator = "hbvm"
+    if method != "hbvm":
+        sim.integrator.method = method
+    sim.dt = 0.05
+    sim.steps(2)
+
+
+def _ase():
+    import numpy as np
+    from ase import Atoms
+    from ase.calculators.emt import EMT
+
+    from hbvm_md.ase_dynamics import HBVMDynamics
+    atoms = Atoms("Cu2", positions=[[0.0, 0.0, 0.0], [2.6, 0.0, 0.0]])
+    atoms.calc = EMT()
+    atoms.set_momenta(np.array([[0.05, 0.0, 0.0], [-0.05, 0.0, 0.0]]))
+    HBVMDynamics(atoms, 1.0).run(2)
+
+
+SCENES = {
+    "rebound": _rebound,
+    "test-particles": lambda: _rebound(test_particles=True),
+    "variational": lambda: _rebound(variational=True),
+    "equip": lambda: _rebound(method="equip"),
+    "ase": _ase,
+}
+
+
+def precompile(scenes=DEFAULT_SCENES) -> dict[str, float]:
+    """Compile and cache HBVM's steps for these kinds of scene (see the module docstring);
+    returns the seconds each took (about a second for one already cached).
+
+    Parameters
+    ----------
+    scenes : iterable of str
+        Any of ``"rebound"``, ``"test-particles"``, ``"variational"``, ``"equip"``,
+        ``"ase"``, or ``"all"`` (default: ``("rebound", "ase")``).
+
+    Examples
+    --------
+    In a dask worker's setup, or a CI step before the tests::
+
+        import hbvm_md
+        hbvm_md.precompile(["rebound", "test-particles"])
+    """
+    if isinstance(scenes, str):
+        scenes = [scenes]
+    names = []
+    for name in scenes:
+        if name == "all":
+            names += [n for n in SCENES if n not in names]
+        elif name in SCENES:
+            if name not in names:
+                names.append(name)
+        else:
+            raise ValueError(f"`scenes` must name scenes among {sorted(SCENES)} or 'all' "
+                             f"(got {name!r})")
+    took = {}
+    for name in names:
+        t0 = time.perf_counter()
+        SCENES[name]()
+        took[name] = time.perf_counter() - t0
+    return took

@@ -1,0 +1,134 @@
+"""Compiled stand-ins for the parts of the step a scene does not use.
+
+:mod:`integrators.specialise` compiles the step of :mod:`integrators.loop` once per scene
+variant: the followers (test particles) only when the system has any, the full form or the
+separable form only as the binding uses, EQUIP only for EQUIP, the tangent map only when
+variational particles ask for it.  The step's code is the same for every variant; what a
+variant leaves out is bound to the functions here, which numba compiles in a fraction of a
+second instead of the real ones (the followers alone are about a sixth of the REBOUND step's
+first compile).  A stand-in is never reached in the variant it is bound in (the step's own
+branches keep it out: ``_followers`` of a system without followers returns -1, the host binds
+the method and the form it then runs), and if it ever were it raises instead of computing
+something else: it is a guard, not a fallback.
+
+The EQUIP stand-ins are bound as the step's ``eq`` (the names of
+:mod:`integrators.equip_core`): its constants and ``carve`` (the empty views an HBVM step
+carves) are EQUIP's own, its steps raise.
+"""
+import numpy as np
+
+from integrators.core import OK
+from integrators.equip_core import (  # (the names the step reads through ``eq``, __all__)
+    CONVERGED, CP_B1, CP_B2, CP_PATH_C2, CP_PATH_C2_LO, CP_PATH_I, CP_PATH_I_LO, CP_PATH_S, CP_PS,
+    CP_VEC, CP_X, CP_X_LO, EREF_EQUIP, FAILED, REITERATE, TS_PSE1, TS_S0, UPDATED, WP_PATH,
+    WP_PATH_LO, carve)
+from integrators.jit import jit
+
+__all__ = ["CONVERGED", "CP_B1", "CP_B2", "CP_PATH_C2", "CP_PATH_C2_LO", "CP_PATH_I",
+           "CP_PATH_I_LO", "CP_PATH_S", "CP_PS", "CP_VEC", "CP_X", "CP_X_LO", "EREF_EQUIP",
+           "FAILED", "REITERATE", "TS_PSE1", "TS_S0", "UPDATED", "WP_PATH", "WP_PATH_LO", "carve",
+           "follow", "full_stages", "full_stages_narrow", "symplectic", "commit_full",
+           "tangent_map", "read_tangents", "write_tangents", "delta2", "start", "finish",
+           "stage_correction", "path_correction", "energy_residual", "update_alpha",
+           "commit_correction"]
+
+
+@jit
+def _not_compiled():
+    raise RuntimeError("hbvm-md: internal error: the step was compiled without this part "
+                       "(integrators.absent); its binding does not match the system or method")
+
+
+# -- the followers (integrators.loop.follow), for a system without test particles ----------
+@jit
+def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W, W_lo,
+           max_iter, tol, R, fb, fo):
+    _not_compiled()
+    return OK, 0, 0.0
+
+
+# -- the full form (integrators.core), for a separable binding ----------------------------
+@jit
+def full_stages(y, cy, g, I, I_lo, h, Y, R, exact):
+    _not_compiled()
+
+
+@jit
+def full_stages_narrow(y, cy, g, I, I_lo, h, Y, exact):
+    _not_compiled()
+
+
+@jit
+def symplectic(G, F):
+    _not_compiled()
+
+
+@jit
+def commit_full(y, cy, h, g):
+    _not_compiled()
+
+
+# -- the tangent map (integrators.tangent), for a host step without variational particles --
+@jit
+def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM, max_iter,
+                V, DG, Vt, DGt, tw, tcw, tcount):
+    if V.shape[0] > 0:
+        _not_compiled()
+    return OK               # no tangents: nothing to map
+
+
+# -- REBOUND's tangents (hbvm_md.rebound.glue), likewise ----------------------------------
+@jit
+def read_tangents(pv, vidx, N, ix, ivx, minv, V, DG):
+    if V.shape[0] > 0:
+        _not_compiled()
+
+
+@jit
+def write_tangents(pv, vidx, N, ix, ivx, minv, V):
+    if V.shape[0] > 0:
+        _not_compiled()
+
+
+@jit
+def delta2(pv, N, ix, ivx):
+    _not_compiled()
+    return 1.0
+
+
+# -- EQUIP (integrators.equip_core, bound as the step's ``eq``), for an HBVM binding -------
+@jit
+def start(es, eref):
+    _not_compiled()
+
+
+@jit
+def finish(es, eref):
+    _not_compiled()
+
+
+@jit
+def stage_correction(full, y, minv, g, a, h, h2, alpha, PS, B1, B2, pse1, X):
+    _not_compiled()
+
+
+@jit
+def path_correction(g, minv, h2, alpha, IkS, Xk):
+    _not_compiled()
+
+
+@jit
+def energy_residual(full, y, minv, kin_w, g, rho, h, alpha, X, X_lo, S0):
+    _not_compiled()
+    return np.nan, np.nan, np.nan
+
+
+@jit
+def update_alpha(es, E, scale, floor):
+    _not_compiled()
+    return FAILED
+
+
+@jit
+def commit_correction(yt, cyt, minv, h, g, alpha, S0):
+    _not_compiled()
