@@ -148,6 +148,7 @@ def register() -> None:
     lib.reb_integrator_register(integ, NAME.encode())
     rebound.clibrebound._hbvm_md_registration = reg
     _install_runs(rebound)
+    _install_operators()
     _self_check(rebound)
 
 
@@ -231,6 +232,39 @@ def _install_runs(rebound) -> None:
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _install_operators() -> None:
+    """REBOUNDx's ``Extras.add_operator`` applies an operator with HBVM as with IAS15.
+
+    REBOUNDx chooses an operator's timing from the integrator's name when it is added
+    (``rebx_add_operator`` in its ``core.c``): IAS15 and BS get the whole step after the
+    integrator's step, because they choose their own step size; an integrator whose name it does
+    not know gets nothing (the operator is silently never applied).  HBVM chooses its step size
+    too, so for a simulation integrated by HBVM an operator added without ``dtfraction`` is
+    added as REBOUNDx adds it for IAS15: ``dtfraction = 1``, ``timing = "post"``.  Any other
+    call (another integrator, an explicit ``dtfraction``) is REBOUNDx's own, untouched.
+    Without REBOUNDx installed there is nothing to do."""
+    try:
+        import reboundx
+    except ImportError:
+        return
+    Extras = reboundx.extras.Extras
+    if getattr(Extras.add_operator, "_hbvm_md", False):
+        return
+    rebx_add_operator = Extras.add_operator
+    step_at, dispatch = _REG["step_at"], _REG["dispatch"]
+
+    def add_operator(self, operator, dtfraction=None, timing="post"):
+        sim = self._sim
+        if (dtfraction is None and sim and ctypes.c_void_p.from_address(
+                ctypes.addressof(sim.contents) + step_at).value == dispatch):
+            return rebx_add_operator(self, operator, 1.0, "post")   # (IAS15's choice)
+        return rebx_add_operator(self, operator, dtfraction, timing)
+
+    add_operator.__doc__ = rebx_add_operator.__doc__
+    add_operator._hbvm_md = True
+    Extras.add_operator = add_operator
 
 
 def _after_run(sim, addr: int, status: int, messages_at: int) -> None:
