@@ -136,7 +136,7 @@ def test_particles_added_between_calls():
 # (softening, testparticle_type = 1, gravity = 'none' and additional forces were refused here;
 # they now run on REBOUND's own accelerations: tests/test_rebound_forces.py)
 @pytest.mark.parametrize("setting, match", [
-    (lambda s: setattr(s, "boundary", "open"), "boundary='open'"),
+    (lambda s: s.create_ode(length=2), "user ODEs attached"),
     (lambda s: (setattr(s, "softening", 0.01), s.add_variation()),
      "variational particles with softening"),
     (lambda s: s.add_variation(order=2, first_order=s.add_variation()),
@@ -172,10 +172,10 @@ def test_settings_changed_between_runs_are_checked_again():
         drv.nsteps
     sim.integrate(300.0)
     drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
-    sim.boundary = "open"      # (softening, which now runs, was the change checked here)
-    with pytest.raises(ValueError, match="boundary='open'"):
+    sim.gravity = "tree"       # (softening, which now runs, was the change checked here)
+    with pytest.raises(ValueError, match="gravity='tree'"):
         sim.integrate(400.0)
-    sim.boundary = "none"
+    sim.gravity = "basic"
     sim.dt = float("nan")
     with pytest.raises(ValueError, match="sim.dt"):
         sim.integrate(400.0)
