@@ -545,7 +545,7 @@ def _prepare(sim, p: int) -> None:
         binding.kin_w = np.zeros(dim)
         nf, nc = work_sizes(method.n_stages, s, 2 * dim, 2 * dim, 2 * dim)
         binding.work, binding.cwork = np.empty(nf), np.empty(nc, dtype=complex)
-        u, vw, vel = 2 * dim, binding.minv[dim:dim + 3 * N], scene.w
+        u, vw = 2 * dim, binding.minv[dim:dim + 3 * N]     # (1/w: p -> v)
     else:
         nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
         # the step is always built with its tangent map: one compiled module serves
@@ -554,7 +554,6 @@ def _prepare(sim, p: int) -> None:
                           jvp=nbody_force_jvp)
         dim = nb.dim
         u, vw = dim, binding.minv
-    minv = binding.minv
     y, g, c = (_doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
     keep = (not model_changed and y.size == 4 * dim and g.size == s * u
