@@ -38,6 +38,7 @@ from hbvm_md.reports.machine import machine
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 C_AU_YR = 63241.077
+_KEEP = []          # REBOUNDx objects live as long as the run (a Simulation takes no attributes)
 
 
 def _attach(sim, integ):
@@ -58,7 +59,7 @@ def mercury(integ, force):
     rebx.add_force(f)
     f.params["c"] = C_AU_YR
     _attach(sim, integ)
-    sim._keep = (rebx, f)
+    _KEEP.append((rebx, f))
     return sim
 
 
@@ -93,7 +94,7 @@ def migration(integ):
     sim.particles[2].params["tau_a"] = -2000.0
     sim.particles[2].params["tau_e"] = -500.0
     _attach(sim, integ)
-    sim._keep = (rebx, mof)
+    _KEEP.append((rebx, mof))
     return sim
 
 
@@ -117,7 +118,7 @@ def disk(integ):
     sim = planets("ias15")
     r = np.random.default_rng(7)
     for _ in range(50):
-        sim.add(m=1e-7, a=r.uniform(1.1, 1.4), e=r.uniform(0, 0.05), f=r.uniform(0, 6.28))
+        sim.add(m=1e-7, a=r.uniform(1.25, 1.35), e=r.uniform(0, 0.01), f=r.uniform(0, 6.28))
     sim.N_active = 3
     sim.testparticle_type = 1
     _attach(sim, integ)
@@ -136,7 +137,7 @@ def damping(integ):
         warnings.simplefilter("ignore")
         rebx.add_operator(op)
     sim.particles[1].params["tau_e"] = -10.0
-    sim._keep = (rebx, op)
+    _KEEP.append((rebx, op))
     return sim
 
 

@@ -16,17 +16,21 @@ The form of the step
 A force that reads velocities (REBOUNDx ``gr``, ``gr_full``, tides, radiation drag, migration)
 or the time needs the stage velocities and times, so the scene is an ODE y' = f(t, y) in the
 engine's *full* form (:mod:`integrators.loop`): the kernel returns G with J G = f, and the
-step applies J.  The state is y = (q, p): q the positions and a clock tau = CLOCK t, p the
-momenta p_i = w_i v_i (w_i the mass of a body that gravitates, 1 for a test particle) and the
-clock's conjugate pi (always 0).  The kernel's G = (-w a, v, 0, CLOCK): dq/dt = v, dp/dt = w a,
-dtau/dt = CLOCK.  When the added forces derive from a potential U(q) (softening, REBOUNDx
-``gr_potential``, ``gravitational_harmonics``, ``central_force``) this G is grad H of
+step applies J.  The state is y = (q, v): q the positions and a clock tau = CLOCK t, v the
+velocities and the clock's partner pi (always 0).  The kernel's G = (-a, v, 0, CLOCK): dq/dt
+= v, dv/dt = a, dtau/dt = CLOCK.  When the added forces derive from a potential U(q)
+(softening, REBOUNDx ``gr_potential``, ``gravitational_harmonics``, ``central_force``) then
+J G = B grad H with the constant skew-symmetric B = [[0, M^-1], [-M^-1, 0]] (M the masses of
+the bodies that gravitate) and
 
-    H(q, p) = sum_i |p_i|^2 / (2 w_i) + V(q) + U(q) + CLOCK pi,
+    H(q, v) = sum_i m_i |v_i|^2 / 2 + V(q) + U(q) + CLOCK pi,
 
-with V the (softened) pair potential of the pairs REBOUND computes, so HBVM conserves H as it
-conserves the plain N-body energy, and the energy check guards H (:func:`rebound_energy`, U
-from REBOUNDx's own exported potentials).  For any other added force there is no H to keep:
+V the (softened) pair potential of the pairs REBOUND computes: a Poisson system with a constant
+structure matrix, for which HBVM's line-integral argument (sum_j a_j^T B a_j = 0 for skew B)
+conserves H as it does J grad H.  The energy check guards this H (:func:`rebound_energy`, U
+from REBOUNDx's own exported potentials).  Velocities rather than momenta m v keep every
+coordinate of a kind at one scale (a Mercury's momentum is 1e-7 of its velocity): the
+iteration's stop rule and the step's error estimate take maxima over coordinates.  For any other added force there is no H to keep:
 the energy check is off, and the adaptive step control (error estimate on the accelerations,
 as IAS15's) and the iteration's convergence test carry the run.  HBVM(k, s) is a k-stage
 Runge-Kutta method of order 2s on any ODE, so the order holds here too (measured in the
@@ -37,10 +41,11 @@ step's error estimate and convergence test; the glue resets it to ``sim.t`` befo
 
 The parameters (float64; every address and offset below 2^53 is exact in a double):
 ``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, then n_pot
-entries (function, arity, arg1, arg2), then w (N), 1/w (N), g (N), active (N)]``: the
+entries (function, arity, arg1, arg2), then w (N), 1/w (N), g (N), active (N)]`` (w = 1: the
+state holds velocities): the
 simulation's address, REBOUND's function, the particle array (the step checks that it has not
 moved), REBOUND's offsets in doubles, the Newtonian G of V (0 for ``gravity = 'none'``), the
-softening squared, REBOUNDx's potential functions with their arguments, the momenta's weights,
+softening squared, REBOUNDx's potential functions with their arguments, the state's weights,
 the gravitating masses (0: acts on nobody) and whether each particle is active.  Addresses are
 run-time values handed in the parameters, never compiled into the (disk-cached) code.
 """
@@ -166,9 +171,10 @@ def rebound_energy(y, params):
     G, b2 = params[P_G], params[P_SOFT2]
     kin = 0.0
     for i in range(N):
-        if params[g0 + i] > 0.0:
+        gi = params[g0 + i]
+        if gi > 0.0:
             for c in range(3):
-                kin += y[m + 3 * i + c] * y[m + 3 * i + c] * params[winv + i]
+                kin += gi * (y[m + 3 * i + c] * params[winv + i]) ** 2
     v = 0.0
     for i in range(N):
         gi = params[g0 + i]
@@ -304,7 +310,7 @@ class ReboundScene:
         semi = sim.testparticle_type == 1
         self.N, self.dim = N, 3 * N + 1
         self.gravitating = (m > 0) & (act | semi)
-        self.w = np.where(self.gravitating, m, 1.0)
+        self.w = np.ones(N)           # the state's second half: the velocities (docstring)
         self.hamiltonian = hamiltonian(sim)
         pots = _potential_entries(sim) if self.hamiltonian else []
         fn = ctypes.cast(rebound.clibrebound.reb_simulation_update_acceleration,
@@ -324,15 +330,15 @@ class ReboundScene:
         return rebound_gradient, rebound_energy, self.params
 
     def state(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
-        """y = (x, CLOCK t, w v, 0) (2 dim,) from positions and velocities (N, 3)."""
+        """y = (x, CLOCK t, w v, 0) (2 dim,) from positions and velocities (N, 3) (w = 1)."""
         q = np.append(np.asarray(x, float).reshape(-1), t * CLOCK)
         p = np.append((np.asarray(v, float) * self.w[:, None]).reshape(-1), 0.0)
         return np.concatenate([q, p])
 
     def error_weights(self) -> np.ndarray:
-        """(2 dim,): 1/w on the momenta, 0 on the positions and the clock, so that the step's
-        error estimate (``integrators.core.step_error``) is taken on the accelerations, as the
-        separable step's and IAS15's are."""
+        """(2 dim,): 1/w on the velocities, 0 on the positions and the clock, so that the
+        step's error estimate (``integrators.core.step_error``) is taken on the accelerations,
+        as the separable step's and IAS15's are."""
         wts = np.zeros(2 * self.dim)
         wts[self.dim:self.dim + 3 * self.N] = np.repeat(1.0 / self.w, 3)
         return wts

@@ -607,7 +607,7 @@ def _prepare(sim, p: int) -> None:
 
 def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
     """Has the model changed since the step was last prepared for this state (G, N_active, a
-    setting HBVM checks, or the choice of REBOUND's own accelerations)?  Then the previous
+    setting HBVM checks, the choice of REBOUND's own accelerations, or on them a mass)?  Then the previous
     coefficients and the reference energy belong to another system: a continued run starts
     them afresh from the particles, as IAS15 continues after ``sim.G`` was changed.  A state
     without a context (new, loaded, copied) keeps what it carries."""
@@ -618,6 +618,13 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
     now = (sim.G, float(np.uint64(sim.N_active).astype(np.int64)))
     if old[0] != now[0] or old[1] != now[1] or bool(ctx[L.D_FULL]) != host:
         return True
+    N = int(ctx[L.D_N])
+    if N == sim.N and host:      # (a state of velocities does not see a mass changed)
+        written = _doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
+        m = np.zeros(N)
+        sim.serialize_particle_data(m=m)
+        if not np.array_equal(written[:, 6], m):
+            return True
     words = ctx[L.C_WORDS:L.C_VALUES]
     sim_words = np.frombuffer(
         (ctypes.c_int64 * (int(max(words)) + 1)).from_address(ctypes.addressof(sim)), np.int64)
