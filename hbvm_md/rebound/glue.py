@@ -5,8 +5,9 @@ the N-body kernel bound) and compiles :data:`GLUE_FUNCTIONS` and the C function
 :data:`GLUE_CFUNCS` there: one REBOUND step is one compiled call of :func:`core_step`, which
 :func:`hbvm_md.rebound.cabi.dispatch` calls with REBOUND's simulation and HBVM's state.  It
 reads the addresses, sizes and REBOUND's offsets from the context block the host built
-(:mod:`hbvm_md.rebound.layout`), checks that the particles, G and N_active are those it wrote
-(else RESYNC: the host reads them afresh), takes the core's step on trial arrays (adaptive
+(:mod:`hbvm_md.rebound.layout`), checks that G, N_active and the masses are those it wrote
+(else RESYNC: the host reads them afresh) and reads positions and velocities changed since
+its last commit itself (:func:`reread_particles`), takes the core's step on trial arrays (adaptive
 steps retried smaller inside it) and commits state, particles, ``t``, ``dt_last_done``, the
 proposed ``dt`` and the counts together.  A failed step changes nothing and records its step
 size, start and cause in the state.  No numerics here.  HBVM and EQUIP differ only in the
@@ -34,11 +35,12 @@ from hbvm_md.rebound.layout import (
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
     R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
     SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
-    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES, SL_S,
+    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
+    SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
 from hbvm_md.rebound.forces import CLOCK
 
-GLUE_FUNCTIONS = ("particles_match", "restore_particles", "settings_ok", "read_tangents", "write_tangents",
+GLUE_FUNCTIONS = ("particles_match", "reread_particles", "restore_particles", "settings_ok", "read_tangents", "write_tangents",
                   "delta2", "step_arrays")
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.cabi",
@@ -66,6 +68,33 @@ def particles_match(view, written, ix, ivx, im):
                 return False
         if view[i, im] != written[i, 6]:
             return False
+    return True
+
+
+def reread_particles(view, written, ix, ivx, im, y, cy, minv):
+    """The state y (2m,) <- REBOUND's particles whose positions or velocities were changed
+    between two steps (by a REBOUNDx operator, a post-timestep callback, the user), with the
+    same masses: q = x, p = v / minv (the momenta, or the velocities of the state on REBOUND's
+    own accelerations, whose weights are 1), their compensations zeroed; ``written`` <- them.
+    Returns False, changing nothing, when a mass changed or a value is not finite: the host
+    then prepares the step afresh (and names what is wrong)."""
+    N = view.shape[0]
+    for i in range(N):
+        if view[i, im] != written[i, 6]:
+            return False
+        for c in range(3):
+            if not (np.isfinite(view[i, ix + c]) and np.isfinite(view[i, ivx + c])):
+                return False
+    m = y.shape[0] // 2
+    woff = minv.shape[0] - m
+    for i in range(N):
+        for c in range(3):
+            y[3 * i + c] = view[i, ix + c]
+            cy[3 * i + c] = 0.0
+            y[m + 3 * i + c] = view[i, ivx + c] / minv[woff + 3 * i + c]
+            cy[m + 3 * i + c] = 0.0
+            written[i, c] = view[i, ix + c]
+            written[i, 3 + c] = view[i, ivx + c]
     return True
 
 
@@ -158,10 +187,16 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
-    if not particles_match(view, written, ix, ivx, ctx[R_M]):
-        return RESYNC
     if not settings_ok(st, sd):
         return BAD_SETTINGS
+    if not particles_match(view, written, ix, ivx, ctx[R_M]):
+        # moved between steps (an operator after every step): read in compiled code; the
+        # previous coefficients stay the initial guess, the reference energy starts afresh
+        if not reread_particles(view, written, ix, ivx, ctx[R_M], y, cy, minv):
+            return RESYNC
+        for i in range(eref.shape[0]):
+            eref[i] = np.nan
+        st[SL_RESYNCS] += 1
     h = simd[ctx[R_DT]]
     if not (abs(h) < np.inf and h != 0.0):
         sd[SL_H_FAIL] = h
