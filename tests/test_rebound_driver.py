@@ -133,14 +133,14 @@ def test_particles_added_between_calls():
     assert np.max(np.abs(_xyz(sim) - _xyz(ref))) < 1e-8
 
 
+# (softening, testparticle_type = 1, gravity = 'none' and additional forces were refused here;
+# they now run on REBOUND's own accelerations: tests/test_rebound_forces.py)
 @pytest.mark.parametrize("setting, match", [
-    (lambda s: setattr(s, "softening", 0.01), "softening"),
-    (lambda s: (setattr(s, "testparticle_type", 1), setattr(s, "N_active", 3)),
-     "testparticle_type=1"),
-    (lambda s: setattr(s, "gravity", "none"), "gravity='none'"),
+    (lambda s: s.create_ode(length=2), "user ODEs attached"),
+    (lambda s: (setattr(s, "softening", 0.01), s.add_variation()),
+     "variational particles with softening"),
     (lambda s: s.add_variation(order=2, first_order=s.add_variation()),
      "second-order variational particles are not supported by HBVM; use IAS15"),
-    (lambda s: setattr(s, "additional_forces", lambda p: None), "additional_forces"),
 ])
 def test_refusals_at_attach_and_first_step(setting, match):
     sim = outer_solar_system().to_rebound()
@@ -172,17 +172,16 @@ def test_settings_changed_between_runs_are_checked_again():
         drv.nsteps
     sim.integrate(300.0)
     drv = HBVMIntegrator(sim, s=6, k=8, dt=100.0)
-    sim.softening = 1e-3
-    with pytest.raises(ValueError, match="softening"):
+    sim.gravity = "tree"       # (softening, which now runs, was the change checked here)
+    with pytest.raises(ValueError, match="gravity='tree'"):
         sim.integrate(400.0)
-    sim.softening = 0.0
+    sim.gravity = "basic"
     sim.dt = float("nan")
     with pytest.raises(ValueError, match="sim.dt"):
         sim.integrate(400.0)
     sim.dt = 100.0
-    sim.testparticle_type = 1
-    sim.N_active = 3
-    with pytest.raises(ValueError, match="testparticle_type=1"):
+    sim.add_variation(order=2, first_order=sim.add_variation())   # (was testparticle_type=1)
+    with pytest.raises(ValueError, match="second-order variational"):
         sim.integrate(400.0)
     assert sim.t == 300.0
 

@@ -64,7 +64,7 @@ def _ase_extra_row():
     from ase import Atoms
     from ase.calculators.calculator import Calculator, all_changes
 
-    from hbvm_md.ase_dynamics import HBVMDynamics
+    from hbvm_md.ase import HBVMDynamics
 
     class OneRowTooMany(Calculator):
         implemented_properties = ["energy", "forces"]

@@ -20,6 +20,7 @@ block, REBOUND's offsets read from its ctypes structures), :mod:`~hbvm_md.reboun
 step REBOUND calls and the state's ``free``, compiled at registration),
 :mod:`~hbvm_md.rebound.glue` (compiled with the step: one REBOUND step),
 :mod:`~hbvm_md.rebound.host` (registration, the callbacks, the run's exceptions),
+:mod:`~hbvm_md.rebound.forces` (REBOUND's own accelerations at the stages),
 :mod:`~hbvm_md.rebound.checks` (what is refused) and :mod:`~hbvm_md.rebound.integrator`
 (:class:`HBVMIntegrator`, the options and their checks).
 
@@ -43,7 +44,10 @@ How a loaded, copied or new simulation gets its compiled step
     host's ``prepare`` once, a Python ctypes callback: it checks the simulation, builds the
     N-body model and the compiled step (loaded from numba's cache) and the context block, and
     keeps the saved state when it is the particles' own (a continued run), else starts it
-    afresh from them.  Then the step runs.  A normal step is two compiled calls, no Python.
+    afresh from them; when G, N_active or a setting it checks changed since it last prepared
+    (``sim.G`` changed between two runs), the previous coefficients and the reference energy
+    belong to another system and start afresh too, as IAS15 simply continues.  Then the step
+    runs.  A normal step is two compiled calls, no Python.
 
 How a failed step surfaces
     The core's step works on trial arrays: a failed step (no convergence, non-finite values,
@@ -82,10 +86,48 @@ How variational particles and MEGNO work
     previous coefficients (an initial guess only) are not saved: a loaded run starts them at
     zero.
 
+Which scenes take which path
+    Plain Newtonian point masses (``gravity`` 'basic' or 'compensated', no softening, no
+    additional forces, test particles of ``testparticle_type = 0``) run on the compiled N-body
+    kernel (:mod:`systems.nbody`), separable form, test particles solved after the bodies they
+    follow.  Anything else REBOUND models that fits a direct step runs on REBOUND's own
+    accelerations (:mod:`~hbvm_md.rebound.forces`), as IAS15 does: additional forces
+    (REBOUNDx's ``gr``, ``gr_full``, ``gr_potential``, tides, harmonics, migration, radiation
+    forces, central forces, or a user's Python or C function), ``softening > 0``, semi-active
+    particles (``testparticle_type = 1``) and ``gravity = 'none'``.  Each stage of the step
+    writes its positions, velocities and time into the particles and ``sim.t``, calls
+    ``reb_simulation_update_acceleration`` from compiled code and reads the accelerations back;
+    the particles and ``sim.t`` are the step's own again after it, whether it succeeded or not.
+    That path takes the engine's full form (the force may read the stage velocities); HBVM(k,
+    s) keeps its order 2s there (measured 6.00 for s = 3 on REBOUNDx ``gr``).
+
+Energy on REBOUND's own accelerations
+    When the added forces derive from a potential (softening, REBOUNDx ``gr_potential``,
+    ``gravitational_harmonics``, ``central_force``, whose potentials REBOUNDx exports) or
+    there are none (semi-active particles: every pair REBOUND computes keeps action and
+    reaction), HBVM conserves H = kinetic + the (softened) pair potential of the pairs REBOUND
+    computes + REBOUNDx's potentials (:func:`~hbvm_md.rebound.forces.scene_energy`; REBOUND's
+    ``sim.energy()`` leaves softening out), and the energy check guards that H.  For any
+    other added force (velocity dependent or dissipative, or a user's function) there is no
+    H to keep: the energy check is off, the adaptive step control (its error estimate on the
+    accelerations, as IAS15's) and the iteration's convergence test carry the run; a fixed
+    step is judged by nothing more, so prefer adaptive steps there.
+
+REBOUNDx operators
+    REBOUNDx chooses an operator's timing from the integrator's name when it is added and adds
+    nothing for a name it does not know.  With ``hbvm_md`` imported, ``rebx.add_operator(op)``
+    on a simulation integrated by HBVM adds it as REBOUNDx adds it for IAS15 (the whole step,
+    after it: HBVM, like IAS15, chooses its own step size); an explicit ``dtfraction`` is
+    REBOUNDx's own.  An operator that changes masses or velocities makes the next step read
+    the particles afresh (a prepare, in Python).
+
 What HBVM cannot honour
     Second-order variational particles, the variation of one particle (testparticle >= 0),
-    softening, additional forces, non-direct gravity, boundaries, user
-    ODEs and ``testparticle_type = 1`` are refused with the reason and the fix: at
+    variational particles or ``method = 'equip'`` together with REBOUND's own accelerations
+    (the tangent map and EQUIP's correction are built on the compiled N-body kernel), gravity
+    other than 'basic', 'compensated' or 'none' (the tree's approximation, integrator-specific
+    modes), boundaries (REBOUND wraps or removes particles between steps) and user ODEs
+    (integrated by BS only) are refused with the reason and the fix: at
     :class:`HBVMIntegrator`, or at the first step after ``sim.integrator = "hbvm"`` (REBOUND's
     ``create`` is not given the simulation).
 """

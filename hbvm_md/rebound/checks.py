@@ -11,14 +11,14 @@ from systems.nbody import NBody, shortest_r3_over_m
 
 def check_simulation(sim) -> None:
     """Raise ValueError if ``sim`` uses something HBVM cannot honour, with the reason and the
-    fix.  Collisions are REBOUND's: it finds and resolves them after each step."""
+    fix.  Collisions are REBOUND's: it finds and resolves them after each step.
+
+    Additional forces (REBOUNDx's or a user's), softening, semi-active particles
+    (``testparticle_type = 1``) and ``gravity = 'none'`` are honoured: such a scene runs on
+    REBOUND's own accelerations at the stages (:mod:`hbvm_md.rebound.forces`)."""
+    from hbvm_md.rebound.forces import host_reasons
     problems = []
-    if sim.softening != 0.0:
-        problems.append(f"softening={sim.softening!r} (HBVM integrates plain Newtonian gravity; "
-                        "set sim.softening = 0)")
-    if bool(sim._additional_forces):
-        problems.append("additional_forces is set (not part of the separable Hamiltonian; "
-                        "remove it or use a REBOUND integrator)")
+    host = host_reasons(sim)
     for j in range(int(sim.N_var_config) if sim.N_var > 0 else 0):
         vc = sim.var_config[j]
         if vc.order != 1:
@@ -30,17 +30,22 @@ def check_simulation(sim) -> None:
                             f"{vc.testparticle}) are not supported by HBVM; add the variation "
                             "of the whole system with sim.add_variation() (testparticle=-1)")
             break
-    if sim.gravity not in ("basic", "compensated"):
-        problems.append(f"gravity={sim.gravity!r} (only direct summation 'basic' or "
-                        "'compensated' is honoured)")
+        if host:
+            problems.append(f"variational particles with {', '.join(host)} (HBVM's tangent map "
+                            "differentiates its own N-body kernel, not REBOUND's forces); use "
+                            "IAS15")
+            break
+    if sim.gravity not in ("basic", "compensated", "none"):
+        problems.append(f"gravity={sim.gravity!r} (an approximate or integrator-specific "
+                        "gravity; HBVM takes direct steps: use 'basic', 'compensated' or "
+                        "'none')")
     if sim.boundary != "none":
-        problems.append(f"boundary={sim.boundary!r} (set sim.boundary = 'none')")
+        problems.append(f"boundary={sim.boundary!r} (REBOUND wraps or removes particles "
+                        "between steps, which a high-order step's polynomial cannot follow; "
+                        "set sim.boundary = 'none')")
     if sim._N_odes > 0:
-        problems.append(f"{sim._N_odes} user ODEs attached (integrated by BS only)")
-    N, na = sim.N, sim.N_active
-    if sim.testparticle_type != 0 and 0 <= na < N:
-        problems.append("testparticle_type=1 (massive test particles acting on active bodies "
-                        "are not a Hamiltonian system; use testparticle_type = 0)")
+        problems.append(f"{sim._N_odes} user ODEs attached (REBOUND integrates them with BS "
+                        "only; use integrator 'bs')")
     if problems:
         raise ValueError("HBVM cannot honour this simulation: " + "; ".join(problems))
 

@@ -5,8 +5,9 @@ the N-body kernel bound) and compiles :data:`GLUE_FUNCTIONS` and the C function
 :data:`GLUE_CFUNCS` there: one REBOUND step is one compiled call of :func:`core_step`, which
 :func:`hbvm_md.rebound.cabi.dispatch` calls with REBOUND's simulation and HBVM's state.  It
 reads the addresses, sizes and REBOUND's offsets from the context block the host built
-(:mod:`hbvm_md.rebound.layout`), checks that the particles, G and N_active are those it wrote
-(else RESYNC: the host reads them afresh), takes the core's step on trial arrays (adaptive
+(:mod:`hbvm_md.rebound.layout`), checks that G, N_active and the masses are those it wrote
+(else RESYNC: the host reads them afresh) and reads positions and velocities changed since
+its last commit itself (:func:`reread_particles`), takes the core's step on trial arrays (adaptive
 steps retried smaller inside it) and commits state, particles, ``t``, ``dt_last_done``, the
 proposed ``dt`` and the counts together.  A failed step changes nothing and records its step
 size, start and cause in the state.  No numerics here.  HBVM and EQUIP differ only in the
@@ -30,19 +31,22 @@ from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_FULL,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
     R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
     SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
-    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES, SL_S,
+    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
+    SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
+from hbvm_md.rebound.forces import CLOCK
 
-GLUE_FUNCTIONS = ("particles_match", "settings_ok", "read_tangents", "write_tangents",
+GLUE_FUNCTIONS = ("particles_match", "reread_particles", "restore_particles", "settings_ok", "read_tangents", "write_tangents",
                   "delta2", "step_arrays")
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
-GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.cabi")
+GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.cabi",
+                "hbvm_md.rebound.forces")
 
 #: A fixed step (with the energy check on) refuses a test particle whose own error estimate
 #: (``core.test_particle_error``) exceeds max(TP_FLOOR, TP_FACTOR x the sources' estimate).
@@ -67,6 +71,42 @@ def particles_match(view, written, ix, ivx, im):
         if view[i, im] != written[i, 6]:
             return False
     return True
+
+
+def reread_particles(view, written, ix, ivx, im, y, cy, minv):
+    """The state y (2m,) <- REBOUND's particles whose positions or velocities were changed
+    between two steps (by a REBOUNDx operator, a post-timestep callback, the user), with the
+    same masses: q = x, p = v / minv (the momenta, or the velocities of the state on REBOUND's
+    own accelerations, whose weights are 1), their compensations zeroed; ``written`` <- them.
+    Returns False, changing nothing, when a mass changed or a value is not finite: the host
+    then prepares the step afresh (and names what is wrong)."""
+    N = view.shape[0]
+    for i in range(N):
+        if view[i, im] != written[i, 6]:
+            return False
+        for c in range(3):
+            if not (np.isfinite(view[i, ix + c]) and np.isfinite(view[i, ivx + c])):
+                return False
+    m = y.shape[0] // 2
+    woff = minv.shape[0] - m
+    for i in range(N):
+        for c in range(3):
+            y[3 * i + c] = view[i, ix + c]
+            cy[3 * i + c] = 0.0
+            y[m + 3 * i + c] = view[i, ivx + c] / minv[woff + 3 * i + c]
+            cy[m + 3 * i + c] = 0.0
+            written[i, c] = view[i, ix + c]
+            written[i, 3 + c] = view[i, ivx + c]
+    return True
+
+
+def restore_particles(view, written, ix, ivx):
+    """REBOUND's particles' x and v <- what the last commit wrote (a step on REBOUND's own
+    accelerations leaves its last stage in them)."""
+    for i in range(view.shape[0]):
+        for c in range(3):
+            view[i, ix + c] = written[i, c]
+            view[i, ivx + c] = written[i, 3 + c]
 
 
 def settings_ok(st, sd):
@@ -134,6 +174,11 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     tangents' arrays, :mod:`hbvm_md.rebound.layout`).
     Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause recorded).
 
+    On REBOUND's own accelerations (ctx[D_FULL], :mod:`hbvm_md.rebound.forces`) the state is
+    (q, clock, p, 0) in the full form: its clock is set to ``sim.t`` before the step, and the
+    stages' positions, velocities and times that the kernel wrote into the particles and
+    ``sim.t`` are replaced by the committed state, or restored when the step fails.
+
     With variational particles the tangents advance by the derivative of the step taken
     (:func:`integrators.tangent.tangent_map` from the state before the step, with its accepted
     coefficients and size), committed with the state or not at all; when REBOUND computes
@@ -144,10 +189,16 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
-    if not particles_match(view, written, ix, ivx, ctx[R_M]):
-        return RESYNC
     if not settings_ok(st, sd):
         return BAD_SETTINGS
+    if not particles_match(view, written, ix, ivx, ctx[R_M]):
+        # moved between steps (an operator after every step): read in compiled code; the
+        # previous coefficients stay the initial guess, the reference energy starts afresh
+        if not reread_particles(view, written, ix, ivx, ctx[R_M], y, cy, minv):
+            return RESYNC
+        for i in range(eref.shape[0]):
+            eref[i] = np.nan
+        st[SL_RESYNCS] += 1
     h = simd[ctx[R_DT]]
     if not (abs(h) < np.inf and h != 0.0):
         sd[SL_H_FAIL] = h
@@ -158,6 +209,11 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     N = view.shape[0]
     nv = V.shape[0]
+    full = ctx[D_FULL] != 0
+    m = y.shape[0] // 2
+    if full:
+        y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
+        cy[m - 1] = 0.0
     if nv > 0:
         read_tangents(pv, vidx, N, ix, ivx, minv, V, DG)
     res[2] = 0.0
@@ -165,12 +221,12 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     # of the counters and the clock, as the core takes a failed step's out
     c_iter, c_nfev, c_newton = counters[C_ITER], counters[C_NFEV], counters[C_NEWTON]
     clock0, clock1 = clock[0], clock[1]
-    status = attempt(False, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w,  # noqa: F821
+    status = attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w,  # noqa: F821
                      params, h, sd[SL_H_PREV], E1, Et, Ew, Ebuf, Ezero, (tn, ts), (Wp, Cp),
                      NV, NVinv, NM, st[SL_MAX_ITER], sd[SL_TOL], etol, counters, work, cwork,
                      clock, epsilon, sd[SL_MIN_DT], t_start, res)
     st[SL_REJECTED] += int(res[2])
-    if status == OK and not adaptive and sd[SL_ETOL] != 0.0:
+    if status == OK and not adaptive and sd[SL_ETOL] != 0.0 and not full:
         worst, err, _ = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR)
         if worst >= 0:
             counters[C_ITER], counters[C_NFEV], counters[C_NEWTON] = c_iter, c_nfev, c_newton
@@ -180,6 +236,9 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
             res[3], res[4] = err, worst
             status = TEST_PARTICLE
     if status != OK:
+        if full:
+            restore_particles(view, written, ix, ivx)
+            simd[ctx[R_T]] = t_start
         sd[SL_H_FAIL] = res[0]
         sd[SL_T_FAIL] = t_start
         sd[SL_CAUSE_ERR] = res[3]
@@ -220,11 +279,11 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
         # sliver's slope, of the order of its h, would misguide the next regular step
         for i in range(1, eref.shape[0]):
             eref[i] = ereft[i]
-    m = minv.shape[0]
+    woff = minv.shape[0] - m                # the velocities' weights: after the positions' (full)
     for i in range(view.shape[0]):
         for c in range(3):
             view[i, ix + c] = y[3 * i + c]
-            view[i, ivx + c] = y[m + 3 * i + c] * minv[3 * i + c]
+            view[i, ivx + c] = y[m + 3 * i + c] * minv[woff + 3 * i + c]
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
@@ -262,6 +321,7 @@ def core_step(r, p):
         if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
             return RESYNC                          # a setting HBVM checks was changed
     s, m, kk = ctx[D_S], ctx[D_M], ctx[D_KK]
+    u = 2 * m if ctx[D_FULL] != 0 else m           # the coefficients' width (full / separable)
 
     def f(slot, n):
         return carray(float64_pointer(ctx[slot]), n)
@@ -284,9 +344,9 @@ def core_step(r, p):
         simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_EREF), N_EREF),
         carray(float64_pointer(pa + 8 * SL_RES), N_RES), carray(float64_pointer(st[SL_Y]), 2 * m),
         carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
-        carray(float64_pointer(st[SL_GAMMA]), (s, m)),
+        carray(float64_pointer(st[SL_GAMMA]), (s, u)),
         carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS), f(A_YT, 2 * m), f(A_CYT, 2 * m),
-        f2(A_GAMMAT, s, m), f(A_EREFT, N_EREF), f2(A_WRITTEN, N, 7), f(A_MINV, m), f(A_KINW, m),
+        f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF), f2(A_WRITTEN, N, 7), f(A_MINV, u), f(A_KINW, m),
         f(A_PARAMS, ctx[D_P]), f(A_HOST, N_HOST), f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s),
         f3(A_WP, ctx[D_WPP], s, kk), f3(A_CP, ctx[D_CPP], kk, s), z2(A_NV, s, s), z2(A_NVINV, s, s),
         carray(complex128_pointer(ctx[A_NM]), (0, m, m)), f(A_WORK, ctx[D_NF]),

@@ -14,7 +14,8 @@ import numpy as np
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
-from integrators.core import C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error
+from integrators.core import (C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error,
+                              work_sizes)
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
 from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
@@ -22,6 +23,7 @@ from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
+from hbvm_md.rebound.forces import ReboundScene, host_reasons
 
 NAME = "hbvm"
 DEFAULTS = dict(method="hbvm", s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60,
@@ -139,6 +141,7 @@ def register() -> None:
                free=ctypes.cast(_LIBC.free, ctypes.c_void_p).value,
                step_at=step_at, state_at=state_at, offsets=L.rebound_offsets(rebound),
                config_words=L.config_words(rebound), **L.run_offsets(rebound),
+               ax=rebound.Particle.ax.offset // 8,
                variational=L.variational_offsets(rebound),
                megno_update=ctypes.cast(lib.reb_tools_megno_update, ctypes.c_void_p).value)
     lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
@@ -146,6 +149,7 @@ def register() -> None:
     lib.reb_integrator_register(integ, NAME.encode())
     rebound.clibrebound._hbvm_md_registration = reg
     _install_runs(rebound)
+    _install_operators()
     _self_check(rebound)
 
 
@@ -265,6 +269,39 @@ def _install_runs(rebound) -> None:
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _install_operators() -> None:
+    """REBOUNDx's ``Extras.add_operator`` applies an operator with HBVM as with IAS15.
+
+    REBOUNDx chooses an operator's timing from the integrator's name when it is added
+    (``rebx_add_operator`` in its ``core.c``): IAS15 and BS get the whole step after the
+    integrator's step, because they choose their own step size; an integrator whose name it does
+    not know gets nothing (the operator is silently never applied).  HBVM chooses its step size
+    too, so for a simulation integrated by HBVM an operator added without ``dtfraction`` is
+    added as REBOUNDx adds it for IAS15: ``dtfraction = 1``, ``timing = "post"``.  Any other
+    call (another integrator, an explicit ``dtfraction``) is REBOUNDx's own, untouched.
+    Without REBOUNDx installed there is nothing to do."""
+    try:
+        import reboundx
+    except ImportError:
+        return
+    Extras = reboundx.extras.Extras
+    if getattr(Extras.add_operator, "_hbvm_md", False):
+        return
+    rebx_add_operator = Extras.add_operator
+    step_at, dispatch = _REG["step_at"], _REG["dispatch"]
+
+    def add_operator(self, operator, dtfraction=None, timing="post"):
+        sim = self._sim
+        if (dtfraction is None and sim and ctypes.c_void_p.from_address(
+                ctypes.addressof(sim.contents) + step_at).value == dispatch):
+            return rebx_add_operator(self, operator, 1.0, "post")   # (IAS15's choice)
+        return rebx_add_operator(self, operator, dtfraction, timing)
+
+    add_operator.__doc__ = rebx_add_operator.__doc__
+    add_operator._hbvm_md = True
+    Extras.add_operator = add_operator
 
 
 def _after_run(sim, addr: int, status: int, messages_at: int) -> None:
@@ -523,30 +560,56 @@ def _prepare(sim, p: int) -> None:
         raise ValueError("the simulation has no particles")
     view = _doubles(ptr, N * stride).reshape(N, stride)
     na = sim.N_active
-    nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
     x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
-    dim, s = nb.dim, method.s
+    s = method.s
     if isinstance(method, EQUIP) and sim.N_var > 0:
         raise ValueError(f"{sim.N_var} variational particles with method='equip': the tangent "
                          "map is the derivative of the HBVM step, and EQUIP's step adds a "
                          "correction whose derivative it does not take; use method='hbvm'")
-    # the tangent map is compiled only for a simulation with variational particles (a change of
-    # N_var moves particles_var: the compiled step asks for a resync, and this builds it again)
-    binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue",
-                      jvp=nbody_force_jvp if sim.N_var > 0 else None)
-    minv = binding.minv
+    reasons = host_reasons(sim)
+    model_changed = _model_changed(st, sim, bool(reasons))
+    if reasons:
+        # REBOUND's own accelerations at the stages (hbvm_md.rebound.forces): the full form
+        _check_host_path(sim, method, reasons)
+        _clear_gravity_ignore(sim)
+        scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
+        nb = None
+        # (variational particles are refused on this path: no tangent map is compiled)
+        binding = Binding(method, scene, form="full", fast=None, glue="hbvm_md.rebound.glue")
+        dim = scene.dim
+        # the error weights (accelerations) in the loop's minv, and work buffers for them
+        binding.minv = scene.error_weights()
+        binding.kin_w = np.zeros(dim)
+        nf, nc = work_sizes(method.n_stages, s, 2 * dim, 2 * dim, 2 * dim)
+        binding.work, binding.cwork = np.empty(nf), np.empty(nc, dtype=complex)
+        u, vw = 2 * dim, binding.minv[dim:dim + 3 * N]     # (1/w: p -> v)
+    else:
+        nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
+        # the tangent map is compiled only for a simulation with variational particles (a
+        # change of N_var moves particles_var: the compiled step asks for a resync, and this
+        # builds it again)
+        binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue",
+                          jvp=nbody_force_jvp if sim.N_var > 0 else None)
+        dim = nb.dim
+        u, vw = dim, binding.minv
     y, g, c = (_doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
-    keep = (y.size == 4 * dim and g.size == s * dim and np.array_equal(y[:dim], x.reshape(-1))
-            and np.array_equal(y[dim:2 * dim] * minv, v.reshape(-1)))
+    keep = (not model_changed and y.size == 4 * dim and g.size == s * u
+            and np.array_equal(y[:3 * N], x.reshape(-1))
+            and np.array_equal(y[dim:dim + 3 * N] * vw, v.reshape(-1)))
     if not keep:
-        q0 = x.reshape(-1).copy()
-        p0 = nb.momenta_from_velocities(v.copy())
-        check_particles(np.concatenate([q0, p0]), nb)
+        if nb is not None:
+            q0 = x.reshape(-1).copy()
+            y0 = np.concatenate([q0, nb.momenta_from_velocities(v.copy())])
+            check_particles(y0, nb)
+        else:
+            y0 = scene.state(x, v, sim.t)
+            if not np.all(np.isfinite(y0)):
+                raise ValueError("the simulation holds non-finite positions or velocities")
         y = _array(st, L.SL_Y, L.SL_NY, 4 * dim)
         y[:] = 0.0
-        y[:dim], y[dim:2 * dim] = q0, p0
-        _array(st, L.SL_GAMMA, L.SL_NGAMMA, s * dim)[:] = 0.0
+        y[:2 * dim] = y0
+        _array(st, L.SL_GAMMA, L.SL_NGAMMA, s * u)[:] = 0.0
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha and slope
         st[L.SL_RESYNCS] += 1
@@ -556,14 +619,19 @@ def _prepare(sim, p: int) -> None:
     # most one gravitating body, at rest (the restricted problem with a star at rest): then it
     # stays zero and there is nothing to check (the test particles' own check, glue.TP_FLOOR,
     # still runs on a fixed step).
-    check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
-    if not check and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
+    # On REBOUND's own accelerations the check guards the H of hbvm_md.rebound.forces when the
+    # added forces have one, and is off otherwise (the step control carries the run).
+    if nb is None:
+        check = scene.hamiltonian
+    else:
+        check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
+    if not check and nb is not None and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
         warnings.warn("HBVM: the gravitating bodies have no energy (a single body at rest), so "
                       "energy_tol's energy check checks nothing here; test particles are checked "
                       "by their own error estimates (fixed steps) or the step control (adaptive)",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
-    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im)
+    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=nb is None)
     code = binding.step_code
     if code.kind != "compiled" and sim.N_var > 0 and sim._calculate_megno:
         raise ValueError("HBVM hands MEGNO to REBOUND from its compiled step only; unset "
@@ -573,6 +641,55 @@ def _prepare(sim, p: int) -> None:
     else:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
+
+
+def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
+    """Has the model changed since the step was last prepared for this state (G, N_active, a
+    setting HBVM checks, the choice of REBOUND's own accelerations, or on them a mass)?  Then the previous
+    coefficients and the reference energy belong to another system: a continued run starts
+    them afresh from the particles, as IAS15 continues after ``sim.G`` was changed.  A state
+    without a context (new, loaded, copied) keeps what it carries."""
+    if not st[L.SL_CTX]:
+        return False
+    ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st[L.SL_CTX])), np.int64)
+    old = _doubles(int(ctx[L.A_HOST]), L.N_HOST)
+    now = (sim.G, float(np.uint64(sim.N_active).astype(np.int64)))
+    if old[0] != now[0] or old[1] != now[1] or bool(ctx[L.D_FULL]) != host:
+        return True
+    N = int(ctx[L.D_N])
+    if N == sim.N and host:      # (a state of velocities does not see a mass changed)
+        written = _doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
+        m = np.zeros(N)
+        sim.serialize_particle_data(m=m)
+        if not np.array_equal(written[:, 6], m):
+            return True
+    words = ctx[L.C_WORDS:L.C_VALUES]
+    sim_words = np.frombuffer(
+        (ctypes.c_int64 * (int(max(words)) + 1)).from_address(ctypes.addressof(sim)), np.int64)
+    return not np.array_equal(sim_words[words], ctx[L.C_VALUES:L.C_VALUES + L.N_CFG])
+
+
+def _check_host_path(sim, method, reasons) -> None:
+    """What the step on REBOUND's own accelerations cannot do, refused with the reason."""
+    why = ", ".join(reasons)
+    if isinstance(method, EQUIP):
+        raise ValueError(f"method='equip' needs the separable N-body step; this scene has {why} "
+                         "and runs on REBOUND's own accelerations: use method='hbvm'")
+    if sim.N_var > 0:
+        raise ValueError(f"variational particles with {why}: HBVM's tangent map differentiates "
+                         "its own N-body kernel, not REBOUND's forces; use IAS15")
+    import numba
+    if numba.config.DISABLE_JIT:
+        raise ValueError(f"this scene ({why}) runs on REBOUND's own accelerations, called from "
+                         "compiled code only; unset NUMBA_DISABLE_JIT")
+
+
+def _clear_gravity_ignore(sim) -> None:
+    """REBOUND's gravity skips the terms WHFast or MERCURIUS left flagged in
+    ``gravity_ignore``; a direct step needs every term (IAS15 clears it at each step too)."""
+    f = type(sim).gravity_ignore
+    (ctypes.c_int if f.size == 4 else ctypes.c_int64).from_address(
+        ctypes.addressof(sim) + f.offset).value = 0
 
 
 def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
@@ -586,18 +703,20 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
     return _doubles(int(st[slot]), n)
 
 
-def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
+def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=False) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
     allocated with the C library (the state's ``free`` releases it with the state)."""
     ex = Extrapolation(method)
     (tn, ts), (Wp, Cp) = binding.c1, binding.c2
     NV, NVinv, NM = binding.no_newton
-    s, m, N = method.s, binding.minv.shape[0], view.shape[0]
+    s, N = method.s, view.shape[0]
+    u = binding.minv.shape[0]                 # the coefficients' width: m, or 2m (full)
+    m = u // 2 if full else u
     written = np.empty((N, 7))
     written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     written[:, 6] = view[:, im]
     host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
-    arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, m)),
+    arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, u)),
               L.A_EREFT: np.zeros(L.N_EREF), L.A_WRITTEN: written, L.A_MINV: binding.minv,
               L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
               L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
@@ -634,6 +753,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im) -> None:
         binding.work.shape[0],
         binding.cwork.shape[0], ptr)
     header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
+    header[L.D_FULL] = int(full)
     # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
     header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
         tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
@@ -668,6 +788,7 @@ def _python_step(code, st):
                                                (L.SL_METHOD, L.D_METHOD))):
             return L.RESYNC
         s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
+        u = 2 * m if ctx[L.D_FULL] else m
         nv = int(ctx[L.D_NV])
         tnc, tsr, wpp, cpp, kk = (int(ctx[i]) for i in (L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP,
                                                          L.D_KK))
@@ -684,10 +805,10 @@ def _python_step(code, st):
         return int(code.step_arrays(
             simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + L.N_EREF],
             sd[L.SL_RES:L.SL_RES + L.N_RES], y[:2 * m], y[2 * m:],
-            _doubles(int(st_[L.SL_GAMMA]), s * m).reshape(s, m),
+            _doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
             _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS), f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m),
-            f(L.A_GAMMAT, (s, m)), f(L.A_EREFT, L.N_EREF), f(L.A_WRITTEN, (N, 7)),
-            f(L.A_MINV, m), f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
+            f(L.A_GAMMAT, (s, u)), f(L.A_EREFT, L.N_EREF), f(L.A_WRITTEN, (N, 7)),
+            f(L.A_MINV, u), f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
             f(L.A_TN, (2, tnc)), f(L.A_TS, (tsr, s)), f(L.A_WP, (wpp, s, kk)),
             f(L.A_CP, (cpp, kk, s)),
             f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),

@@ -133,9 +133,12 @@ class HBVMIntegrator(Counted):
     Parameters
     ----------
     sim : rebound.Simulation
-        Newtonian gravity (no softening, additional forces, variational particles; gravity
-        'basic' or 'compensated'); test particles (``N_active``, ``testparticle_type = 0``) and
-        REBOUND's collision detection and resolve functions are honoured.
+        Plain Newtonian gravity runs on the compiled N-body kernel; additional forces
+        (REBOUNDx's or a user's), softening, ``testparticle_type = 1`` and ``gravity =
+        'none'`` run on REBOUND's own accelerations at the stages
+        (:mod:`hbvm_md.rebound.forces`; k measured for a fixed step is measured on the plain
+        N-body scene).  Test particles (``N_active``) and REBOUND's collision detection and
+        resolve functions are honoured; what is refused: :mod:`hbvm_md.rebound`.
     s : int
         Degree of the method (order 2s; EQUIP needs s >= 2).
     k : int, optional

@@ -127,7 +127,11 @@ C_VALUES = C_WORDS + N_CFG
 (A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX,
  D_NV, D_TGF, D_TGC, D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0
  ) = range(C_VALUES + N_CFG, C_VALUES + N_CFG + 17)
-N_HEADER = R_MEGNO_T0 + 1
+#: 1 when the step runs on REBOUND's own accelerations (:mod:`hbvm_md.rebound.forces`: the
+#: full form, the state (q, clock, p, 0) of 2 D_M doubles, gamma and the error weights A_MINV
+#: of width 2 D_M), 0 for the compiled N-body kernel (separable: width D_M)
+D_FULL = R_MEGNO_T0 + 1
+N_HEADER = D_FULL + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")
