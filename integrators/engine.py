@@ -1172,7 +1172,8 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
     variational : array_like, shape (2m,) or (nv, 2m), optional
         Initial tangent vectors, carried by the Jacobian of each step; the result's ``extra``
         then holds them at the samples and the MEGNO (:mod:`integrators.variational`).
-    Other parameters as for :class:`Stepper`.
+    others
+        As for :class:`Stepper`.
 
     Raises
     ------

@@ -54,7 +54,7 @@ Choices made here, and why (measured on Kepler, e = 0.6, h = 2 pi / 100):
 
 Cost a step: s forces an iteration (Gauss's) plus k at each residual, against k an iteration
 for HBVM(k, s); the iterations after each change of alpha make it 2-9 times HBVM's time on
-the scenes measured (README).
+the scenes measured (``benchmarks/results/equip.md``; docs: "Choosing a method").
 """
 from __future__ import annotations
 

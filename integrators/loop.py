@@ -2,56 +2,15 @@
 :func:`attempt`, a step tried again smaller until the adaptive control accepts it).
 
 Every path of the project runs this code: the compiled engine, the REBOUND and ASE adapters and
-the Python path for user systems.  The force kernel is not an argument: the two module globals
-``_force`` and ``_potential`` are bound by :mod:`integrators.specialise`, which
+the Python path for user systems.  The force kernel is not an argument: the module globals
+``_force(X, params, out)`` (-grad V(q) or grad H(y) for each row of X) and
+``_potential(x, params)`` (V(q) or H(y)) are bound by :mod:`integrators.specialise`, compiled
+into a module of their own for numba kernels, as Python for anything else.  :func:`advance`
+returns a status code and changes y, cy, gamma and eref only when the step succeeded.
 
-* for compiled kernels (numba ``njit`` functions importable by module and name) writes this
-  file's text with the two kernel imports appended into a module named by a hash of every
-  source it depends on, and compiles that with an on-disk cache: the kernel is called
-  statically (no unboxing cost a call) and the cache can never be stale;
-* for anything else (a user's Python ``gradient``, ASE's calculators) executes this file's code
-  as Python with the kernels bound to Python callables, calling the same compiled pieces of
-  :mod:`integrators.core`.
-
-Kernels: ``_force(X, params, out)`` writes, for each row of X (n, w), -grad V(q) (separable
-form, rows are positions) or grad H(y) (full form, rows are states) into ``out``;
-``_potential(x, params)`` returns V(q) (separable) or H(y) (full).
-
-The implementer's contract (what a caller provides): the state as a double-double pair
-(y, cy) of shape (2m,), q = y[:m], p = y[m:]; trial copies (yt, cyt); ``gamma`` the previous
-step's coefficients (s, u), all zero before the first step (u = m for the separable form, 2m
-for the full form); ``E`` the extrapolation matrix for h_new / h_old; the method's arrays packed
-as c1 = (tn, ts) with tn = [tau, tau_lo] (2, k) and ts = [X0, X0_lo] (2, s), c2 = (Wp, Cp) with
-Wp = [W, W_lo] (2, s, k) and Cp = [C2, C2_lo, I, I_lo] (4, k, s) (``integrators.engine.
-method_arrays``); Newton matrices (NV, NVinv, NM) with NM of shape (0, u, u) for fixed-point
-iteration; the float64 ``counters`` (layout in :mod:`integrators.core`); and two work buffers
-(``work`` float, ``cwork`` complex, sized by ``core.work_sizes``) that ``core.carve`` cuts into
-the step's work arrays: a host that calls one step at a time (REBOUND, ASE) pays about 0.1
-microsecond for each array argument it passes or array the step allocates.  :func:`advance` returns a status
-code; it changes y, cy, gamma and eref only when the step succeeded.
-
-Followers.  A separable system may split its unknowns into *sources* and *followers*: the
-followers feel the sources and act on nobody (REBOUND's test particles, ``testparticle_type =
-0``).  The sources then form a closed system, and the step solves their stage equations first,
-on copies of their columns only, with the very iteration, kernel and stop rule a run of the
-sources alone uses (their parameters are the sources-alone system's): their trajectory is that
-run's bit for bit, whatever followers there are.  Then each follower's stage equations, in the
-sources' field at their stage values, each with its own stop rule (:func:`follow`): a slow one
-makes neither the sources nor the others iterate, and each follower's trajectory is the same
-whichever others are there.  The system provides two more kernels, bound by
-:mod:`integrators.specialise` like the others: ``_followers(params)`` (where the followers
-block starts in params, or -1: ``systems.nbody.followers_block`` says what it holds) and
-``_field(Xt, Xs, params_s, out)`` (the followers' right-hand side at their stage values Xt
-from the sources' Xs).  Not with the full form, EQUIP (its energy condition couples every
-unknown) or simplified Newton: there the step solves all unknowns together, as for a system
-without followers (:func:`integrators.core.no_followers`).  A step with followers counts the
-iterations and evaluations of its slowest block.
-
-EQUIP(k, s) (:mod:`integrators.equip`) runs in the same step: its packed arrays hold Gauss's
-in the places above and its own in more planes (Cp.shape[0] > 4 tells the step), its work
-buffers are sized for ``EQUIP.work_rows`` stage rows and eref has 3 entries (alpha and the
-slope of its energy condition ride in eref[1:3]); the pieces it adds are in
-:mod:`integrators.equip_core`.  For HBVM every EQUIP branch is skipped.
+The implementer's contract (the arrays a caller provides and their shapes), the followers (test
+particles solved after the sources, each with its own stop rule) and how EQUIP runs in this
+step: the documentation's design page "One step, written once" (``docs/design/step.md``).
 """
 import numpy as np
 

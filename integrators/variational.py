@@ -193,7 +193,8 @@ class VariationalStepper(Stepper):
     ----------
     variational : array_like, shape (d,) or (nv, d)
         The initial tangent vectors (dq, dp), d = 2m as the state; the first must be nonzero.
-    Other parameters as :class:`integrators.Stepper`.
+    others
+        As for :class:`integrators.Stepper`.
 
     Attributes
     ----------

@@ -34,9 +34,11 @@ and optionally
     solver uses finite differences of ``gradient`` (2m extra gradient calls per Newton step).
 ``initial_state()``
     A default starting state.
+
 Separable form, H = p^T M^{-1} p / 2 + V(q): ``masses`` (shape (m,), one per degree of
 freedom, positive), ``potential(q)`` and ``forces(q)`` (= -grad V, accepting a stack (n, m)).  The
 engine then iterates on the momentum coefficients only.
+
 ``forces_into(Q, out)``
     Optional, separable form: writes ``forces(Q)`` for a stack Q (n, m) into the C-contiguous
     float64 array ``out`` (n, m) and returns nothing; the Python path then skips copying the

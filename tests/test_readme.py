@@ -1,4 +1,5 @@
-"""The README's quick start and .ci/run must not drift apart."""
+"""The README's quick start and .ci/run must not drift apart, and every python block of the README
+and of the documentation's pages runs as written."""
 import pathlib
 import re
 import textwrap
@@ -6,12 +7,20 @@ import textwrap
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
 
 
-def _quick_start_commands():
-    text = (ROOT / "README.md").read_text()
-    block = re.search(r"## Quick start.*?```bash\n(.*?)```", text, re.S)
-    assert block, "README.md has no quick-start bash block"
+def _doc_pages():
+    """README.md and the documentation's Markdown pages (not the build or the generated gallery)."""
+    skip = {"_build", "auto_tutorials", "_generated", "figures"}
+    pages = [p for p in DOCS.rglob("*.md") if not skip.intersection(p.relative_to(DOCS).parts)]
+    return [ROOT / "README.md", *sorted(pages)]
+
+
+def _quick_start_commands(path=ROOT / "README.md"):
+    text = path.read_text()
+    block = re.search(r"# Quick start.*?```bash\n(.*?)```", text, re.S)
+    assert block, f"{path.name} has no quick-start bash block"
     return [line for line in block.group(1).splitlines() if line.strip()]
 
 
@@ -27,18 +36,63 @@ def test_ci_runs_the_readme_test_command():
     assert _quick_start_commands()[1] in ci
 
 
+def test_docs_quick_start_is_the_readme_s():
+    assert _quick_start_commands(DOCS / "quickstart.md") == _quick_start_commands()
+
+
+def test_readme_is_short():
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 200
+
+
+def _docs_build_command():
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"## Documentation.*?```bash\n(.*?)```", text, re.S)
+    assert block, "README.md has no documentation build block"
+    return [line for line in block.group(1).splitlines() if line.strip()]
+
+
+def test_ci_builds_the_docs_as_the_readme_says():
+    """CI builds the site with warnings as errors, with the README's command and the docs extra."""
+    cmds = _docs_build_command()
+    assert '-e ".[docs]"' in cmds[0] and "-W --keep-going" in cmds[1]
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert ".[docs]" in ci and cmds[1] in ci
+    assert "docs = [" in (ROOT / "pyproject.toml").read_text()
+
+
+def test_results_page_includes_every_results_file():
+    raw = (DOCS / "results" / "raw.md").read_text()
+    for f in sorted((ROOT / "benchmarks" / "results").glob("*.md")):
+        assert f"../../benchmarks/results/{f.name}" in raw, f"docs/results/raw.md misses {f.name}"
+
+
+def test_every_tutorial_makes_a_figure():
+    tutorials = sorted((DOCS / "tutorials").glob("plot_*.py"))
+    assert len(tutorials) >= 5
+    for t in tutorials:
+        assert "plt.show()" in t.read_text(), t.name
+
+
 def _python_blocks():
-    """Every python block of the README (indented ones, inside a list item, dedented)."""
-    return [textwrap.dedent(b) for b in
-            re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)]
+    """Every python block of the README and of the docs pages (indented ones, inside a list item,
+    dedented), each once: a block repeated on a page (the README's examples) runs once."""
+    blocks = []
+    for page in _doc_pages():
+        for b in re.findall(r"```python\n(.*?)```", page.read_text(), re.S):
+            b = textwrap.dedent(b)
+            if b not in blocks:
+                blocks.append(b)
+    return blocks
 
 
-# -- every python block of the README runs here as written ----------------------------------------
+# -- every python block of the README and the docs runs here as written -------------------------
 # Each block is found by a phrase it contains and runs in a fresh folder; `subs` are the only
-# changes (each must still match the README, so that the two cannot drift apart), and are made
+# changes (each must still match the page, so that the two cannot drift apart), and are made
 # where the block as written takes minutes:
 #   - the ensemble block runs 4 members of 1e4 days instead of 16 of 1e7 (the records[3] it reads
 #     exists either way);
+#   - the comparison block runs 2e3 days and 20 MD steps instead of 2e4 and 100, the ASE block
+#     30 steps of EMT instead of 100;
 # `setup` gives a fragment the names it uses; `check` asserts what the block claims.
 def _check_api(ns, out):
     # each printed energy error is at round-off, as the README says (the REBOUND run prints its
@@ -98,6 +152,26 @@ def _check_restart(ns, out):
     assert sorted(p.name for p in pathlib.Path(".").iterdir()) == ["run.bin"]   # no side file
 
 
+def _check_readme_rebound(ns, out):
+    assert ns["sim"].t == 1e5 and ns["sim"].integrator == "hbvm"
+    assert float(out.split(":")[-1]) < 1e-13, out
+
+
+def _check_readme_ase(ns, out):
+    assert out.startswith("HBVM(") and len(ns["atoms"]) == 13
+    assert float(out.split(":")[-1]) < 1e-8, out          # EMT: round-off and its cutoff's floor
+
+
+def _check_notebook_pattern(ns, out):
+    assert ns["sim"].t == 1000.0 and ns["sim"].integrator == "hbvm"
+    assert out.split() == ["6", "8", "0.001"], out         # the defaults the comment names
+
+
+def _check_comparison(ns, out):
+    assert "| HBVM(8,6) | adaptive |" in out and "| ias15 |" in out and "| whfast |" in out, out
+    assert "| VelocityVerlet | 2 |" in out and "| HBVM(4, 2) | 2 |" in out, out
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -106,6 +180,11 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "run_ensemble(task": ((("t_end=1e7", "t_end=1e4"), ("range(16)", "range(4)")), None,
                           _check_ensemble),
     'rebound.Simulation("run.bin")': ((), None, _check_restart),
+    'sim.units = ("day", "AU", "Msun")': ((), None, _check_readme_rebound),
+    'Icosahedron("Cu", noshells=2)': ((("dyn.run(100)", "dyn.run(30)"),), None, _check_readme_ase),
+    '# was: "ias15"': ((), None, _check_notebook_pattern),
+    "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
+                         _check_comparison),
 }
 
 
@@ -113,9 +192,9 @@ def test_every_readme_block_has_one_entry():
     blocks = _python_blocks()
     for block in blocks:
         hits = [p for p in README_BLOCKS if p in block]
-        assert len(hits) == 1, f"README block without one entry in README_BLOCKS ({hits}):\n{block}"
+        assert len(hits) == 1, f"python block without one entry in README_BLOCKS ({hits}):\n{block}"
     for phrase in README_BLOCKS:
-        assert sum(phrase in b for b in blocks) == 1, f"no README block contains {phrase!r}"
+        assert sum(phrase in b for b in blocks) == 1, f"no single python block contains {phrase!r}"
 
 
 @pytest.mark.parametrize("phrase", list(README_BLOCKS))
@@ -123,17 +202,17 @@ def test_readme_block_runs_as_written(phrase, tmp_path, monkeypatch, capsys):
     subs, setup, check = README_BLOCKS[phrase]
     block = next(b for b in _python_blocks() if phrase in b)
     for old, new in subs:
-        assert old in block, f"the README block no longer has {old!r}: update README_BLOCKS"
+        assert old in block, f"the block no longer has {old!r}: update README_BLOCKS"
         block = block.replace(old, new)
     monkeypatch.chdir(tmp_path)
     ns = setup() if setup else {}
-    exec(compile(block, f"README.md ({phrase})", "exec"), ns)
+    exec(compile(block, f"docs block ({phrase})", "exec"), ns)
     check(ns, capsys.readouterr().out)
 
 
 def _inline_calls():
-    """The calls the README writes inline (`method.integrate(...)`, `method.step(...)`)."""
-    text = (ROOT / "README.md").read_text()
+    """The calls the pages write inline (`method.integrate(...)`, `method.step(...)`)."""
+    text = "\n".join(p.read_text() for p in _doc_pages())
     return [" ".join(c.split()) for c in re.findall(r"`(method\.(?:integrate|step)\(.*?\))`", text, re.S)]
 
 

@@ -157,8 +157,8 @@ class HBVMIntegrator(Counted):
         symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
         time a step where the steps resolve the orbits well and 2.5 times near the longest
         steps (the outer solar system over 1e6 days with the adaptive defaults: s = 8 with
-        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; README, "What each method
-        keeps", ``benchmarks/bench_equip.py --rebound``).  Saved as
+        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; the documentation's "Choosing
+        a method", ``benchmarks/bench_equip.py --rebound``).  Saved as
         ``sim.integrator.method``.
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).

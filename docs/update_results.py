@@ -1,9 +1,12 @@
-"""Fill README.md's results from the files the benchmarks and the demo wrote.
+"""Fill the documentation's results pages from the files the benchmarks and the demo wrote.
 
-    python docs/update_readme.py [demo-output.txt]
+    python docs/update_results.py [demo-output.txt]
 
 Replaces the text between the markers ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->``
-with the table read from its source, so that the README quotes real runs verbatim.
+in the pages under ``docs/`` (each marker pair is on exactly one page: ``docs/results/*.md``, the
+demo's in ``docs/quickstart.md``) with the table read from its source, so that the pages quote
+real runs verbatim.  ``docs/results/raw.md`` includes every file of ``benchmarks/results/`` as
+it stands when the site is built.
 """
 from __future__ import annotations
 
@@ -28,8 +31,15 @@ def tables(text: str) -> list[str]:
     return out
 
 
+def pages() -> list[pathlib.Path]:
+    """The documentation's Markdown pages (not the build's output or the generated gallery)."""
+    skip = {"_build", "auto_tutorials", "_generated", "figures"}
+    return sorted(p for p in (ROOT / "docs").rglob("*.md")
+                  if not skip.intersection(p.relative_to(ROOT / "docs").parts))
+
+
 def main() -> None:
-    readme = (ROOT / "README.md").read_text()
+    texts = {p: p.read_text() for p in pages()}
     parts = {}
     reb = (ROOT / "benchmarks/results/rebound.md").read_text()
     parts["rebound"] = "\n\n".join(
@@ -61,11 +71,16 @@ def main() -> None:
         parts["demo"] = "\n\n".join(f"*{h}*\n\n{tb}" for h, tb in zip(heads, t))
     for name, body in parts.items():
         pat = re.compile(rf"(<!-- results:{name} -->\n).*?(<!-- /results:{name} -->)", re.S)
-        if not pat.search(readme):
-            raise SystemExit(f"README.md has no markers for {name!r}")
-        readme = pat.sub(lambda m: m.group(1) + body + "\n" + m.group(2), readme)
-    (ROOT / "README.md").write_text(readme)
-    print("updated:", ", ".join(parts))
+        where = [p for p, text in texts.items() if pat.search(text)]
+        if len(where) != 1:
+            raise SystemExit(f"the markers for {name!r} must be on exactly one page under docs/ "
+                             f"(found on {[str(p.relative_to(ROOT)) for p in where]})")
+        texts[where[0]] = pat.sub(lambda m: m.group(1) + body + "\n" + m.group(2), texts[where[0]])
+    changed = [p for p, text in texts.items() if text != p.read_text()]
+    for p in changed:
+        p.write_text(texts[p])
+    print("filled:", ", ".join(parts), "; pages changed:",
+          ", ".join(str(p.relative_to(ROOT)) for p in changed) or "none")
 
 
 if __name__ == "__main__":
