@@ -50,7 +50,7 @@ def _ase():
     from ase import Atoms
     from ase.calculators.emt import EMT
 
-    from hbvm_md.ase_dynamics import HBVMDynamics
+    from hbvm_md.ase import HBVMDynamics
     atoms = Atoms("Cu2", positions=[[0.0, 0.0, 0.0], [2.6, 0.0, 0.0]])
     atoms.calc = EMT()
     atoms.set_momenta(np.array([[0.05, 0.0, 0.0], [-0.05, 0.0, 0.0]]))
