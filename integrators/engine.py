@@ -35,7 +35,7 @@ SOLVERS = ("auto", "fixed_point", "newton")
 DEFAULT_ENERGY_TOL = 1e-10
 #: ... and of a method not exact for H, whose own energy error has no computable bound: a step
 #: (s >= 2) that changes H by more than this fraction of |T| + |V| and by more than
-#: :data:`integrators.core.FLOW_FRACTION` (1e-3; 1e-2 for s = 2) of the energy it moved between the terms of H
+#: :data:`integrators.core.FLOW_FRACTION` (1e-3; 1.5e-2 for s = 2) of the energy it moved between the terms of H
 #: (:func:`integrators.core.energy_flow`) is refused: it flew past what it should have resolved
 #: (Kepler e = 0.999, HBVM(8, 4) at 1000 steps a period took E from -0.5 to +441.9 in its first
 #: step from pericentre, and "finished"), or converged to a spurious root (HBVM(6, 3) on Kepler
@@ -639,7 +639,7 @@ class Stepper(Counted):
         (:class:`integrators.UnresolvedStepError`, nothing committed); None: no check.
         "auto" (default, :func:`energy_check`): DEFAULT_ENERGY_TOL (1e-10) for a method exact
         for the system's polynomial H; for any other, a change above NOT_A_SOLUTION (1e-6) that
-        also exceeds 1e-3 (s = 2: 1e-2) of the energy the step moved between the terms of H is refused (a
+        also exceeds 1e-3 (s = 2: 1.5e-2) of the energy the step moved between the terms of H is refused (a
         step too large for the encounter it crosses, a state that is not a solution), and the
         method's own quadrature error passes (s = 1: above 0.1 and all of that energy).
 
