@@ -221,7 +221,7 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     # of the counters and the clock, as the core takes a failed step's out
     c_iter, c_nfev, c_newton = counters[C_ITER], counters[C_NFEV], counters[C_NEWTON]
     clock0, clock1 = clock[0], clock[1]
-    status = attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w,  # noqa: F821
+    status = attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w,
                      params, h, sd[SL_H_PREV], E1, Et, Ew, Ebuf, Ezero, (tn, ts), (Wp, Cp),
                      NV, NVinv, NM, st[SL_MAX_ITER], sd[SL_TOL], etol, counters, work, cwork,
                      clock, epsilon, sd[SL_MIN_DT], t_start, res)
@@ -258,7 +258,7 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
             for v in range(nv):
                 copy2(DGs[v], DG[v])
             dg = DGs
-        tstatus = tangent_map(False, y, cy, minv, gammat, h_done, E, (tn, ts),  # noqa: F821
+        tstatus = tangent_map(False, y, cy, minv, gammat, h_done, E, (tn, ts),
                               (Wp, Cp), params, NV, NVinv, NM, 2 * st[SL_MAX_ITER], V, dg, Vt,
                               DGt, tw, tcw, tcount)
         if tstatus != OK:
