@@ -65,6 +65,16 @@ import numpy as np
 from . import equip_core as _ec
 from .tableau import HBVM, _check_int, _readonly, _sort, xi
 
+#: EQUIP's adaptive defaults through REBOUND (``HBVMIntegrator(sim, method="equip")``): s = 8
+#: at epsilon = 1e-4 keeps the Gauss step's own energy residual far below an ulp at the steps
+#: the control takes on planetary orbits, so alpha is rarely needed and the step costs about
+#: HBVM(8, 6)'s force evaluations at IAS15's energy and angular momentum (outer solar system,
+#: 1e6 days: 63 evaluations a step over 3367 steps; s = 6 at epsilon = 1e-3, HBVM's defaults,
+#: has Gauss residuals of a systematic 0.2-0.9 ulp that alpha must correct at every step: 110
+#: evaluations a step over 3925 steps; ``benchmarks/bench_equip.py --rebound``)
+DEFAULT_S = 8
+DEFAULT_EPSILON = 1e-4
+
 
 class EQUIP:
     """EQUIP(k, s): the s-stage Gauss method made energy conserving by a symplectic

@@ -11,6 +11,7 @@ from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_si
                                     shortest_period)
 from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
 from integrators import EQUIP, HBVM
+from integrators.equip import DEFAULT_EPSILON as EQUIP_DEFAULT_EPSILON, DEFAULT_S as EQUIP_DEFAULT_S
 from integrators.core import N_COUNTERS
 from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive, energy_check
 from integrators.kchoice import adaptive_k, choose_k, period_steps
@@ -136,8 +137,9 @@ class HBVMIntegrator(Counted):
         Newtonian gravity (no softening, additional forces, variational particles; gravity
         'basic' or 'compensated'); test particles (``N_active``, ``testparticle_type = 0``) and
         REBOUND's collision detection and resolve functions are honoured.
-    s : int
-        Degree of the method (order 2s; EQUIP needs s >= 2).
+    s : int, optional
+        Degree of the method (order 2s; EQUIP needs s >= 2).  None: 6 for HBVM, 8 for EQUIP
+        (:data:`integrators.equip.DEFAULT_S`).
     k : int, optional
         Quadrature nodes (k >= s) of the line integral (EQUIP: of its energy condition, the
         same k-point discrete line integral, so the same k keeps the energy to round-off).
@@ -172,8 +174,10 @@ class HBVMIntegrator(Counted):
         a step whose estimate, iteration or energy check fails is retried smaller within the
         same REBOUND step, which then records the step taken (``sim.t``,
         ``sim.dt_last_done``); ``sim.dt`` shows the next step proposed.
-    epsilon : float
-        Precision of the adaptive control (dimensionless, like IAS15's).
+    epsilon : float, optional
+        Precision of the adaptive control (dimensionless, like IAS15's).  None: 1e-3 for HBVM
+        (``integrators.engine.DEFAULT_EPSILON``), 1e-4 for EQUIP
+        (:data:`integrators.equip.DEFAULT_EPSILON`).
     min_dt : float
         Smallest step the adaptive control may take; below it a step that cannot be resolved
         raises :class:`integrators.StepSizeError`.
@@ -209,10 +213,11 @@ class HBVMIntegrator(Counted):
     one), and a test particle's refusal also has ``particle``, its index.
     """
 
-    def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
-                 max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
-                 energy_tol: float | str | None = "auto", adaptive: bool | None = None,
-                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0, method: str = "hbvm"):
+    def __init__(self, sim, s: int | None = None, k: int | None = None,
+                 dt: float | None = None, max_iter: int = 60, tol: float | None = None,
+                 nodes: str = "gauss", energy_tol: float | str | None = "auto",
+                 adaptive: bool | None = None, epsilon: float | None = None,
+                 min_dt: float = 0.0, method: str = "hbvm"):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
@@ -227,6 +232,11 @@ class HBVMIntegrator(Counted):
             raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}):"
                              " EQUIP perturbs the Gauss method")
         family = EQUIP if method == "equip" else HBVM
+        # each method's own defaults (EQUIP's: integrators.equip.DEFAULT_S, DEFAULT_EPSILON)
+        if s is None:
+            s = EQUIP_DEFAULT_S if family is EQUIP else 6
+        if epsilon is None:
+            epsilon = EQUIP_DEFAULT_EPSILON if family is EQUIP else DEFAULT_EPSILON
 
         def build(k_):
             return EQUIP(k_, s) if family is EQUIP else HBVM(k_, s, nodes=nodes)
