@@ -33,6 +33,17 @@ returns them), work buffers sized for ``EQUIP.work_rows`` stage rows, and ``eref
 EREF_EQUIP, carried whole between steps (alpha and the slope ride in eref[1:3]; ``loop.attempt``
 copies all of it into the trial and a host commits all of it back).
 
+Measured and not adopted (outer solar system, HLW's, over 1e6 days, EQUIP(8, 6) adaptive at
+epsilon 1e-3, where every step measures the slope: 110 force evaluations a step against
+HBVM(8, 6)'s 56, energy 1.1e-14): forgetting alpha and the slope once alpha moves E by less
+than 1/16 or 1/64 ulp of its terms (the next steps then take Gauss's residual, at round-off,
+without a slope) cost 56-66 evaluations a step but drifted the energy to 2-4e-14, since
+Gauss's residual there is a systematic 0.2-0.9 ulp that alpha's last correction removes at
+every step; moving gamma to alpha's last correction along the secant through the last two
+converged coefficients, instead of iterating it again, drifted it to 1.5e-12.  EQUIP's
+defaults through REBOUND are s = 8 at epsilon 1e-4 instead (:data:`integrators.equip.DEFAULT_S`),
+where Gauss's residual stays far below an ulp and alpha is seldom needed.
+
 Every function here runs as plain Python under ``NUMBA_DISABLE_JIT=1``.
 """
 from __future__ import annotations
@@ -66,7 +77,7 @@ ALPHA_MAX = 0.25      # |alpha| beyond this: the step is far too long for the en
 FRESH_ULPS = 32.0     # the step past the root that measures this step's slope, in ulps of E
 ALPHA_PROBE = 1e-6    # the first secant step when no slope is known (the first step)
 # update_alpha's answers
-CONVERGED, UPDATED, FAILED, REITERATE, ACCEPT = 0, 1, 2, 3, 4
+CONVERGED, UPDATED, FAILED, REITERATE = 0, 1, 2, 3
 
 
 @jit
@@ -217,9 +228,8 @@ def energy_residual(full, y, minv, kin_w, g, rho, h, alpha, X, X_lo, S0):
 def update_alpha(es, E, scale, floor):
     """One step of the secant iteration on alpha for E(alpha) = 0 (es: the step's scratch).
 
-    Returns ACCEPT (converged: the step commits gamma as measured), CONVERGED (converged:
-    gamma is polished once more), REITERATE (converged, with alpha's last correction in es[0]:
-    gamma is iterated to convergence for it, without measuring again), UPDATED (a new alpha in es[0])
+    Returns CONVERGED, REITERATE (converged, with alpha's last correction in es[0]: gamma is
+    iterated to convergence for it, without measuring again), UPDATED (a new alpha in es[0])
     or FAILED (MAX_UPDATES reached, or an
     alpha beyond ALPHA_MAX or not finite: the energy condition has no small solution at this
     step size).
@@ -237,15 +247,7 @@ def update_alpha(es, E, scale, floor):
     the same sign step after step makes the energy drift (measured: 2.4e-13 over 1e4 steps of
     Kepler with EQUIP(12, 4) without it, and 2.5e-14 over 5000 steps with the last step's
     slope, which changes sign near apocentre).  A residual at round-off that no change of
-    alpha moves (a quadratic H, which every alpha conserves), or one at round-off with no
-    slope known (Gauss's step conserves H there: alpha 0 is never moved), is accepted as it
-    is, gamma as measured (a second polish changed nothing measurable).
-
-    Not done (measured, outer solar system over 1e6 days, s = 6, epsilon = 1e-3): forgetting
-    alpha and the slope once alpha moves E by less than an ulp, so that the next steps take
-    Gauss's residual without a slope, halves the step's cost but drifted the energy to
-    2-4e-14 (1.1e-14 with the slope kept): Gauss's residual there is a systematic 0.2-0.9
-    ulp, which alpha's last correction removes at every step.
+    alpha moves (a quadratic H, which every alpha conserves) is converged as it is.
     ``floor``: E's rounding through the forces (the stop rule's floor,
     :func:`integrators.core.stop_action`, times the residual's weight of the forces): a
     residual that stops decreasing below it is converged (two bodies far from the origin, FPU's
@@ -271,7 +273,7 @@ def update_alpha(es, E, scale, floor):
         if es[5] > 0.0 and abs(E / D) <= ALPHA_MAX and E != 0.0:
             es[0] -= E / D
             return REITERATE
-        return ACCEPT
+        return CONVERGED
     if es[4] >= MAX_UPDATES:
         return FAILED
     es[1] = es[0]

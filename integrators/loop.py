@@ -270,9 +270,6 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                                                               ts[eq.TS_S0])
                 answer = eq.update_alpha(es, e_res, e_scale,
                                          e_weight * LIPSCHITZ_ULPS * EPS * xmax * lip)
-                if answer == eq.ACCEPT:         # gamma as measured (polished)
-                    status = OK
-                    break
                 if answer == eq.CONVERGED:      # polish once more (gamma as it is)
                     energy_ok = True
                 elif answer == eq.UPDATED or answer == eq.REITERATE:
