@@ -8,8 +8,9 @@ dt=..., ...)`` selects it with checked settings (and k measured on the scene for
 times, ``steps_done``, heartbeats, pre- and post-timestep callbacks, collisions (its search and
 resolve functions run after each step), SIGINT, simulation archives, ``save_to_file``,
 ``copy`` and pickling.  This package holds the glue only; the step is :mod:`integrators.loop`.
-``HBVMIntegrator(sim, method="equip", ...)`` (or ``sim.integrator.method = "equip"``, a saved
-field like ``s`` and ``k``) runs EQUIP(k, s) (:class:`integrators.EQUIP`) in the same step:
+``HBVMIntegrator(sim, method="equip", ...)`` (with EQUIP's own adaptive defaults, s = 8 at
+epsilon 1e-4; or ``sim.integrator.method = "equip"``, a saved field like ``s`` and ``k``,
+which keeps the s and epsilon set) runs EQUIP(k, s) (:class:`integrators.EQUIP`) in the same step:
 the host passes its packed arrays (their shapes in the context block), sizes the work buffers
 for its ``work_rows``, and keeps its alpha and slope (warm starts of the energy condition)
 beside the reference energy in the saved state, so a copy, a file or an archive of an EQUIP run

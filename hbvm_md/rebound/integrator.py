@@ -155,10 +155,13 @@ class HBVMIntegrator(Counted):
         Gauss method perturbed at each step so that it conserves the energy and stays
         symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
         time a step where the steps resolve the orbits well and 2.5 times near the longest
-        steps (the outer solar system over 1e6 days with the adaptive defaults: s = 8 with
-        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; README, "What each method
-        keeps", ``benchmarks/bench_equip.py --rebound``).  Saved as
-        ``sim.integrator.method``.
+        steps, where the Gauss step's own energy residual is a fraction of an ulp that alpha
+        corrects at every step.  Its adaptive defaults are therefore its own, s = 8 at
+        epsilon = 1e-4 (EQUIP(9, 8)): on the outer solar system over 1e5 and 1e6 days they
+        keep both invariants at IAS15's level in less time than IAS15
+        (``benchmarks/bench_equip.py --rebound``).  Saved as ``sim.integrator.method``; set
+        that way (``sim.integrator = "hbvm"`` then ``sim.integrator.method = "equip"``), s
+        and epsilon stay what they were (HBVM's defaults unless set).
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
     max_iter : int
