@@ -50,7 +50,12 @@ Choices made here, and why (measured on Kepler, e = 0.6, h = 2 pi / 100):
   once more (without it the residual keeps one sign step after step and the energy drifts).
   Typically two or three path evaluations a step.  Where no small alpha satisfies the
   energy condition (dE/dalpha crosses zero where the Gauss step's energy error does not:
-  FPU's stiff chain with s = 2) the step fails with a ConvergenceError, never silently.
+  FPU's stiff chain with s = 2; ASE's EMT copper nanoparticle, 43 atoms, at 5 fs with
+  s = 2, where over the five steps before t = 205 fs dE/dalpha fell from 5e-4 to 4e-6 while
+  Gauss's residual stayed near 1e-7, so that the root moved from |alpha| ~ 1e-4 to 4e-3,
+  0.08 and then 2.7) the step fails with a ConvergenceError, never silently.  The gamma
+  iteration has converged there (its increment, the one the message reports, is at
+  round-off): it is the energy condition that has no small solution at that step size.
 
 Cost a step: s forces an iteration (Gauss's) plus k at each residual, against k an iteration
 for HBVM(k, s); the iterations after each change of alpha make it 2-9 times HBVM's time on
@@ -64,6 +69,16 @@ import numpy as np
 
 from . import equip_core as _ec
 from .tableau import HBVM, _check_int, _readonly, _sort, xi
+
+#: EQUIP's adaptive defaults through REBOUND (``HBVMIntegrator(sim, method="equip")``): s = 8
+#: at epsilon = 1e-4 keeps the Gauss step's own energy residual far below an ulp at the steps
+#: the control takes on planetary orbits, so alpha is rarely needed and the step costs about
+#: HBVM(8, 6)'s force evaluations at IAS15's energy and angular momentum (outer solar system,
+#: 1e6 days: 63 evaluations a step over 3367 steps; s = 6 at epsilon = 1e-3, HBVM's defaults,
+#: has Gauss residuals of a systematic 0.2-0.9 ulp that alpha must correct at every step: 110
+#: evaluations a step over 3925 steps; ``benchmarks/bench_equip.py --rebound``)
+DEFAULT_S = 8
+DEFAULT_EPSILON = 1e-4
 
 
 class EQUIP:

@@ -259,3 +259,22 @@ def test_for_polynomial_degree_uses_hbvms_rule():
     assert EQUIP.for_polynomial_degree(1, 2).k == 2
     with pytest.raises(ValueError, match="`nodes` must be 'gauss' for EQUIP"):
         EQUIP.for_polynomial_degree(4, 2, nodes="lobatto")
+
+
+def test_rebound_defaults_per_method():
+    """Through REBOUND each method has its own adaptive defaults: EQUIP s = 8 at epsilon =
+    1e-4 (integrators.equip.DEFAULT_S, DEFAULT_EPSILON), HBVM s = 6 at 1e-3; what the user
+    gives is kept."""
+    pytest.importorskip("rebound")
+    from hbvm_md import HBVMIntegrator
+    from integrators.engine import DEFAULT_EPSILON
+    from systems.solar import outer_solar_system
+    S = outer_solar_system()
+    sim = S.to_rebound()
+    assert HBVMIntegrator(sim, method="equip").method == EQUIP(9, 8)
+    assert sim.integrator.epsilon == 1e-4
+    sim = S.to_rebound()
+    assert HBVMIntegrator(sim).method.s == 6 and sim.integrator.epsilon == DEFAULT_EPSILON
+    sim = S.to_rebound()
+    assert HBVMIntegrator(sim, method="equip", s=6, epsilon=1e-3).method.s == 6
+    assert sim.integrator.epsilon == 1e-3

@@ -415,7 +415,9 @@ def test_equip_is_a_setting_saved_with_the_run_and_k_is_hbvms():
     method (the run continues from the same particles, L kept from then on)."""
     sim = outer_solar_system().to_rebound()
     d = HBVMIntegrator(sim, method="equip")
-    assert d.method == EQUIP(adaptive_k(6, DEFAULT_EPSILON), 6) and str(sim.integrator.method) == "equip"
+    # EQUIP's own adaptive defaults (s = 8, epsilon = 1e-4: integrators.equip; they were
+    # HBVM's, s = 6 and 1e-3, before issue 38)
+    assert d.method == EQUIP(adaptive_k(8, 1e-4), 8) and str(sim.integrator.method) == "equip"
     a, b = outer_solar_system().to_rebound(), outer_solar_system().to_rebound()
     ka = HBVMIntegrator(a, s=4, dt=200.0).method
     kb = HBVMIntegrator(b, s=4, dt=200.0, method="equip").method

@@ -6,7 +6,9 @@ integrator, with HBVM's defaults (adaptive steps, s = 6, the default epsilon of
 :mod:`integrators.engine` and k for it), and :class:`HBVMIntegrator` ``(sim, s=..., k=...,
 dt=..., method="hbvm" | "equip", ...)`` selects it with checked settings.  REBOUND owns the run
 (time, callbacks, collisions, SIGINT, archives, ``save_to_file``, ``copy``, pickling); this
-package holds the glue only, and the step is :mod:`integrators.loop`.
+package holds the glue only, and the step is :mod:`integrators.loop`.  ``method="equip"`` takes
+EQUIP's own adaptive defaults, s = 8 at epsilon 1e-4 (``sim.integrator.method = "equip"`` on an
+existing integrator keeps the s and epsilon set).
 
 Modules: :mod:`~hbvm_md.rebound.layout` (every memory layout), :mod:`~hbvm_md.rebound.cabi`
 (the step REBOUND calls and the state's ``free``), :mod:`~hbvm_md.rebound.glue` (compiled with

@@ -11,6 +11,7 @@ from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_si
                                     shortest_period)
 from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
 from integrators import EQUIP, HBVM
+from integrators.equip import DEFAULT_EPSILON as EQUIP_DEFAULT_EPSILON, DEFAULT_S as EQUIP_DEFAULT_S
 from integrators.core import N_COUNTERS
 from integrators.engine import DEFAULT_EPSILON, Counted, check_adaptive, energy_check
 from integrators.kchoice import adaptive_k, choose_k, period_steps
@@ -139,8 +140,9 @@ class HBVMIntegrator(Counted):
         (:mod:`hbvm_md.rebound.forces`; k measured for a fixed step is measured on the plain
         N-body scene).  Test particles (``N_active``) and REBOUND's collision detection and
         resolve functions are honoured; what is refused: :mod:`hbvm_md.rebound`.
-    s : int
-        Degree of the method (order 2s; EQUIP needs s >= 2).
+    s : int, optional
+        Degree of the method (order 2s; EQUIP needs s >= 2).  None: 6 for HBVM, 8 for EQUIP
+        (:data:`integrators.equip.DEFAULT_S`).
     k : int, optional
         Quadrature nodes (k >= s) of the line integral (EQUIP: of its energy condition, the
         same k-point discrete line integral, so the same k keeps the energy to round-off).
@@ -156,10 +158,13 @@ class HBVMIntegrator(Counted):
         Gauss method perturbed at each step so that it conserves the energy and stays
         symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
         time a step where the steps resolve the orbits well and 2.5 times near the longest
-        steps (the outer solar system over 1e6 days with the adaptive defaults: s = 8 with
-        epsilon=1e-4 or dt = 400 days is the faster EQUIP there; the documentation's "Choosing
-        a method", ``benchmarks/bench_equip.py --rebound``).  Saved as
-        ``sim.integrator.method``.
+        steps, where the Gauss step's own energy residual is a fraction of an ulp that alpha
+        corrects at every step.  Its adaptive defaults are therefore its own, s = 8 at
+        epsilon = 1e-4 (EQUIP(9, 8)): on the outer solar system over 1e5 and 1e6 days they
+        keep both invariants at IAS15's level in less time than IAS15
+        (``benchmarks/bench_equip.py --rebound``).  Saved as ``sim.integrator.method``; set
+        that way (``sim.integrator = "hbvm"`` then ``sim.integrator.method = "equip"``), s
+        and epsilon stay what they were (HBVM's defaults unless set).
     dt : float, optional
         Sets ``sim.dt`` (the nominal step; REBOUND may shrink the last one).
     max_iter : int
@@ -175,8 +180,10 @@ class HBVMIntegrator(Counted):
         a step whose estimate, iteration or energy check fails is retried smaller within the
         same REBOUND step, which then records the step taken (``sim.t``,
         ``sim.dt_last_done``); ``sim.dt`` shows the next step proposed.
-    epsilon : float
-        Precision of the adaptive control (dimensionless, like IAS15's).
+    epsilon : float, optional
+        Precision of the adaptive control (dimensionless, like IAS15's).  None: 1e-3 for HBVM
+        (``integrators.engine.DEFAULT_EPSILON``), 1e-4 for EQUIP
+        (:data:`integrators.equip.DEFAULT_EPSILON`).
     min_dt : float
         Smallest step the adaptive control may take; below it a step that cannot be resolved
         raises :class:`integrators.StepSizeError`.
@@ -213,10 +220,11 @@ class HBVMIntegrator(Counted):
     one), and a test particle's refusal also has ``particle``, its index.
     """
 
-    def __init__(self, sim, s: int = 6, k: int | None = None, dt: float | None = None,
-                 max_iter: int = 60, tol: float | None = None, nodes: str = "gauss",
-                 energy_tol: float | str | None = "auto", adaptive: bool | None = None,
-                 epsilon: float = DEFAULT_EPSILON, min_dt: float = 0.0, method: str = "hbvm"):
+    def __init__(self, sim, s: int | None = None, k: int | None = None,
+                 dt: float | None = None, max_iter: int = 60, tol: float | None = None,
+                 nodes: str = "gauss", energy_tol: float | str | None = "auto",
+                 adaptive: bool | None = None, epsilon: float | None = None,
+                 min_dt: float = 0.0, method: str = "hbvm"):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
@@ -231,6 +239,11 @@ class HBVMIntegrator(Counted):
             raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}):"
                              " EQUIP perturbs the Gauss method")
         family = EQUIP if method == "equip" else HBVM
+        # each method's own defaults (EQUIP's: integrators.equip.DEFAULT_S, DEFAULT_EPSILON)
+        if s is None:
+            s = EQUIP_DEFAULT_S if family is EQUIP else 6
+        if epsilon is None:
+            epsilon = EQUIP_DEFAULT_EPSILON if family is EQUIP else DEFAULT_EPSILON
 
         def build(k_):
             return EQUIP(k_, s) if family is EQUIP else HBVM(k_, s, nodes=nodes)
