@@ -60,7 +60,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     With etol > 0 a converged step whose energy change exceeds etol (relative to |T| + |V|,
     or |H| for the full form) is refused as UNRESOLVED, its change in counters[C_CHANGE]
     (the check of a method exact for H: its energy error is round-off).  With etol < 0 such a
-    step is refused only when its change also exceeds a fraction (1e-3 for s >= 3, 1e-2 for
+    step is refused only when its change also exceeds a fraction (1e-3 for s >= 3, 1.5e-2 for
     s = 2, 1 for s = 1) of the energy the step moved between the terms of H
     (:func:`integrators.core.energy_flow`):
     the check of a method not exact for H, whose own quadrature error stays far below that
