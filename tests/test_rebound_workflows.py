@@ -216,7 +216,8 @@ def test_k_probe_survives_an_encounter_ahead(caplog, capsys):
 @pytest.mark.parametrize("kw, error, match", [
     ({"s": 2.5}, ValueError, r"`s` must be an integer.*s=2\.5"),
     ({"s": True}, ValueError, r"`s` must be an integer.*s=True"),
-    ({"s": None}, ValueError, r"`s` must be an integer.*s=None"),
+    # (s=None is the method's own default since EQUIP got its own: 6 for HBVM, 8 for EQUIP)
+    ({"s": "6"}, ValueError, r"`s` must be an integer.*s='6'"),
     ({"k": 6.5}, ValueError, r"`k` must be an integer.*k=6\.5"),
     ({"k": "8"}, ValueError, r"`k` must be an integer.*k='8'"),
     ({"k": 5}, ValueError, r"`k` must be >= `s`"),
