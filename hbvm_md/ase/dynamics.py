@@ -61,6 +61,16 @@ def default_k(s: int, polynomial_degree: int | None) -> int:
     return s + 1
 
 
+def calculator_cache(calc):
+    """(atoms, results) of an ASE calculator's cache, copied, to put back after a failed step
+    (``calc.atoms, calc.results = saved``); None for a calculator without that cache."""
+    if not (hasattr(calc, "results") and hasattr(calc, "atoms")):
+        return None
+    return (None if calc.atoms is None else calc.atoms.copy(),
+            {key: (v.copy() if isinstance(v, np.ndarray) else v)
+             for key, v in calc.results.items()})
+
+
 class _AtomsSystem(SeparableSystem):
     """The atoms as a separable system (q, p flattened to (3N,)); the forces are the
     calculator's plus those of the constraints' energy terms, projected onto the linear
@@ -455,11 +465,7 @@ class HBVMDynamics(MolecularDynamics):
         pos0 = atoms.get_positions()
         mom0 = atoms.get_momenta()
         calc = atoms.calc
-        saved_calc = None
-        if hasattr(calc, "results") and hasattr(calc, "atoms"):
-            saved_calc = (None if calc.atoms is None else calc.atoms.copy(),
-                          {key: (v.copy() if isinstance(v, np.ndarray) else v)
-                           for key, v in calc.results.items()})
+        saved_calc = calculator_cache(calc)
         saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
         switches = st.solver_switches

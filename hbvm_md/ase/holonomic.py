@@ -125,6 +125,7 @@ def holonomic_step(dyn):
     """One step of ``dyn`` (an HBVMDynamics whose atoms have FixBondLengths); returns the forces
     at the new positions.  A failed step leaves positions, momenta and the calculator's cached
     results as they were, then raises (h and t in fs)."""
+    from .dynamics import _AtomsSystem, calculator_cache     # (dynamics imports this module)
     atoms = dyn.atoms
     fixed = fixed_indices(atoms)
     h = dyn._holonomic
@@ -137,16 +138,11 @@ def holonomic_step(dyn):
              or not np.array_equal(w[2], fixed))
     pos0, mom0 = atoms.get_positions(), atoms.get_momenta()
     calc = atoms.calc
-    saved_calc = None
-    if hasattr(calc, "results") and hasattr(calc, "atoms"):
-        saved_calc = (None if calc.atoms is None else calc.atoms.copy(),
-                      {key: (v.copy() if isinstance(v, np.ndarray) else v)
-                       for key, v in calc.results.items()})
+    saved_calc = calculator_cache(calc)
     t = dyn.nsteps * dyn.dt
     if fresh:
         dyn._check_atoms(atoms)
         from .constraints import AtomsConstraints
-        from .dynamics import _AtomsSystem
         if h is not None:
             dyn._stage_total += h.system.stage_evaluations
         system = _AtomsSystem(atoms, AtomsConstraints(atoms, other_constraints(atoms)),

@@ -55,8 +55,10 @@ def call_status(typingctx, fn, r, p):
 
 
 @intrinsic
-def call_free(typingctx, fn, addr):
-    """``((void (*)(void*)) fn)((void*) addr)``: the C library's ``free``."""
+def call_void(typingctx, fn, addr):
+    """``((void (*)(void*)) fn)((void*) addr)``: a C function known by its address at run time
+    (the C library's ``free`` here, REBOUND's ``reb_simulation_update_acceleration`` in
+    :mod:`hbvm_md.rebound.forces`)."""
     if not (isinstance(fn, types.Integer) and isinstance(addr, types.Integer)):
         return None
 
@@ -110,5 +112,5 @@ def release(p):
     free = st[SL_FREE]
     for slot in (SL_Y, SL_GAMMA, SL_COUNTERS, SL_CTX):
         if st[slot] != 0:
-            call_free(free, st[slot])
-    call_free(free, address_of(p))
+            call_void(free, st[slot])
+    call_void(free, address_of(p))

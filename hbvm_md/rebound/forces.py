@@ -60,6 +60,7 @@ from numba.extending import intrinsic
 
 from integrators.jit import jit
 from integrators.pointers import float64_pointer
+from hbvm_md.rebound.cabi import call_void
 
 #: the clock's scale (tau = CLOCK t): a power of two, so tau and t convert exactly
 CLOCK = 2.0 ** -200
@@ -72,21 +73,6 @@ P_HEAD = 12
 POTENTIALS = {"gr_potential": ("rebx_gr_potential_potential", 2),
               "gravitational_harmonics": ("rebx_gravitational_harmonics_potential", 1),
               "central_force": ("rebx_central_force_potential", 1)}
-
-
-@intrinsic
-def call_void(typingctx, fn, arg):
-    """``((void (*)(void*)) fn)((void*) arg)``: a C function known by its address at run time."""
-    if not (isinstance(fn, types.Integer) and isinstance(arg, types.Integer)):
-        return None
-
-    def codegen(context, builder, signature, args):
-        from llvmlite import ir
-        i8p = ir.IntType(8).as_pointer()
-        fnty = ir.FunctionType(ir.VoidType(), [i8p])
-        builder.call(builder.inttoptr(args[0], fnty.as_pointer()), [builder.inttoptr(args[1], i8p)])
-        return context.get_dummy_value()
-    return types.none(fn, arg), codegen
 
 
 @intrinsic
