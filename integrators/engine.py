@@ -25,7 +25,7 @@ from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
 from .protocol import _Adapted, adapt_system
 from .records import Method, Newton, Options, Samples, State, System, Work
-from .tableau import gauss_rule01
+from .quadrature import gauss_rule01
 from .specialise import specialise
 
 SOLVERS = ("auto", "fixed_point", "newton")
@@ -267,6 +267,10 @@ def check_options(solver, form, tol, max_iter, t0) -> float:
 
 
 _COEF_CACHE: dict = {}
+#: the Stepper class :func:`integrate` builds for ``variational=``: registered by
+#: :mod:`integrators.variational` when it is imported (the package imports it), so that this
+#: module does not import it back
+VARIATIONAL: list = [None]
 
 
 def method_arrays(method) -> tuple:
@@ -1148,22 +1152,17 @@ def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
     return float(epsilon), float(min_dt)
 
 
-#: :func:`integrate`'s options passed on to :class:`Stepper` (documented there)
-STEPPER_OPTIONS = ("solver", "fast", "tol", "max_iter", "form", "energy_tol")
-#: :func:`integrate`'s options of adaptive runs
-ADAPTIVE_OPTIONS = ("t_end", "epsilon", "min_dt", "sample_times")
-
-
 def integrate(method, system, y0, h: float, steps: int | None = None, t0: float = 0.0,
-              solver: str = "auto", sample_every: int = 1, *, adaptive: bool = False,
-              variational=None, **options) -> IntegrationResult:
+              solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
+              tol: float | None = None, max_iter: int | None = None, form: str = "auto",
+              energy_tol: float | str | None = "auto", *, adaptive: bool = False,
+              t_end: float | None = None, epsilon: float | None = None,
+              min_dt: float | None = None, sample_times=None, variational=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
     ``adaptive=True`` from t0 to ``t_end`` with h the first step.
 
     Parameters
     ----------
-    solver, fast, tol, max_iter, form, energy_tol
-        The stepper's options, as for :class:`Stepper` (keywords, except ``solver``).
     sample_every : int
         Keep t, y and H every this many (accepted) steps, and at the start.
     fast : bool or None
@@ -1213,19 +1212,10 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         itself, with ``err.result`` holding the samples up to the last committed step
         (``status`` "failed", or "interrupted" for KeyboardInterrupt and SystemExit).
     """
-    unknown = sorted(set(options) - set(STEPPER_OPTIONS) - set(ADAPTIVE_OPTIONS))
-    if unknown:
-        raise TypeError(f"integrate() got an unexpected keyword argument {unknown[0]!r}: its "
-                        f"options are sample_every, adaptive, variational, "
-                        f"{', '.join(STEPPER_OPTIONS[1:])} (the stepper's) and "
-                        f"{', '.join(ADAPTIVE_OPTIONS)} (adaptive runs')")
-    stepper = {k: options[k] for k in STEPPER_OPTIONS[1:] if k in options}
-    t_end, epsilon, min_dt, sample_times = (options.get(k) for k in ADAPTIVE_OPTIONS)
     h = check_step(h)
     check_method(method)
     if variational is not None:
-        from .variational import variational_stepper
-        Stepper_ = variational_stepper(variational)
+        Stepper_ = VARIATIONAL[0](variational)
     else:
         Stepper_ = Stepper
     if adaptive:
@@ -1238,7 +1228,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         epsilon, min_dt = check_adaptive(DEFAULT_EPSILON if epsilon is None else epsilon,
                                          min_dt, method.s)
         sample_every = check_count("sample_every", sample_every, 1)
-        st = Stepper_(method, system, y0, t0, solver, **stepper)
+        st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
         return st.run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
     for name, value, fix in (
             ("t_end", t_end, "give steps = round((t_end - t0) / h), or adaptive=True to end "
@@ -1256,5 +1246,5 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         raise ValueError("`steps` is required without adaptive=True")
     steps = check_count("steps", steps, 0)
     sample_every = check_count("sample_every", sample_every, 1)
-    st = Stepper_(method, system, y0, t0, solver, **stepper)
+    st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
     return st.run(h, steps, sample_every)

@@ -47,6 +47,7 @@ import numpy as np
 from . import tangent
 from .tangent import TANGENT_FAILED
 from .core import C_STATUS, DIVERGED, NOT_FINITE, OK
+from . import engine as _engine
 from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
 from .jit import jit
@@ -437,3 +438,6 @@ class VariationalStepper(Stepper):
 def variational_stepper(variational):
     """The Stepper class :func:`integrators.integrate` builds with ``variational=`` given."""
     return partial(VariationalStepper, variational=variational)
+
+
+_engine.VARIATIONAL[0] = variational_stepper
