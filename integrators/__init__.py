@@ -6,7 +6,8 @@ from .engine import IntegrationResult, Stepper, integrate
 from .equip import EQUIP
 from .errors import ConstraintError, ConvergenceError, NonFiniteError, StepError, StepSizeError, UnresolvedStepError
 from .tableau import HBVM, gauss_collocation_tableau, gauss_matrix, gauss_spectrum
+from .variational import VariationalStepper  # (importing it registers integrate(variational=))
 
 __all__ = ["HBVM", "EQUIP", "Stepper", "integrate", "IntegrationResult", "ConvergenceError", "UnresolvedStepError",
            "NonFiniteError", "StepError", "ConstraintError", "StepSizeError",
-           "gauss_spectrum", "gauss_matrix", "gauss_collocation_tableau"]
+           "gauss_spectrum", "gauss_matrix", "gauss_collocation_tableau", "VariationalStepper"]

@@ -41,8 +41,7 @@ def _not_compiled():
 
 # -- the followers (integrators.loop.follow), for a system without test particles ----------
 @jit
-def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W, W_lo,
-           max_iter, tol, R, fb, fo):
+def follow(y, cy, minv, g, Xs, params, at, sc, tab, opts, R, fb):
     _not_compiled()
     return OK, 0, 0.0
 
@@ -70,9 +69,8 @@ def commit_full(y, cy, h, g):
 
 # -- the tangent map (integrators.tangent), for a host step without variational particles --
 @jit
-def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM, max_iter,
-                V, DG, Vt, DGt, tw, tcw, tcount):
-    if V.shape[0] > 0:
+def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
+    if tan.V.shape[0] > 0:
         _not_compiled()
     return OK               # no tangents: nothing to map
 
@@ -108,7 +106,7 @@ def finish(es, eref):
 
 
 @jit
-def stage_correction(full, y, minv, g, a, h, h2, alpha, PS, B1, B2, pse1, X):
+def stage_correction(full, y, minv, g, a, sc, alpha, method, X):
     _not_compiled()
 
 

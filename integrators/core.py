@@ -322,8 +322,9 @@ def guess_narrow(E, gamma, g):
 
 
 @jit
-def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R, exact):
-    """Separable form: Q = q0 + h tau v0 + h^2 (I_s X_s) M^{-1} gamma_p, y = (q, p).
+def stage_positions(y, cy, minv, g, C2, C2_lo, sc, a, Q, R, exact):
+    """Separable form: Q = q0 + h tau v0 + h^2 (I_s X_s) M^{-1} gamma_p, y = (q, p); sc: the
+    step's constants (h tau and h^2 as exact pairs, :class:`integrators.records.StepConstants`).
 
     ``exact``: also the low parts C2_lo of the coefficients (the step's last evaluation, whose
     rounding the step keeps); the iterations before it only have to reach the fixed point to
@@ -341,6 +342,7 @@ def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R, ex
     calls them, which keeps each small enough to be inlined there (one function holding both
     loops is not inlined: measured 1.3 us more a step of the outer solar system)."""
     s, m = g.shape
+    ht, ht_lo, h2, h2_lo = sc.ht, sc.ht_lo, sc.h2, sc.h2_lo
     acc = R[0]
     acc_lo = R[1]
     mu = np.uint64(m)
@@ -375,9 +377,10 @@ def stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, R, ex
                                              + h2 * (acc[jj] + acc_lo[jj]) + h2_lo * acc[jj])
 
 @jit
-def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, Q, exact):
+def stage_positions_narrow(y, cy, minv, g, C2, C2_lo, sc, a, Q, exact):
     """:func:`stage_positions` entry by entry (for few columns)."""
     s, m = g.shape
+    ht, ht_lo, h2, h2_lo = sc.ht, sc.ht_lo, sc.h2, sc.h2_lo
     for i in range(s):
         for j in range(m):
             a[i, j] = g[i, j] * minv[j]

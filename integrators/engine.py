@@ -24,7 +24,8 @@ from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
 from .protocol import _Adapted, adapt_system
-from .tableau import gauss_rule01
+from .records import Method, Newton, Options, Samples, State, System, Work
+from .quadrature import gauss_rule01
 from .specialise import specialise
 
 SOLVERS = ("auto", "fixed_point", "newton")
@@ -266,6 +267,10 @@ def check_options(solver, form, tol, max_iter, t0) -> float:
 
 
 _COEF_CACHE: dict = {}
+#: the Stepper class :func:`integrate` builds for ``variational=``: registered by
+#: :mod:`integrators.variational` when it is imported (the package imports it), so that this
+#: module does not import it back
+VARIATIONAL: list = [None]
 
 
 def method_arrays(method) -> tuple:
@@ -451,11 +456,26 @@ class Binding:
         u = d if self.full else m
         s = method.s
         self.u = u
-        self.no_newton = (np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
-                          np.zeros((0, u, u), dtype=complex))
+        self.no_newton = Newton(np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
+                                np.zeros((0, u, u), dtype=complex))
         nf, nc = work_sizes(getattr(method, "work_rows", method.n_stages), s, u, self.minv.shape[0], d)
         self.work, self.cwork = np.empty(nf), np.empty(nc, dtype=complex)
         self._eig = None
+
+    @property
+    def system_record(self) -> System:
+        """The step's :class:`integrators.records.System` (built at each call: a host may
+        replace the binding's arrays)."""
+        return System(self.full, self.minv, self.kin_w, self.params)
+
+    @property
+    def method_record(self) -> Method:
+        """The method's packed arrays as the step takes them (:class:`integrators.records.Method`)."""
+        return Method(*self.c1, *self.c2)
+
+    def work_record(self, counters: np.ndarray) -> Work:
+        """The step's work buffers and the caller's counters (:class:`integrators.records.Work`)."""
+        return Work(self.work, self.cwork, counters)
 
     def _python_kernels(self, system):
         """Kernels that call the system's own (numpy) methods: the Python path.
@@ -874,9 +894,8 @@ class Stepper(Counted):
         counters)."""
         b = self.binding
         E = self._extrapolation(h, self._h_prev)
-        args = (b.full, self._y, self._cy, b.minv, b.kin_w, b.params, h, E, self._gamma,
-                b.c1, b.c2, *b.no_newton, self._max_iter("fixed_point"), float(self.tol or 0.0),
-                self._etol, self._eref, self.counters, b.work, b.cwork)
+        args = (b.system_record, self._state_record(), h, E, b.method_record, b.no_newton,
+                self._options("fixed_point"), b.work_record(self.counters))
         # the Python step (a user's system, fast=False) returns to the interpreter all the
         # time: one call, so that its kernels see the calls of one run (no sample written
         # twice)
@@ -889,8 +908,8 @@ class Stepper(Counted):
             i = done // sample_every if aligned else 0
             every, n_out = (sample_every, out_t.shape[0]) if aligned else (0, 0)
             t0 = time.perf_counter()
-            b.step_code.run(*args, end - done, every, self._clock, out_t[i:i + n_out],
-                            out_y[i:i + n_out], out_e[i:i + n_out])
+            b.step_code.run(*args, Samples(end - done, every, out_t[i:i + n_out],
+                                           out_y[i:i + n_out], out_e[i:i + n_out]))
             took = time.perf_counter() - t0
             if self.nsteps > start:
                 self._h_prev = h
@@ -1001,6 +1020,14 @@ class Stepper(Counted):
     def _max_iter(self, solver: str) -> int:
         return int(self.max_iter or MAX_ITER[solver])
 
+    def _options(self, solver: str) -> Options:
+        """The iteration's options for ``solver`` (:class:`integrators.records.Options`)."""
+        return Options(self._max_iter(solver), float(self.tol or 0.0), float(self._etol))
+
+    def _state_record(self) -> State:
+        """The state the step reads and commits (:class:`integrators.records.State`)."""
+        return State(self._y, self._cy, self._gamma, self._eref, self._clock)
+
     def _advance(self, h: float, solver: str) -> int:
         b = self.binding
         if solver == "newton":
@@ -1011,11 +1038,10 @@ class Stepper(Counted):
                 return NOT_FINITE
         else:
             newton = b.no_newton
-        status = b.step_code.advance(b.full, self._y, self._cy, b.minv,
-                                     b.kin_w, b.params, h, self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2,
-                                     *newton, self._max_iter(solver), float(self.tol or 0.0),
-                                     self._etol, self._eref,
-                                     self.counters, b.work, b.cwork, self._clock)
+        status = b.step_code.advance(b.system_record, self._state_record(), h,
+                                     self._extrapolation(h, self._h_prev), b.method_record,
+                                     Newton(*newton), self._options(solver),
+                                     b.work_record(self.counters))
         if status != OK and solver == "newton":
             self.counters[C_NFEV] = nfev     # the Jacobian's evaluations were the failed step's too
         return status
@@ -1189,8 +1215,7 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
     h = check_step(h)
     check_method(method)
     if variational is not None:
-        from .variational import variational_stepper
-        Stepper_ = variational_stepper(variational)
+        Stepper_ = VARIATIONAL[0](variational)
     else:
         Stepper_ = Stepper
     if adaptive:

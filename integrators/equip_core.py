@@ -128,13 +128,16 @@ def finish(es, eref):
 
 
 @jit
-def stage_correction(full, y, minv, g, a, h, h2, alpha, PS, B1, B2, pse1, X):
+def stage_correction(full, y, minv, g, a, sc, alpha, method, X):
     """Add what alpha changes to the Gauss stages X (s, u) built for alpha = 0 (the corrections
     are small: their own rounding is far below the stages'; ``a`` = M^{-1} gamma_p as the
-    separable stage function left it).  Full form: X += h alpha P_s S gamma.  Separable:
+    separable stage function left it; sc: the step's constants, method: EQUIP's packed arrays,
+    :mod:`integrators.records`).  Full form: X += h alpha P_s S gamma.  Separable:
     X += h alpha (P_s S e_1) v0 (pse1) + h^2 (alpha B1 + alpha^2 B2) M^{-1} gamma_p."""
     if alpha == 0.0:
         return
+    h, h2 = sc.h, sc.h2
+    PS, B1, B2, pse1 = method.Cp[CP_PS], method.Cp[CP_B1], method.Cp[CP_B2], method.ts[TS_PSE1]
     s, u = g.shape
     if full:
         for i in range(s):

@@ -25,11 +25,22 @@ from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NF
 from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
+from integrators.records import Block, Samples, State, StepConstants, tableau
 
 _force = None        # bound by integrators.specialise
 _potential = None
 _followers = None    # (the followers hooks: core.no_followers and core.no_field when none)
 _field = None
+_EQUIP = None        # the method the step is built for (True: EQUIP, False: HBVM), bound by
+                     # integrators.specialise; None (a step built for both): from its arrays
+
+
+def is_equip(method):
+    """Is the step EQUIP's?  As the step was built (:data:`_EQUIP`), else from the method's
+    packed arrays (EQUIP packs its own planes after Gauss's four)."""
+    if _EQUIP is None:
+        return method.Cp.shape[0] > 4
+    return _EQUIP
 
 
 def evaluate(full, X, params, F, G):
@@ -49,13 +60,14 @@ def energy_parts(full, y, kin_w, params):
     return weighted_kinetic(y[m:], kin_w), _potential(y[:m], params)
 
 
-def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,
-        etol, eref, counters, work, cwork, nsteps, sample_every, clock, out_t, out_y, out_e):
-    """``nsteps`` steps of size h from the double-double state (y, cy), each committed in place
-    when it succeeds; samples of (t, y, H) at steps 0, sample_every, 2 sample_every, ... (none
-    when sample_every is 0).  Returns OK, or the status of the first failed step (also left in
-    counters[C_STATUS]), with everything as after the last committed step.  The clock (t, its
-    compensation) is read from and written back to ``clock``.
+def run(system, state, h, E, method, newton, opts, wk, samples):
+    """``samples.nsteps`` steps of size h from the double-double state (state.y, state.cy), each
+    committed in place when it succeeds; samples of (t, y, H) at steps 0, every, 2 every, ...
+    into samples.t, .y, .e (none when samples.every is 0).  Returns OK, or the status of the
+    first failed step (also left in counters[C_STATUS]), with everything as after the last
+    committed step.  The clock (t, its compensation) is read from and written back to
+    ``state.clock``.  The records: :mod:`integrators.records` (E: the initial guess's
+    extrapolation matrix (s, s)); opts.etol is the energy check's tolerance:
 
     With etol > 0 a converged step whose energy change exceeds etol (relative to |T| + |V|,
     or |H| for the full form) is refused as UNRESOLVED, its change in counters[C_CHANGE]
@@ -69,11 +81,17 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
 
     The step is written inside the loop, not called: a call with this many arrays costs about
     half a microsecond a step (measured on Kepler, where a step costs one)."""
+    full, minv, kin_w, params = system
+    y, cy, gamma, eref, clock = state
+    NV, NVinv, NM = newton
+    max_iter, tol, etol = opts
+    work, cwork, counters = wk
+    nsteps, sample_every, out_t, out_y, out_e = samples
     t, ct = clock[0], clock[1]
-    tn, ts = c1
-    Wp, Cp = c2
-    tau, tau_lo, X0, X0_lo = tn[0], tn[1], ts[0], ts[1]
-    W, W_lo, C2, C2_lo, I, I_lo = Wp[0], Wp[1], Cp[0], Cp[1], Cp[2], Cp[3]
+    tn, ts, Wp, Cp = method
+    tab = tableau(method)
+    tau, tau_lo, X0, X0_lo = tab.tau, tab.tau_lo, tab.X0, tab.X0_lo
+    W, W_lo, C2, C2_lo, I, I_lo = tab.W, tab.W_lo, tab.C2, tab.C2_lo, tab.I, tab.I_lo
     n = tau.shape[0]
     s, u = gamma.shape
     m = minv.shape[0]
@@ -82,7 +100,7 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         work, cwork, n, s, u, m, y.shape[0])
     # EQUIP (integrators.equip): Gauss's arrays in the places above, its own in more planes;
     # for HBVM the views are empty and every EQUIP branch below is skipped
-    equip = Cp.shape[0] > 4
+    equip = is_equip(method)
     K = Cp.shape[1] if equip else 0
     Xk, Fk, rho, htk, htk_lo, es = eq.carve(work, n, s, u, m, y.shape[0], K)
     if equip and eref.shape[0] < eq.EREF_EQUIP:
@@ -119,6 +137,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
         # a failed step leaves no trace in the counters of work (they count committed steps)
         work_iter, work_nfev, work_newton = counters[C_ITER], counters[C_NFEV], counters[C_NEWTON]
         h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
+        sc = StepConstants(h, ht, ht_lo, h2, h2_lo)
+        sck = StepConstants(h, htk, htk_lo, h2, h2_lo)     # (EQUIP's path)
         if equip:
             eq.start(es, eref)
             step_constants(h, Cp[eq.CP_VEC, :, 0], Cp[eq.CP_VEC, :, 1], htk, htk_lo)
@@ -174,18 +194,16 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 else:
                     full_stages(yb, cyb, gb, I, I_lo, h, Xb, R, polish)
                 if equip:
-                    eq.stage_correction(full, yb, mb, gb, ab, h, h2, es[0], Cp[eq.CP_PS],
-                                        Cp[eq.CP_B1], Cp[eq.CP_B2], ts[eq.TS_PSE1], Xb)
+                    eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
                 _force(Xb, pb, G)
                 symplectic(G, Fb)
             else:
                 if narrowb:
-                    stage_positions_narrow(yb, cyb, mb, gb, C2, C2_lo, ht, ht_lo, h2, h2_lo, ab, Xb, polish)
+                    stage_positions_narrow(yb, cyb, mb, gb, C2, C2_lo, sc, ab, Xb, polish)
                 else:
-                    stage_positions(yb, cyb, mb, gb, C2, C2_lo, ht, ht_lo, h2, h2_lo, ab, Xb, R, polish)
+                    stage_positions(yb, cyb, mb, gb, C2, C2_lo, sc, ab, Xb, R, polish)
                 if equip:
-                    eq.stage_correction(full, yb, mb, gb, ab, h, h2, es[0], Cp[eq.CP_PS],
-                                        Cp[eq.CP_B1], Cp[eq.CP_B2], ts[eq.TS_PSE1], Xb)
+                    eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
                 _force(Xb, pb, Fb)
             counters[C_NFEV] += n
             if it <= 3:          # the force's Lipschitz constant, for the round-off floor
@@ -218,10 +236,10 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 else:
                     if narrowb:
                         stage_positions_narrow(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
-                                               htk, htk_lo, h2, h2_lo, ab, Xk, True)
+                                               sck, ab, Xk, True)
                     else:
                         stage_positions(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
-                                        htk, htk_lo, h2, h2_lo, ab, Xk, R, True)
+                                        sck, ab, Xk, R, True)
                     eq.path_correction(gb, mb, h2, es[0], Cp[eq.CP_PATH_S], Xk)
                 _force(Xk, pb, Fk)
                 counters[C_NFEV] += K
@@ -271,8 +289,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                 col = int(params[at + 4 + c])
                 for i in range(s):
                     g[i, col] = gb[i, c]
-            status, itf, dlast = follow(y, cy, minv, g, Xb, params, at, h, ht, ht_lo, h2, h2_lo,
-                                        C2, C2_lo, W, W_lo, max_iter, tol, R, fb, fo)
+            status, itf, dlast = follow(y, cy, minv, g, Xb, params, at, sc, tab, opts, R,
+                                        view1(fb, fo, fb.shape[0] - fo))
             if status != OK:
                 counters[C_LAST] = dlast
             if itf > it:            # the counts are the longest block's (the step's depth)
@@ -336,15 +354,17 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
     return OK
 
 
-def follower_stages(ya, cya, ma, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, F, Xs, ps, R, exact):
-    """A group of followers' stage values X from their state (ya, cya, ma) and coefficients g,
-    then their right-hand side F in the sources' field at their stage values Xs (``exact``:
-    with the coefficients' low parts, for the polish, as in :func:`run`)."""
-    if X.shape[1] < NARROW:
-        stage_positions_narrow(ya, cya, ma, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, exact)
+def follower_stages(blk, g, tab, sc, Xs, ps, R, exact):
+    """A group of followers' stage values blk.X from their state (blk.y, .cy, .minv) and
+    coefficients g, then their right-hand side blk.F in the sources' field at their stage values
+    Xs (``exact``: with the coefficients' low parts, for the polish, as in :func:`run`)."""
+    if blk.X.shape[1] < NARROW:
+        stage_positions_narrow(blk.y, blk.cy, blk.minv, g, tab.C2, tab.C2_lo, sc, blk.a, blk.X,
+                               exact)
     else:
-        stage_positions(ya, cya, ma, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, exact)
-    _field(X, Xs, ps, F)
+        stage_positions(blk.y, blk.cy, blk.minv, g, tab.C2, tab.C2_lo, sc, blk.a, blk.X, R,
+                        exact)
+    _field(blk.X, Xs, ps, blk.F)
 
 
 def gather_followers(y, cy, minv, params, fcol, j0, pc, w, fb, o_y, o_cy, o_m):
@@ -360,23 +380,27 @@ def gather_followers(y, cy, minv, params, fcol, j0, pc, w, fb, o_y, o_cy, o_m):
             fb[o_m + w * j + c] = minv[c0 + c]
 
 
-def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W, W_lo,
-           max_iter, tol, R, fb, fo):
+def follow(y, cy, minv, g, Xs, params, at, sc, tab, opts, R, fb):
     """The followers' stage equations, after the sources': each follower (a slot of ``width``
     columns, a test particle's three) is iterated in the sources' field at their stage values
     Xs (n, us) with the fixed-point iteration and stop rule of :func:`run`, applied to it alone
-    (its own increments, sizes, round-off floors and runaway test, :func:`core.stop_action`),
+    (its own increments, sizes, round-off floors and runaway test, :func:`core.stop_action`;
+    opts: the step's :class:`integrators.records.Options`),
     and leaves the iteration when it has converged: one slow follower makes neither the
     sources nor the others iterate.  Then one compensated evaluation (the polish, as in
     :func:`run`).  The followers go through in groups of ``core.FOLLOWER_GROUP``, each
     iterated to the end before the next (their arrays stay in cache, and the time per
     follower does not depend on how many there are).  g (s, u): the step's coefficients, the
     followers' columns holding their initial guess, overwritten with the result; params[at:]:
-    the followers block (``systems.nbody.followers_block``); fb[fo:]: scratch
-    (``core.follower_size``); R: the step's scratch of column sums.  Returns (status,
+    the followers block (``systems.nbody.followers_block``); fb: scratch
+    (``core.follower_size`` past the sources' block); sc, tab: the step's constants and the
+    method's arrays; R: the step's scratch of column sums.  Returns (status,
     iterations of the slowest follower, the polish included, and the last increment of the
     follower that failed (after max_iter iterations: the largest of those still iterating), 0
     when none did)."""
+    fo = 0
+    h, W, W_lo = sc.h, tab.W, tab.W_lo
+    max_iter, tol = opts.max_iter, opts.tol
     P = int(params[at])
     w = int(params[at + 1])
     us = int(params[at + 2])
@@ -433,8 +457,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
             ga, aa = view(fb, o_g, s, ua), view(fb, o_a, s, ua)
             Xa, Fa = view(fb, o_x, n, ua), view(fb, o_f, n, ua)
             Xpa, Fpa = view(fb, o_xp, n, ua), view(fb, o_fp, n, ua)
-            follower_stages(ya, cya, ma, ga, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, Fa, Xs, ps,
-                            R, False)
+            follower_stages(Block(ya, cya, ma, aa, Xa, Fa), ga, tab, sc, Xs, ps, R, False)
             if it <= 3:          # each follower's Lipschitz constant, for its round-off floor
                 if it > 1:
                     lipschitz_slots(Xa, Fa, Xpa, Fpa, w, view1(fb, o_lip, na),
@@ -487,8 +510,7 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
         gather_followers(y, cy, minv, params, fcol, j0, pc, w, fb, o_y, o_cy, o_m)
         ya, cya, ma = view1(fb, o_y, 2 * uc), view1(fb, o_cy, 2 * uc), view1(fb, o_m, uc)
         aa, Xa, Fa = view(fb, o_a, s, uc), view(fb, o_x, n, uc), view(fb, o_f, n, uc)
-        follower_stages(ya, cya, ma, gall, C2, C2_lo, ht, ht_lo, h2, h2_lo, aa, Xa, Fa, Xs, ps, R,
-                        True)
+        follower_stages(Block(ya, cya, ma, aa, Xa, Fa), gall, tab, sc, Xs, ps, R, True)
         project_compensated(W, W_lo, Fa, gall, R)
         for j in range(pc):
             c0 = int(params[fcol + j0 + j])
@@ -498,30 +520,30 @@ def follow(y, cy, minv, g, Xs, params, at, h, ht, ht_lo, h2, h2_lo, C2, C2_lo, W
     return OK, itmax, 0.0
 
 
-def advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter, tol,
-            etol, eref, counters, work, cwork, clock):
+def advance(system, state, h, E, method, newton, opts, wk):
     """One step of :func:`run` (no samples); returns its status."""
-    no_samples = view1(work, 0, 0)          # (no allocation: see integrators.pointers)
-    return run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, max_iter,
-               tol, etol, eref, counters, work, cwork, 1, 0, clock, no_samples,
-               view(work, 0, 0, 0), no_samples)
+    no_samples = view1(wk.work, 0, 0)          # (no allocation: see integrators.pointers)
+    return run(system, state, h, E, method, newton, opts, wk,
+               Samples(np.int64(1), np.int64(0), no_samples, view(wk.work, 0, 0, 0), no_samples))
 
 
-def attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w, params, h, h_prev,
-            E1, Et, Ew, Ebuf, Ezero, c1, c2, NV, NVinv, NM, max_iter, tol, etol, counters, work,
-            cwork, clock, epsilon, min_dt, t_start, res):
-    """One step from the state (y, cy, gamma, eref) into the trial arrays (yt, cyt, gammat,
-    ereft); nothing of the state is changed.  h_prev: the previous step (nan: none), for the
-    initial guess's extrapolation E (``core.select_extrapolation`` with E1, the Gauss rule
-    (Et, Ew), the buffers Ebuf and Ezero).
+def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts, wk, adaptive):
+    """One step from ``state`` into ``trial`` (:class:`integrators.records.State`s sharing one
+    clock); nothing of the state is changed.  h_prev: the previous step (nan: none), for the
+    initial guess's extrapolation (``core.select_extrapolation`` with the arrays of ``ext``,
+    :class:`integrators.records.Extrapolation`).
 
-    epsilon = 0: a fixed step; returns its status.  epsilon > 0: adaptive; a step whose error
-    estimate (``core.step_error`` with weights minv) exceeds epsilon, or whose iteration or
-    energy check fails, is tried again smaller (the controller ``core.next_step``, a quarter
+    adaptive.epsilon = 0: a fixed step; returns its status.  epsilon > 0: adaptive; a step whose
+    error estimate (``core.step_error`` with weights minv) exceeds epsilon, or whose iteration
+    or energy check fails, is tried again smaller (the controller ``core.next_step``, a quarter
     after a failure), leaving no trace in the counters; TOO_SMALL when the step would fall
-    below min_dt (or vanish at t_start).  res: [h taken (or last tried), next h proposed,
-    rejections (added), last rejection's error estimate (nan after a failed iteration), last
-    failure's status]."""
+    below adaptive.min_dt (or vanish at t_start).  adaptive.res: [h taken (or last tried), next
+    h proposed, rejections (added), last rejection's error estimate (nan after a failed
+    iteration), last failure's status]."""
+    y, cy, gamma, eref, clock = state
+    yt, cyt, gammat, ereft, _ = trial
+    epsilon, min_dt, res = adaptive
+    counters = wk.counters
     s = gamma.shape[0]
     snap = np.empty(counters.shape[0])
     clock0, clock1 = clock[0], clock[1]
@@ -534,15 +556,15 @@ def attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w, param
         clock[1] = clock1
         for i in range(counters.shape[0]):
             snap[i] = counters[i]
-        E = select_extrapolation(h, h_prev, E1, Et, Ew, Ebuf, Ezero)
-        status = advance(full, yt, cyt, minv, kin_w, params, h, E, gammat, c1, c2, NV, NVinv, NM,
-                         max_iter, tol, etol, ereft, counters, work, cwork, clock)
+        E = select_extrapolation(h, h_prev, ext.E1, ext.t, ext.w, ext.buf, ext.zero)
+        status = advance(system, State(yt, cyt, gammat, ereft, clock), h, E, method, newton,
+                         opts, wk)
         res[0] = h
         res[1] = h
         if epsilon <= 0.0:
             return status
         if status == OK:
-            err = error_estimate(gammat, minv)
+            err = error_estimate(gammat, system.minv)
             if err <= epsilon:
                 res[1] = next_step(h, err, epsilon, s)
                 return OK

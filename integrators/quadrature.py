@@ -145,3 +145,14 @@ def split(values) -> tuple[np.ndarray, np.ndarray]:
     with mpmath.workdps(_DPS):
         lo = np.vectorize(lambda v, h: float(v - mpmath.mpf(h)), otypes=[float])(arr, hi) if arr.size else hi * 0
     return hi, lo
+
+
+@lru_cache(maxsize=None)
+def gauss_rule01(s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The s-point Gauss-Legendre rule on [0, 1] (nodes, weights; read-only, once per s), which
+    integrates the extrapolation matrices' products of degree 2s - 2 exactly."""
+    t, w = np.polynomial.legendre.leggauss(s)
+    t, w = (t + 1) / 2, w / 2
+    t.flags.writeable = False
+    w.flags.writeable = False
+    return t, w

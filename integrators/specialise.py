@@ -50,7 +50,7 @@ import numba
 
 from . import absent, core, equip_core, jit as _jitmod, loop, pointers as _pointersmod, tangent
 
-LOOP_FUNCTIONS = ("evaluate", "energy_parts", "follower_stages", "gather_followers", "follow", "run",
+LOOP_FUNCTIONS = ("is_equip", "evaluate", "energy_parts", "follower_stages", "gather_followers", "follow", "run",
                   "advance", "attempt")
 # the followers hooks of a system without followers (integrators.loop, "Followers")
 NO_FOLLOWERS = (("integrators.core", "no_followers"), ("integrators.core", "no_field"))
@@ -59,10 +59,10 @@ _LOOP_PATH = Path(loop.__file__)
 TANGENT_FUNCTIONS = ("evaluate_jvp", "tangent_converged", "tangent_sizes", "stages", "tangent_map",
                      "megno_step", "run_variational")
 _TANGENT_PATH = Path(tangent.__file__)
-# wrappers inlined into their compiled callers (module docstring, "Compile time"); numba
-# cannot inline a call of more than 30 arguments (Python passes them as *args), as
-# loop.attempt's and glue.step_arrays' are
-INLINED = ("advance",)
+# inlined into their compiled callers (module docstring, "Compile time"): a REBOUND step is
+# then one compiled function (glue.core_step), an engine's step one (advance, run or
+# run_variational); each also compiles as its own entry point when called from Python
+INLINED = ("advance", "attempt", "step_arrays")
 # the full form's pieces of integrators.core, bound to integrators.absent in a separable step
 FULL_FUNCTIONS = ("full_stages", "full_stages_narrow", "symplectic", "commit_full")
 # what a host's glue calls for variational particles, bound to integrators.absent without
@@ -153,6 +153,8 @@ def _variant_lines(refs, glue, frefs, variant) -> str:
         lines.append("follow = _absent.follow")
     if full is False:
         lines += [f"{f} = _absent.{f}" for f in FULL_FUNCTIONS]
+    if equip is not None:
+        lines.append(f"_EQUIP = {bool(equip)}")
     if equip is False:
         lines.append("eq = _absent")
     if glue is not None and len(refs) <= 2:
@@ -241,7 +243,7 @@ def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
 
 
 def _executed(force, potential, compile_: bool, glue=None, jvp=None,
-              follow=None) -> types.SimpleNamespace:
+              follow=None, equip=None) -> types.SimpleNamespace:
     ns = {"__name__": "integrators.loop_bound", "__file__": str(_LOOP_PATH)}
     exec(compile(_LOOP_PATH.read_text(), str(_LOOP_PATH), "exec"), ns)
     functions = LOOP_FUNCTIONS
@@ -253,6 +255,7 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
         exec(compile(glue[0].read_text(), str(glue[0]), "exec"), ns)
         functions = functions + glue[1]
     ns["_force"], ns["_potential"] = force, potential
+    ns["_EQUIP"] = None if equip is None else bool(equip)
     ns["_followers"], ns["_field"] = follow if follow is not None else (core.no_followers,
                                                                         core.no_field)
     if compile_:
@@ -296,7 +299,7 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
     if follow is not None and not all(_is_compiled(f) for f in follow):
         python = True
     if python:
-        out = _executed(force, potential, False, _glue(glue), jvp, follow)
+        out = _executed(force, potential, False, _glue(glue), jvp, follow, equip)
         out.kind = "python"
         return out
     variant = (None if full is None else bool(full), None if equip is None else bool(equip))
@@ -320,10 +323,10 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
                          + (glue_[1] + tuple(glue_[2]) if glue_ else ()))
                 out = types.SimpleNamespace(**{f: getattr(mod, f) for f in names})
             else:
-                out = _executed(force, potential, True, glue_, jvp, follow)
+                out = _executed(force, potential, True, glue_, jvp, follow, equip)
             out.kind = "compiled"
         else:
-            out = _executed(force, potential, False, glue_, jvp, follow)
+            out = _executed(force, potential, False, glue_, jvp, follow, equip)
             out.kind = "python"
         if key is not None and out.kind == "compiled":
             _CACHE[key] = out

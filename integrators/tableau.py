@@ -16,6 +16,7 @@ import mpmath
 import numpy as np
 
 from . import quadrature as _q
+from .quadrature import gauss_rule01
 
 NODE_FAMILIES = ("gauss", "lobatto")
 
@@ -341,17 +342,6 @@ class HBVM:
         ``min_dt``, ``sample_times``)."""
         from .engine import integrate
         return integrate(self, system, y0, h, steps, *args, **options)
-
-
-@lru_cache(maxsize=None)
-def gauss_rule01(s: int) -> tuple[np.ndarray, np.ndarray]:
-    """The s-point Gauss-Legendre rule on [0, 1] (nodes, weights; read-only, once per s), which
-    integrates the extrapolation matrices' products of degree 2s - 2 exactly."""
-    t, w = np.polynomial.legendre.leggauss(s)
-    t, w = (t + 1) / 2, w / 2
-    t.flags.writeable = False
-    w.flags.writeable = False
-    return t, w
 
 
 def _legendre_basis(t: np.ndarray, s: int) -> np.ndarray:

@@ -42,6 +42,7 @@ from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, R
                               max_abs2, newton_update, project, project_narrow, stage_positions,
                               stage_positions_narrow, step_constants, symplectic, work_sizes)
 from integrators.pointers import view1
+from integrators.records import StepConstants, tableau
 
 _force_jvp = None    # bound by integrators.specialise
 TANGENT_FAILED = 16  # run_variational's return for a step whose tangent map failed: + status
@@ -92,25 +93,25 @@ def tangent_sizes(n, s, u, m, d):
     return nf + d, nc
 
 
-def stages(full, narrow, y, cy, minv, g, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2, h2_lo, a, X, R,
-           exact):
+def stages(full, narrow, y, cy, minv, g, tab, sc, a, X, R, exact):
     """X <- the stages of the coefficients g from the double-double state (y, cy): the stage
-    positions (separable) or stage values (full), by the core's pieces as the step picks them."""
+    positions (separable) or stage values (full), by the core's pieces as the step picks them
+    (tab, sc: the method's arrays and the step's constants, :mod:`integrators.records`)."""
     if full:
         if narrow:
-            full_stages_narrow(y, cy, g, I, I_lo, h, X, exact)
+            full_stages_narrow(y, cy, g, tab.I, tab.I_lo, sc.h, X, exact)
         else:
-            full_stages(y, cy, g, I, I_lo, h, X, R, exact)
+            full_stages(y, cy, g, tab.I, tab.I_lo, sc.h, X, R, exact)
     elif narrow:
-        stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, exact)
+        stage_positions_narrow(y, cy, minv, g, tab.C2, tab.C2_lo, sc, a, X, exact)
     else:
-        stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht_lo, h2, h2_lo, a, X, R, exact)
+        stage_positions(y, cy, minv, g, tab.C2, tab.C2_lo, sc, a, X, R, exact)
 
 
-def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM, max_iter,
-                V, DG, Vt, DGt, tw, tcw, tcount):
+def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     """V (nv, d) <- dPhi_h/dy0 V: the tangent vectors carried through the step of size h from
-    the double-double state (y0, cy0) whose converged coefficients are gamma (s, u).
+    the double-double state (y0, cy0) whose converged coefficients are gamma (s, u).  The
+    records (:mod:`integrators.records`): ``tan`` holds V, DG, Vt, DGt, tw, tcw, tcount.
 
     DG (nv, s, u): each tangent's coefficients d gamma of the previous step (zero: none), the
     initial guess extrapolated with E, and replaced by this step's.  (NV, NVinv, NM): the
@@ -118,10 +119,11 @@ def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
     Vt, DGt: trial arrays shaped as V, DG; tw, tcw: work buffers (:func:`tangent_sizes`).
     tcount[0] += iterations, tcount[1] += stage evaluations of the jvp; tcount[2] = the last
     tangent's iterations.  Returns OK, or DIVERGED / NOT_FINITE with V and DG unchanged."""
-    tn, ts = c1
-    Wp, Cp = c2
-    tau, tau_lo, X0, X0_lo = tn[0], tn[1], ts[0], ts[1]
-    W, C2, C2_lo, I, I_lo = Wp[0], Cp[0], Cp[1], Cp[2], Cp[3]
+    full, minv, _, params = system
+    NV, NVinv, NM = newton
+    V, DG, Vt, DGt, tw, tcw, tcount = tan
+    tab = tableau(method)
+    tau, tau_lo, X0, X0_lo, W = tab.tau, tab.tau_lo, tab.X0, tab.X0_lo, tab.W
     n = tau.shape[0]
     s, u = gamma.shape
     m = minv.shape[0]
@@ -134,9 +136,9 @@ def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
     for j in range(d):
         zero[j] = 0.0
     h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
+    sc = StepConstants(h, ht, ht_lo, h2, h2_lo)
     # the stages at the converged coefficients (as the step's last, compensated evaluation)
-    stages(full, narrow, y0, cy0, minv, gamma, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2, h2_lo, a,
-           X, R, True)
+    stages(full, narrow, y0, cy0, minv, gamma, tab, sc, a, X, R, True)
     for v in range(V.shape[0]):
         dy = V[v]
         if narrow:
@@ -150,8 +152,7 @@ def tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
         while it < max_iter:
             it += 1
             # the tangent's stages: the step's affine stage map with (dy0, 0) for (y0, cy0)
-            stages(full, narrow, dy, zero, minv, dg, C2, C2_lo, I, I_lo, h, ht, ht_lo, h2,
-                   h2_lo, a, dX, R, False)
+            stages(full, narrow, dy, zero, minv, dg, tab, sc, a, dX, R, False)
             evaluate_jvp(full, X, dX, params, dF, dG)
             tcount[1] += n
             if newton:
@@ -225,20 +226,23 @@ def megno_step(mg, t, dy, wv):
     mg[6] = y
 
 
-def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM,
-                    max_iter, tol, etol, eref, counters, work, cwork, clock, V, DG, Vt, DGt,
-                    tmax_iter, tw, tcw, tcount, y0, cy0, gsave, snap, mg, wv, nsteps, sample_every,
-                    out_t, out_y, out_e, out_v, out_m):
-    """``nsteps`` steps of :func:`advance` (arguments as for :func:`run`), each followed by the
-    tangent map (:func:`tangent_map`, at most tmax_iter iterations) of the tangent vectors
-    V (nv, d) and, when mg has
-    entries, the MEGNO of V[0] (:func:`megno_step`, weights wv).  y0, cy0 (d), gsave (s, u),
-    snap (>= len(counters)): scratch for the state before a step.  A step whose tangent map
-    fails is taken back: state, clock, coefficients, counters and tangents as before it, its
-    status in counters[C_STATUS], and status + TANGENT_FAILED returned (a failed step: its
-    status).  Samples (none when sample_every is 0) at steps
-    sample_every, 2 sample_every, ... (the caller records step 0): t, y, H, V and the MEGNO
-    <Y> into out_t, out_y, out_e, out_v (n, nv, d) and out_m."""
+def run_variational(system, state, h, E, method, newton, opts, wk, tan, var, samples):
+    """``samples.nsteps`` steps of :func:`advance` (arguments as for :func:`run`), each followed
+    by the tangent map (:func:`tangent_map`, at most var.max_iter iterations) of the tangent
+    vectors tan.V (nv, d) and, when var.mg has entries, the MEGNO of V[0] (:func:`megno_step`,
+    weights var.wv).  var.y0, var.cy0 (d), var.gsave (s, u), var.snap (>= len(counters)):
+    scratch for the state before a step.  A step whose tangent map fails is taken back: state,
+    clock, coefficients, counters and tangents as before it, its status in counters[C_STATUS],
+    and status + TANGENT_FAILED returned (a failed step: its status).  Samples (none when
+    samples.every is 0) at steps every, 2 every, ... (the caller records step 0): t, y, H into
+    samples.t, .y, .e, and V and the MEGNO <Y> into var.out_v (n, nv, d) and var.out_m.
+    (:class:`integrators.records.Variational`)."""
+    full, _, kin_w, params = system
+    y, cy, gamma, eref, clock = state
+    counters = wk.counters
+    V = tan.V
+    tmax_iter, y0, cy0, gsave, snap, mg, wv, out_v, out_m = var
+    nsteps, sample_every, out_t, out_y, out_e = samples
     isample = 0
     for istep in range(nsteps):
         copy1(y0, y)
@@ -248,12 +252,10 @@ def run_variational(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, N
         t0, ct0 = clock[0], clock[1]
         for i in range(counters.shape[0]):
             snap[i] = counters[i]
-        status = advance(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM,
-                         max_iter, tol, etol, eref, counters, work, cwork, clock)
+        status = advance(system, state, h, E, method, newton, opts, wk)
         if status != OK:
             return status
-        status = tangent_map(full, y0, cy0, minv, gamma, h, E, c1, c2, params, NV, NVinv, NM,
-                             tmax_iter, V, DG, Vt, DGt, tw, tcw, tcount)
+        status = tangent_map(system, y0, cy0, gamma, h, E, method, newton, tmax_iter, tan)
         if status != OK:
             copy1(y, y0)
             copy1(cy, cy0)

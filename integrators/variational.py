@@ -47,9 +47,11 @@ import numpy as np
 from . import tangent
 from .tangent import TANGENT_FAILED
 from .core import C_STATUS, DIVERGED, NOT_FINITE, OK
+from . import engine as _engine
 from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
 from .jit import jit
+from .records import Newton, Samples, Tangents, Variational
 from .specialise import specialise
 from .tableau import HBVM
 
@@ -308,15 +310,14 @@ class VariationalStepper(Stepper):
             if self._solver == "fixed_point" and steps > 0:
                 start = self.nsteps
                 status = b.step_code.run_variational(
-                    b.full, self._y, self._cy, b.minv, b.kin_w, b.params, h,
-                    self._extrapolation(h, self._h_prev), self._gamma, b.c1, b.c2, *b.no_newton,
-                    self._max_iter("fixed_point"), float(self.tol or 0.0),
-                    self._etol, self._eref, self.counters, b.work, b.cwork,
-                    self._clock, self._V, self._DG, self._Vt, self._DGt,
-                    TANGENT_MAX_ITER["fixed_point"], self._tw, self._tcw,
-                    self._tcount, self._y0, self._cy0, self._gsave, self._snap,
-                    self.megno.state, self._wv, steps, sample_every,
-                    out_t[1:], out_y[1:], out_e[1:], out_v[1:], out_m[1:])
+                    b.system_record, self._state_record(), h,
+                    self._extrapolation(h, self._h_prev), b.method_record, b.no_newton,
+                    self._options("fixed_point"), b.work_record(self.counters),
+                    self._tangents(),
+                    Variational(TANGENT_MAX_ITER["fixed_point"], self._y0, self._cy0,
+                                self._gsave, self._snap, self.megno.state, self._wv,
+                                out_v[1:], out_m[1:]),
+                    Samples(steps, sample_every, out_t[1:], out_y[1:], out_e[1:]))
                 done = self.nsteps - start
                 if done > 0:
                     self._h_prev = h
@@ -383,9 +384,9 @@ class VariationalStepper(Stepper):
             newton = (b.newton_matrices(y0, h, self.counters) if self._solver == "newton"
                       else b.no_newton)
             status = b.step_code.tangent_map(
-                b.full, y0, cy0, b.minv, self._gamma, h, self._extrapolation(h, h_prev), b.c1,
-                b.c2, b.params, *newton, TANGENT_MAX_ITER[self._solver], self._V, self._DG,
-                self._Vt, self._DGt, self._tw, self._tcw, self._tcount)
+                b.system_record, y0, cy0, self._gamma, h, self._extrapolation(h, h_prev),
+                b.method_record, Newton(*newton), TANGENT_MAX_ITER[self._solver],
+                self._tangents())
         except BaseException:
             self.restore_state(before)
             raise
@@ -393,6 +394,11 @@ class VariationalStepper(Stepper):
             self.restore_state(before)
             self._tangent_fail(status, h, self._solver)
         b.step_code.megno_step(self.megno.state, self._clock[0], self._V[0], self._wv)
+
+    def _tangents(self) -> Tangents:
+        """The tangent map's arrays (:class:`integrators.records.Tangents`)."""
+        return Tangents(self._V, self._DG, self._Vt, self._DGt, self._tw, self._tcw,
+                        self._tcount)
 
     def _tangent_fail(self, status: int, h: float, solver: str) -> None:
         self.counters[C_STATUS] = status
@@ -432,3 +438,6 @@ class VariationalStepper(Stepper):
 def variational_stepper(variational):
     """The Stepper class :func:`integrators.integrate` builds with ``variational=`` given."""
     return partial(VariationalStepper, variational=variational)
+
+
+_engine.VARIATIONAL[0] = variational_stepper

@@ -15,6 +15,7 @@ import pytest
 
 from integrators import absent, specialise as sp
 from integrators.jit import Dispatcher, _own
+from integrators.records import Method, Newton, Options, StepConstants, System, Tableau, Tangents
 
 ROOT = Path(__file__).resolve().parents[1]
 JIT_OFF = os.environ.get("NUMBA_DISABLE_JIT") == "1"
@@ -125,18 +126,21 @@ def test_rebound_binds_the_tangent_map_only_with_variational_particles():
 
 def test_the_stand_ins_refuse_to_be_reached():
     with pytest.raises(RuntimeError, match="compiled without this part"):
-        absent.follow(*([np.zeros(1)] * 6), 0, *([0.0] * 5), np.zeros(1), np.zeros(1),
-                      np.zeros(1), np.zeros(1), 1, 0.0, np.zeros(1), np.zeros(1), 0)
+        absent.follow(*([np.zeros(1)] * 6), 0, StepConstants(0.1, *([np.zeros(1)] * 2), 0.0, 0.0),
+                      Tableau(*([np.zeros(1)] * 10)), Options(1, 0.0, 0.0), np.zeros(1),
+                      np.zeros(1))
     with pytest.raises(RuntimeError, match="compiled without this part"):
         absent.start(np.zeros(6), np.zeros(3))
     # no tangents: nothing to map, and OK
-    assert absent.tangent_map(False, *([np.zeros(1)] * 4), 0.1, np.zeros((1, 1)),
-                              (np.zeros((2, 1)), np.zeros((2, 1))),
-                              (np.zeros((2, 1, 1)), np.zeros((4, 1, 1))), np.zeros(1),
-                              np.zeros((1, 1), complex), np.zeros((1, 1), complex),
-                              np.zeros((0, 1, 1), complex), 1, np.zeros((0, 2)),
-                              np.zeros((0, 1, 1)), np.zeros((0, 2)), np.zeros((0, 1, 1)),
-                              np.zeros(1), np.zeros(1, complex), np.zeros(3)) == 0
+    assert absent.tangent_map(System(False, np.zeros(1), np.zeros(1), np.zeros(1)),
+                              np.zeros(1), np.zeros(1), np.zeros((1, 1)), 0.1, np.zeros((1, 1)),
+                              Method(np.zeros((2, 1)), np.zeros((2, 1)), np.zeros((2, 1, 1)),
+                                     np.zeros((4, 1, 1))),
+                              Newton(np.zeros((1, 1), complex), np.zeros((1, 1), complex),
+                                     np.zeros((0, 1, 1), complex)), 1,
+                              Tangents(np.zeros((0, 2)), np.zeros((0, 1, 1)), np.zeros((0, 2)),
+                                       np.zeros((0, 1, 1)), np.zeros(1), np.zeros(1, complex),
+                                       np.zeros(3))) == 0
 
 
 def test_a_cold_compile_says_so_in_one_line(tmp_path, monkeypatch, caplog):

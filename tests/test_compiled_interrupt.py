@@ -16,6 +16,7 @@ import pytest
 
 from integrators import HBVM, Stepper, integrate
 from integrators import engine
+from integrators.records import Options, Samples
 from systems import Kepler, outer_solar_system
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -27,10 +28,10 @@ def _one_call(method, system, y0, h, steps, sample_every):
     b = st.binding
     n = steps // sample_every + 1
     out_t, out_y, out_e = np.full(n, np.nan), np.empty((n, y0.size)), np.full(n, np.nan)
-    b.step_code.run(b.full, st._y, st._cy, b.minv, b.kin_w, b.params, h,
-                    st._extrapolation(h, None), st._gamma, b.c1, b.c2, *b.no_newton,
-                    st._max_iter("fixed_point"), 0.0, st._etol, st._eref, st.counters, b.work,
-                    b.cwork, steps, sample_every, st._clock, out_t, out_y, out_e)
+    b.step_code.run(b.system_record, st._state_record(), h, st._extrapolation(h, None),
+                    b.method_record, b.no_newton,
+                    Options(st._max_iter("fixed_point"), 0.0, float(st._etol)),
+                    b.work_record(st.counters), Samples(steps, sample_every, out_t, out_y, out_e))
     return out_t, out_y, out_e, st.counters.copy()
 
 

@@ -16,6 +16,7 @@ from integrators import (EQUIP, HBVM, ConvergenceError, NonFiniteError, StepErro
                          UnresolvedStepError, integrate)
 from systems import HamiltonianSystem, NBody, outer_solar_system
 from systems.poincare import PoincareKepler
+from integrators.records import StepConstants
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -355,10 +356,9 @@ def test_column_innermost_sums_give_the_narrow_numbers_bit_for_bit():
         a = np.empty((s, m))
         Q1, Q2 = np.empty((n, m)), np.empty((n, m))
         exact = trial % 2 == 0        # with the low parts (the step's last evaluation) or not
-        core.stage_positions(y, cy, minv, g, C2, C2_lo, ht, ht * 1e-17, 0.3, 1e-18, a, Q1, R,
-                             exact)
-        core.stage_positions_narrow(y, cy, minv, g, C2, C2_lo, ht, ht * 1e-17, 0.3, 1e-18, a, Q2,
-                                    exact)
+        sc_ = StepConstants(np.nan, ht, ht * 1e-17, 0.3, 1e-18)
+        core.stage_positions(y, cy, minv, g, C2, C2_lo, sc_, a, Q1, R, exact)
+        core.stage_positions_narrow(y, cy, minv, g, C2, C2_lo, sc_, a, Q2, exact)
         assert np.array_equal(Q1, Q2)
         W = rng.normal(size=(s, n))
         F = rng.normal(size=(n, m)) * sc

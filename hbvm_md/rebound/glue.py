@@ -17,6 +17,7 @@ method's packed arrays (their shapes in the context block's header) and in the l
 :func:`step_arrays` is the same step on arrays: the compiled :func:`core_step` views the memory
 and calls it; with ``NUMBA_DISABLE_JIT`` the host calls it as Python.
 """
+from collections import namedtuple
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -26,6 +27,8 @@ from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, N_COU
                               copy1, copy2, select_extrapolation, test_particle_error)
 from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
+from integrators.records import (Adaptive, Extrapolation, Method, Newton, Options, State, System,
+                                 Tangents, Work)
 from hbvm_md.rebound.cabi import call_megno
 from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
@@ -56,6 +59,17 @@ GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebou
 #: 7 to 60 AU 4e-4 (1e-12 AU off), an asteroid at 2.5 AU 2e-2 (4e-8 AU off).
 TP_FLOOR = 1e-2
 TP_FACTOR = 10.0
+
+#: REBOUND's side of a step: the simulation's head as float64 and int64 words (simd, simi), its
+#: particles (view: (N, stride) doubles over reb_particle), the context block's header (ctx,
+#: :mod:`hbvm_md.rebound.layout`), the simulation's address (r) and its variational particles
+#: (pv: (N_var, stride) doubles over ``particles_var``)
+Rebound = namedtuple("Rebound", ["simd", "simi", "view", "ctx", "r", "pv"])
+#: HBVM's side kept in the host's state block: its int64 and float64 slots (st, sd), the attempt's
+#: result (res), the particles as the last commit wrote them (written: x, v, m), G and N_active as
+#: the host wrote them (host), the variational particles' first rows (vidx) and a sliver step's
+#: scratch for the tangents' coefficients (DGs)
+Host = namedtuple("Host", ["st", "sd", "res", "written", "host", "vidx", "DGs"])
 
 
 def particles_match(view, written, ix, ivx, im):
@@ -164,17 +178,14 @@ def delta2(pv, N, ix, ivx):
     return acc
 
 
-def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters, yt, cyt,
-                gammat, ereft, written, minv, kin_w, params, host, tn, ts, Wp, Cp, NV, NVinv, NM,
-                work, cwork, clock, E1, Et, Ew, Ebuf, Ezero, r, pv, V, Vt, DG, DGt, DGs, tw,
-                tcw, tcount, vidx):
-    """One REBOUND step of sim.dt (simd/simi: the simulation's head as float64/int64, view its
-    particles; st/sd: HBVM's state as int64/float64; the rest: the context block's arrays; r:
-    the simulation's address; pv: its variational particles (N_var, stride), V ... vidx: the
-    tangents' arrays, :mod:`hbvm_md.rebound.layout`).
-    Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause recorded).
+def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
+    """One REBOUND step of sim.dt (rb: REBOUND's side, :data:`Rebound`; hb: HBVM's state block,
+    :data:`Host`; the rest: the records of :mod:`integrators.records` over the context block's
+    arrays, :mod:`hbvm_md.rebound.layout`; tan: the tangents, empty without variational
+    particles).  Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause
+    recorded).
 
-    On REBOUND's own accelerations (ctx[D_FULL], :mod:`hbvm_md.rebound.forces`) the state is
+    On REBOUND's own accelerations (system.full, :mod:`hbvm_md.rebound.forces`) the state is
     (q, clock, p, 0) in the full form: its clock is set to ``sim.t`` before the step, and the
     stages' positions, velocities and times that the kernel wrote into the particles and
     ``sim.t`` are replaced by the committed state, or restored when the step fails.
@@ -186,6 +197,13 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     ``megno_initial_t``), as IAS15 does (its dt_done sum_i w_i t_i (delta'.delta/delta^2)(t_i)
     is a quadrature of the same integral): here the discrete tangent gives ln|delta| exactly
     at both ends, and the integral is taken as (t'_0 + t'_1) / 2 (ln|delta_1| - ln|delta_0|)."""
+    simd, simi, view, ctx, r, pv = rb
+    st, sd, res, written, host, vidx, DGs = hb
+    full, minv, kin_w, params = system
+    y, cy, gamma, eref, clock = state
+    yt, cyt, gammat, ereft, _ = trial
+    counters = wk.counters
+    V, DG, Vt, DGt, tw, tcw, tcount = tan
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
@@ -209,7 +227,6 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     N = view.shape[0]
     nv = V.shape[0]
-    full = ctx[D_FULL] != 0
     m = y.shape[0] // 2
     if full:
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
@@ -221,10 +238,9 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     # of the counters and the clock, as the core takes a failed step's out
     c_iter, c_nfev, c_newton = counters[C_ITER], counters[C_NFEV], counters[C_NEWTON]
     clock0, clock1 = clock[0], clock[1]
-    status = attempt(full, y, cy, gamma, eref, yt, cyt, gammat, ereft, minv, kin_w,
-                     params, h, sd[SL_H_PREV], E1, Et, Ew, Ebuf, Ezero, (tn, ts), (Wp, Cp),
-                     NV, NVinv, NM, st[SL_MAX_ITER], sd[SL_TOL], etol, counters, work, cwork,
-                     clock, epsilon, sd[SL_MIN_DT], t_start, res)
+    status = attempt(system, state, trial, h, sd[SL_H_PREV], t_start, ext, method, newton,
+                     Options(st[SL_MAX_ITER], sd[SL_TOL], etol), wk,
+                     Adaptive(epsilon, sd[SL_MIN_DT], res))
     st[SL_REJECTED] += int(res[2])
     if status == OK and not adaptive and sd[SL_ETOL] != 0.0 and not full:
         worst, err, _ = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR)
@@ -252,15 +268,15 @@ def step_arrays(simd, simi, view, ctx, st, sd, eref, res, y, cy, gamma, counters
     d2_0 = 0.0
     if nv > 0:
         # the previous d gamma extrapolated as the step's gamma was (a sliver's are not kept)
-        E = select_extrapolation(h_done, hp, E1, Et, Ew, Ebuf, Ezero)
+        E = select_extrapolation(h_done, hp, ext.E1, ext.t, ext.w, ext.buf, ext.zero)
         dg = DG
         if sliver:
             for v in range(nv):
                 copy2(DGs[v], DG[v])
             dg = DGs
-        tstatus = tangent_map(False, y, cy, minv, gammat, h_done, E, (tn, ts),
-                              (Wp, Cp), params, NV, NVinv, NM, 2 * st[SL_MAX_ITER], V, dg, Vt,
-                              DGt, tw, tcw, tcount)
+        tstatus = tangent_map(System(False, minv, kin_w, params), y, cy, gammat, h_done, E,
+                              method, newton, 2 * st[SL_MAX_ITER],
+                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount))
         if tstatus != OK:
             sd[SL_H_FAIL] = h_done
             sd[SL_T_FAIL] = t_start
@@ -341,21 +357,25 @@ def core_step(r, p):
     nv = ctx[D_NV]
     pv = carray(float64_pointer(ctx[D_PVAR]), (N * nv, ctx[R_STRIDE]))
     return step_arrays(
-        simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_EREF), N_EREF),
-        carray(float64_pointer(pa + 8 * SL_RES), N_RES), carray(float64_pointer(st[SL_Y]), 2 * m),
-        carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
-        carray(float64_pointer(st[SL_GAMMA]), (s, u)),
-        carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS), f(A_YT, 2 * m), f(A_CYT, 2 * m),
-        f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF), f2(A_WRITTEN, N, 7), f(A_MINV, u), f(A_KINW, m),
-        f(A_PARAMS, ctx[D_P]), f(A_HOST, N_HOST), f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s),
-        f3(A_WP, ctx[D_WPP], s, kk), f3(A_CP, ctx[D_CPP], kk, s), z2(A_NV, s, s), z2(A_NVINV, s, s),
-        carray(complex128_pointer(ctx[A_NM]), (0, m, m)), f(A_WORK, ctx[D_NF]),
-        carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]), f(A_CLOCK, 2), f2(A_E1, s, s),
-        f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s), ra, pv, f2(A_V, nv, 2 * m),
-        f2(A_VT, nv, 2 * m), f3(A_DG, nv, s, m), f3(A_DGT, nv, s, m), f3(A_DGS, nv, s, m),
-        f(A_TW, ctx[D_TGF]), carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
-        f(A_VIDX, nv))
-
+        Rebound(simd, simi, view, ctx, ra, pv),
+        Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES), f2(A_WRITTEN, N, 7),
+             f(A_HOST, N_HOST), f(A_VIDX, nv), f3(A_DGS, nv, s, m)),
+        System(ctx[D_FULL] != 0, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
+        State(carray(float64_pointer(st[SL_Y]), 2 * m),
+              carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
+              carray(float64_pointer(st[SL_GAMMA]), (s, u)),
+              carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), f(A_CLOCK, 2)),
+        State(f(A_YT, 2 * m), f(A_CYT, 2 * m), f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF),
+              f(A_CLOCK, 2)),
+        Method(f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s), f3(A_WP, ctx[D_WPP], s, kk),
+               f3(A_CP, ctx[D_CPP], kk, s)),
+        Newton(z2(A_NV, s, s), z2(A_NVINV, s, s), carray(complex128_pointer(ctx[A_NM]), (0, m, m))),
+        Work(f(A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
+             carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS)),
+        Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s)),
+        Tangents(f2(A_V, nv, 2 * m), f3(A_DG, nv, s, m), f2(A_VT, nv, 2 * m),
+                 f3(A_DGT, nv, s, m), f(A_TW, ctx[D_TGF]),
+                 carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3)))
 
 if TYPE_CHECKING:
     # integrators.specialise compiles this text after the step's (integrators.loop, and

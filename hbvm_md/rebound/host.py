@@ -24,6 +24,8 @@ from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
 from hbvm_md.rebound.forces import ReboundScene, host_reasons
+from hbvm_md.rebound.glue import Host, Rebound
+from integrators import records as R
 
 NAME = "hbvm"
 DEFAULTS = dict(method="hbvm", s=6, k=adaptive_k(6, DEFAULT_EPSILON), nodes="gauss", max_iter=60,
@@ -802,21 +804,26 @@ def _python_step(code, st):
                                  dtype).reshape(shape)
         y = _doubles(int(st_[L.SL_Y]), 4 * m)
         view = _doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
+        pv = f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
         return int(code.step_arrays(
-            simd, simi, view, ctx, st_, sd, sd[L.SL_EREF:L.SL_EREF + L.N_EREF],
-            sd[L.SL_RES:L.SL_RES + L.N_RES], y[:2 * m], y[2 * m:],
-            _doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
-            _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS), f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m),
-            f(L.A_GAMMAT, (s, u)), f(L.A_EREFT, L.N_EREF), f(L.A_WRITTEN, (N, 7)),
-            f(L.A_MINV, u), f(L.A_KINW, m), f(L.A_PARAMS, int(ctx[L.D_P])), f(L.A_HOST, L.N_HOST),
-            f(L.A_TN, (2, tnc)), f(L.A_TS, (tsr, s)), f(L.A_WP, (wpp, s, kk)),
-            f(L.A_CP, (cpp, kk, s)),
-            f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
-            f(L.A_NM, (0, m, m), complex), f(L.A_WORK, int(ctx[L.D_NF])),
-            f(L.A_CWORK, int(ctx[L.D_NC]), complex), f(L.A_CLOCK, 2), f(L.A_E1, (s, s)),
-            f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)), f(L.A_EZERO, (s, s)), r,
-            f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1)),
-            f(L.A_V, (nv, 2 * m)), f(L.A_VT, (nv, 2 * m)), f(L.A_DG, (nv, s, m)),
-            f(L.A_DGT, (nv, s, m)), f(L.A_DGS, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
-            f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3), f(L.A_VIDX, nv)))
+            Rebound(simd, simi, view, ctx, r, pv),
+            Host(st_, sd, sd[L.SL_RES:L.SL_RES + L.N_RES], f(L.A_WRITTEN, (N, 7)),
+                   f(L.A_HOST, L.N_HOST), f(L.A_VIDX, nv), f(L.A_DGS, (nv, s, m))),
+            R.System(bool(ctx[L.D_FULL]), f(L.A_MINV, u), f(L.A_KINW, m),
+                     f(L.A_PARAMS, int(ctx[L.D_P]))),
+            R.State(y[:2 * m], y[2 * m:], _doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
+                    sd[L.SL_EREF:L.SL_EREF + L.N_EREF], f(L.A_CLOCK, 2)),
+            R.State(f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m), f(L.A_GAMMAT, (s, u)),
+                    f(L.A_EREFT, L.N_EREF), f(L.A_CLOCK, 2)),
+            R.Method(f(L.A_TN, (2, tnc)), f(L.A_TS, (tsr, s)), f(L.A_WP, (wpp, s, kk)),
+                     f(L.A_CP, (cpp, kk, s))),
+            R.Newton(f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
+                     f(L.A_NM, (0, m, m), complex)),
+            R.Work(f(L.A_WORK, int(ctx[L.D_NF])), f(L.A_CWORK, int(ctx[L.D_NC]), complex),
+                   _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS)),
+            R.Extrapolation(f(L.A_E1, (s, s)), f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)),
+                            f(L.A_EZERO, (s, s))),
+            R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),
+                       f(L.A_DGT, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
+                       f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3))))
     return step

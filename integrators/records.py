@@ -1,0 +1,79 @@
+"""The named records the step passes around, instead of its arrays one by one.
+
+Every record is a :func:`collections.namedtuple`: numba compiles a named tuple of arrays as a
+struct of them (a field read is a struct access, free once compiled), Python reads the same
+fields by name, and a record built once by a host (its system, method, work) is passed whole.
+The step's signatures (:mod:`integrators.loop`, :mod:`integrators.tangent`,
+:mod:`hbvm_md.rebound.glue`) are written in these records; what each field holds:
+
+* :class:`System` -- the scene's side: the form (``full``: y is the state and the kernel is
+  grad H; else y = (q, p) and the kernel the forces), 1 / m of each coordinate (empty in the
+  full form; a state of REBOUND's own accelerations carries them for the velocities too), the
+  kinetic energy's weights, and the kernel's parameters;
+* :class:`State` -- what a step reads and, when it succeeds, writes: the double-double state
+  (y, cy) (2m,), the last step's coefficients gamma (s, u), ``eref`` (the energy between steps;
+  EQUIP's alpha and dE/dalpha after it, :data:`integrators.equip_core.EREF_EQUIP`) and the
+  compensated clock (t, its low part);
+* :class:`Method` -- the method's arrays packed as they are stored and passed (four arrays:
+  one argument unboxed or one address kept by a host, whatever s and k are): ``tn`` (2, k) the
+  nodes tau and their rounding remainders, ``ts`` (2+, s) X_s's first row, ``Wp`` (2+, s, K)
+  the projection W = P_s^T Omega and its remainders, ``Cp`` (4+, K, s) C2 = I_s X_s and I_s with
+  their remainders; EQUIP adds planes (:mod:`integrators.equip_core`).
+  :func:`integrators.loop.tableau` names them at their natural shapes (:class:`Tableau`);
+* :class:`Newton` -- the simplified-Newton matrices of :mod:`integrators.core` (``NM`` of shape
+  (0, u, u): the fixed-point iteration);
+* :class:`Options` -- the iteration cap, its tolerance (0: to round-off) and the energy check's
+  tolerance (:func:`integrators.loop.run`);
+* :class:`Work` -- the step's two work buffers (:func:`integrators.core.carve`) and its float
+  counters (:data:`integrators.core.N_COUNTERS`, the committed steps' work);
+* :class:`Samples` -- how many steps :func:`integrators.loop.run` takes and where it writes
+  its samples (``every`` = 0: none);
+* :class:`Extrapolation` -- the arrays of the initial guess's extrapolation
+  (:func:`integrators.core.select_extrapolation`);
+* :class:`Adaptive` -- the adaptive control of :func:`integrators.loop.attempt` (epsilon = 0: a
+  fixed step) and its result record ``res``;
+* :class:`StepConstants` -- h, h tau (exact pairs) and h^2 (an exact pair), computed once a
+  step (:func:`integrators.core.step_constants`);
+* :class:`Tableau`, :class:`Block` -- views inside a step (the method named; a group of
+  followers' arrays);
+* :class:`Tangents`, :class:`Variational` -- the tangent map's arrays and the variational
+  run's scratch and samples (:mod:`integrators.tangent`).
+
+A record is a view of arrays its builder owns: it does not copy them.
+"""
+from __future__ import annotations
+
+from collections import namedtuple
+
+from integrators.jit import jit
+
+System = namedtuple("System", ["full", "minv", "kin_w", "params"])
+State = namedtuple("State", ["y", "cy", "gamma", "eref", "clock"])
+Method = namedtuple("Method", ["tn", "ts", "Wp", "Cp"])
+Tableau = namedtuple("Tableau", ["tau", "tau_lo", "X0", "X0_lo", "W", "W_lo", "C2", "C2_lo",
+                                 "I", "I_lo"])
+Newton = namedtuple("Newton", ["NV", "NVinv", "NM"])
+Options = namedtuple("Options", ["max_iter", "tol", "etol"])
+Work = namedtuple("Work", ["work", "cwork", "counters"])
+Samples = namedtuple("Samples", ["nsteps", "every", "t", "y", "e"])
+Extrapolation = namedtuple("Extrapolation", ["E1", "t", "w", "buf", "zero"])
+Adaptive = namedtuple("Adaptive", ["epsilon", "min_dt", "res"])
+StepConstants = namedtuple("StepConstants", ["h", "ht", "ht_lo", "h2", "h2_lo"])
+Block = namedtuple("Block", ["y", "cy", "minv", "a", "X", "F"])
+Tangents = namedtuple("Tangents", ["V", "DG", "Vt", "DGt", "tw", "tcw", "tcount"])
+Variational = namedtuple("Variational", ["max_iter", "y0", "cy0", "gsave", "snap", "mg", "wv",
+                                         "out_v", "out_m"])
+
+
+
+@jit(inline=True)
+def tableau(method):
+    """The method's packed arrays (:class:`Method`) named at their shapes: tau, tau_lo (k,),
+    X0, X0_lo (s,) (X_s's first row), W, W_lo (s, k), C2, C2_lo, I, I_lo (k, s) (for EQUIP,
+    Gauss's: HBVM(s, s)'s)."""
+    tn, ts, Wp, Cp = method
+    return Tableau(tn[0], tn[1], ts[0], ts[1], Wp[0], Wp[1], Cp[0], Cp[1], Cp[2], Cp[3])
+
+
+__all__ = ["tableau", "System", "State", "Method", "Tableau", "Newton", "Options", "Work", "Samples",
+           "Extrapolation", "Adaptive", "StepConstants", "Block", "Tangents", "Variational"]
