@@ -39,9 +39,9 @@ class SolverSwitchWarning(RuntimeWarning):
     iteration failed; the message says why and what Newton costs with this calculator."""
 
 
-#: tol="auto" for a calculator that is not a polynomial: the fixed-point iteration stops at the
-#: first increment below this fraction of the coefficients, then polishes (see
-#: HBVMDynamics.iteration_tol)
+#: tol="auto" for a calculator that is not a polynomial: the iteration stops once its error,
+#: estimated from the contraction (core.stop_action), is below this fraction of the
+#: coefficients, then polishes (see HBVMDynamics.iteration_tol)
 MD_TOL = 1e-12
 
 _ENSEMBLE_KWARGS = ("temperature_K", "temperature", "friction", "taut", "ttime", "pressure_au",
@@ -236,12 +236,13 @@ class HBVMDynamics(MolecularDynamics):
         cluster is kept to round-off as well; k is then the quadrature of its energy
         condition (the same default), s >= 2, Gauss nodes.
     tol : "auto", None or float
-        The fixed-point (or Newton) iteration of a step stops at the first increment below
-        ``tol`` times the coefficients' size, then polishes.  None: to round-off (until the
-        increments stop decreasing there).  "auto": None when HBVM(k, s) conserves H exactly
-        (a polynomial calculator and k from its degree) and for EQUIP, otherwise 1e-12
-        (:meth:`iteration_tol`: the stage forces' own round-off, a quarter fewer force
-        evaluations a step on EMT copper at 5 fs).
+        Relative tolerance of the step's iteration (fixed point or Newton): it stops at the
+        first increment, or the first error estimated from the iteration's contraction,
+        below ``tol`` times the coefficients' size (``core.stop_action``), then polishes.
+        None: to round-off (until the increments stop decreasing there).  "auto": None when
+        HBVM(k, s) conserves H exactly (a polynomial calculator and k from its degree) and
+        for EQUIP, otherwise 1e-12 (:meth:`iteration_tol`: the stage forces' own round-off;
+        a third fewer force evaluations a step on EMT copper at 5 fs, the same energy error).
     trajectory, logfile, loginterval, **kwargs
         As for :class:`ase.md.md.MolecularDynamics`.
 
@@ -377,12 +378,12 @@ class HBVMDynamics(MolecularDynamics):
         constant) measured 0.8-1.7e-13 of max |gamma| on EMT copper, 108 atoms, 5-20 fs, the
         increments then wandering at 1-5e-14.  The round-off rule waits there until the
         increments stop decreasing: two to three sweeps of k force evaluations that change
-        nothing (a quarter of the step at 5 fs).  An increment below 1e-12 leaves the iterate
-        within theta 1e-12 <= 1e-13 of the fixed point (theta, the iteration's contraction,
-        0.005 at 5 fs to 0.1 at 20 fs on EMT copper), at that floor, and the polish takes it
-        theta times closer.  Measured (``benchmarks/bench_md_cost.py``): the same energy
-        errors to the digits shown, 30.5 -> 22 force evaluations a step for HBVM(3, 2) at
-        5 fs."""
+        nothing (a quarter of the step at 5 fs).  With tol = 1e-12 the iteration stops once
+        its error, estimated from the contraction theta (0.005 at 5 fs to 0.1 at 20 fs on EMT
+        copper), is below 1e-12 (``core.stop_action``), and the polish takes it theta times
+        closer: within 1e-13, at that floor.  Measured (``benchmarks/bench_md_cost.py``): the
+        same energy errors to the digits shown, 30.7 -> 19.2 force evaluations a step for
+        HBVM(3, 2) at 5 fs (9.9 -> 6 iterations)."""
         if not (isinstance(self.tol, str) and self.tol == "auto"):
             return self.tol
         if isinstance(self.method, EQUIP):
