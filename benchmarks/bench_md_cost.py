@@ -302,7 +302,7 @@ def main(argv=None) -> int:
     return 0
 
 
-SECTIONS = {"before": "## Before (issue 38, item 4)", "after": "## After (issue 38, item 4)"}
+SECTIONS = {"before": "### Before (issue 38, item 4)", "after": "### After (issue 38, item 4)"}
 
 
 def report(results: dict, cmd: str, ps: float, repeat: int, label: str = "after",
