@@ -41,6 +41,7 @@ LIPSCHITZ_ULPS = 4.0     # ... within this many ulps of the stage values' roundi
 STATE_ULPS = 16.0        # ... and so is one that moves the new state by at most this many ulps
 STRONG_CONTRACTION = 1e-3  # a contraction at least this strong is extrapolated (stop_action) ...
 EXTRAPOLATED_ULPS = 1e-3   # ... to an iterate predicted within this many ulps of the fixed point
+TOL_CONTRACTION = 0.25    # with a tolerance: a contraction this strong estimates the error (stop_action)
 RUNAWAY = 1e8             # coefficients that would move the state this many times farther than
                           # the first iterate and the state itself: the iteration runs away
 
@@ -662,7 +663,8 @@ def stop_action(delta, scale, F, floor, hstate, hmove, ymax, it, hist, tol):
     vanishes or stops decreasing at round-off level).
 
     Converged (POLISH) when the increment is within two ulps of the coefficients, below
-    ``tol * scale`` (when a tolerance is given), or when it stopped decreasing at its round-off
+    ``tol * scale`` (when a tolerance is given: tol > 0), when the iterate's error estimated
+    from the contraction is (with a tolerance, see below), or when it stopped decreasing at its round-off
     level: within ROUNDOFF_ULPS ulps of the larger of the coefficients and the stage forces F
     (the rounding of W F; max |F| is taken only then), below ``floor`` (the stage values'
     rounding propagated through the force, LIPSCHITZ_ULPS eps max|stage| L with L the force's
@@ -693,6 +695,15 @@ def stop_action(delta, scale, F, floor, hstate, hmove, ymax, it, hist, tol):
     more than RUNAWAY times what the first iterate moved it plus the state's own size ``ymax``
     (max |y|).  A converging iteration moves it by about as much as its first iterate does.
 
+    With a tolerance (tol > 0; the iteration to round-off, tol = 0, never takes this exit) the
+    iterate is also converged when its error, estimated from the contraction as theta delta /
+    (1 - theta) (Hairer and Wanner, Solving ODEs II, Sec. IV.8), is at most
+    ``tol * scale``, theta being the larger of the last two ratios of increments and at most
+    TOL_CONTRACTION (two ratios, so that a single small ratio does not pass for a contraction).
+    The polish then lands theta times closer.  On EMT copper with ``HBVMDynamics``' tol of
+    1e-12 (HBVM(3, 2) at 5 fs, theta about 7e-3) this stops one sweep before the increment
+    itself is below tol: 22.1 -> 19.2 force evaluations a step, the same energy error.
+
     hist = [previous increment, stalls, the last two increment ratios, the first iterate's
     move plus ymax]; returns ITERATE, POLISH or -status.
     """
@@ -704,6 +715,10 @@ def stop_action(delta, scale, F, floor, hstate, hmove, ymax, it, hist, tol):
         return -DIVERGED
     if delta <= 2.0 * EPS * scale or delta <= tol * scale:
         return POLISH
+    if tol > 0.0 and delta < hist[0]:
+        theta = max(delta / hist[0], hist[2])      # hist[2]: inf until two ratios are known
+        if theta <= TOL_CONTRACTION and theta * delta <= (1.0 - theta) * tol * scale:
+            return POLISH
     if delta >= hist[0]:
         if (delta <= ROUNDOFF_ULPS * EPS * max(scale, max_abs2(F)) or delta <= floor
                 or hstate <= STATE_ULPS):

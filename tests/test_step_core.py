@@ -454,7 +454,7 @@ def test_carved_work_arrays_tile_their_buffers_and_a_short_buffer_is_refused():
         core.carve(work[:-1], cwork, n, s, u, m, d)
 
 
-def _stop_sequence(deltas, scale=1.0, floor=0.0, hstate=np.inf, F=None):
+def _stop_sequence(deltas, scale=1.0, floor=0.0, hstate=np.inf, F=None, tol=0.0):
     """core.stop_action over a sequence of increments as the step's loop calls it: the actions
     until the first that is not ITERATE, and the iteration it came at."""
     from integrators import core
@@ -462,10 +462,30 @@ def _stop_sequence(deltas, scale=1.0, floor=0.0, hstate=np.inf, F=None):
     hist = np.array([np.inf, 0.0, np.inf, np.inf, np.nan])
     F = np.zeros((2, 3)) if F is None else F
     for it, d in enumerate(deltas, 1):
-        a = core.stop_action(d, scale, F, floor, hstate, scale, 1.0, it, hist, 0.0)
+        a = core.stop_action(d, scale, F, floor, hstate, scale, 1.0, it, hist, tol)
         if a != core.ITERATE:
             return a, it
     return core.ITERATE, len(deltas)
+
+
+def test_a_tolerance_stops_at_the_error_estimated_from_the_contraction():
+    """stop_action with tol > 0 (HBVMDynamics' 1e-12 for a calculator that is not a
+    polynomial): the increments of EMT copper, HBVM(3, 2) at 5 fs (relative to the
+    coefficients), polish at 2e-11, whose estimated error theta delta (theta = 6.7e-3, the
+    larger of the last two ratios) is below 1e-12, one iteration before the increment itself
+    is; without a tolerance the same increments iterate to the stall.  A single ratio is no
+    contraction estimate, and a contraction weaker than TOL_CONTRACTION takes no exit."""
+    from integrators import core
+
+    emt = [2.4e-2, 1.3e-4, 3.3e-7, 3.4e-9, 2.2e-11, 5.8e-14, 6.4e-15, 1.9e-15, 1.9e-15]
+    assert _stop_sequence(emt, tol=1e-12) == (core.POLISH, 5)
+    assert _stop_sequence(emt, floor=8e-14) == (core.POLISH, 9)           # the round-off rule
+    # only one ratio known at the second increment (1e-7: theta delta 1e-14), however small:
+    # iterate; at the fourth, theta = 1e-2 from two ratios and theta delta = 1e-13
+    assert _stop_sequence([1.0, 1e-7, 1e-9, 1e-11], tol=1e-12) == (core.POLISH, 4)
+    # theta = 0.5 > TOL_CONTRACTION: the error estimate is not trusted, the increment decides
+    slow = [0.5 ** j * 1e-10 for j in range(12)]
+    assert _stop_sequence(slow, tol=1e-12) == (core.POLISH, 8)            # 7.8e-13 <= 1e-12
 
 
 def test_a_strong_contraction_polishes_at_round_off_without_waiting_for_the_stall():
