@@ -775,13 +775,7 @@ class Stepper(Counted):
         if switch:
             if status != OK:
                 self._fail(status, h, "auto")
-            if retry:               # still stiff: wait twice as long before the next try
-                self._newton_hold = min(2 * self._newton_hold, NEWTON_HOLD_MAX)
-            else:
-                self.solver_switches += 1
-                self.last_switch = {"t": t0, "h": h, "why": _SWITCH_WHY[why]}
-            self._solver = "newton"
-            self._newton_run = 0
+            self._switch_to_newton(t0, h, why, retry)
         elif status != OK:
             self._fail(status, h, self.solver_option)
         elif retry:                 # fixed point converges again: back to it
@@ -793,6 +787,22 @@ class Stepper(Counted):
         self._after_step(h)
         self.status = "running"
         return self._y.copy()
+
+    def _switch_to_newton(self, t: float, h: float, why: int, retry: bool = False) -> None:
+        """solver="auto": from now on simplified Newton, after the fixed-point iteration of the
+        step of size h at t failed with status ``why`` (DIVERGED or NOT_FINITE); written once,
+        for :meth:`step`, :meth:`run` and the variational run.  A first switch is counted and
+        reported (``solver_switches``, ``last_switch``); a ``retry`` of fixed point that failed
+        again (still stiff) doubles the wait before the next try instead (up to
+        NEWTON_HOLD_MAX)."""
+        if retry:
+            self._newton_hold = min(2 * self._newton_hold, NEWTON_HOLD_MAX)
+        else:
+            self.solver_switches += 1
+            self.last_switch = {"t": t, "h": h, "why": _SWITCH_WHY[why]}
+            self._newton_hold = NEWTON_HOLD
+        self._solver = "newton"
+        self._newton_run = 0
 
     def save_state(self) -> tuple:
         """Everything a step changes (state, coefficients, energy reference, clock, counters,
@@ -855,10 +865,7 @@ class Stepper(Counted):
             if done < steps and status != OK:
                 if self.solver_option == "auto" and status in (DIVERGED, NOT_FINITE):
                     # the failed step again with Newton, then as step() does
-                    self._solver = "newton"
-                    self._newton_run, self._newton_hold = 0, NEWTON_HOLD
-                    self.solver_switches += 1
-                    self.last_switch = {"t": self.t, "h": h, "why": _SWITCH_WHY[status]}
+                    self._switch_to_newton(self.t, h, status)
                 else:
                     try:
                         self._fail(status, h, self.solver_option)

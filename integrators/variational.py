@@ -326,8 +326,7 @@ class VariationalStepper(Stepper):
                     self._tangent_fail(status - TANGENT_FAILED, h, "fixed_point")
                 if status != OK:
                     if self.solver_option == "auto" and status in (DIVERGED, NOT_FINITE):
-                        self._solver = "newton"      # for the rest of the run, as step() does
-                        self.solver_switches += 1
+                        self._switch_to_newton(self.t, h, status)   # as step() does
                     else:
                         self._fail(status, h, self.solver_option)
             for i in range(done, steps):
