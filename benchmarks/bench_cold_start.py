@@ -68,6 +68,8 @@ HEYOKA = """
     import time
     t0 = time.perf_counter()
     import numpy as np, heyoka as hy
+    if hasattr(hy.llvm_state, "set_diskcache_enabled"):
+        hy.llvm_state.set_diskcache_enabled(False)   # (heyoka >= 7.10 caches compiled code on disk)
     t1 = time.perf_counter()
     sys_ = hy.model.nbody(3, masses=[1.0, 1e-3, 1e-3], Gconst=1.0)
     state = np.array([0, 0, 0, 0, 0, 0, 1.0, 0, 0, 0, 1.0, 0, 1.6, 0, 0, 0, 0.79, 0.0])
