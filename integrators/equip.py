@@ -184,8 +184,8 @@ class EQUIP:
     @property
     def work_rows(self) -> int:
         """Rows of stage work the engine sizes the step's buffer for (:mod:`.equip_core`'s
-        views of the path fit in the space of k more stages)."""
-        return self.s + self.k
+        views of the path and the root search's scratch fit in the space of k + 1 more stages)."""
+        return self.s + self.k + 1
 
     def X_alpha(self, alpha: float = 0.0) -> np.ndarray:
         """X_s(alpha) = X_s + alpha S, shape (s, s)."""

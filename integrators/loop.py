@@ -244,7 +244,8 @@ def run(full, y, cy, minv, kin_w, params, h, E, gamma, c1, c2, NV, NVinv, NM, ma
                     hist[2] = np.inf
                     hist[3] = np.inf
                 else:
-                    break                       # status DIVERGED: no small alpha conserves H
+                    status = eq.NO_ENERGY_ROOT      # no alpha near the last conserves H
+                    break
                 continue
             if newton:
                 if narrowb:
