@@ -171,7 +171,7 @@ class StepSizeError(StepError):
 
 def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
                energy_tol: float | None = None, hints: dict | None = None,
-               method: str = "HBVM") -> StepError:
+               method: str | None = None) -> StepError:
     """The exception for a failed step's status code (the one table of the project).
 
     ``counters`` is the step's counter array (layout in :mod:`integrators.core`); ``solver``
@@ -179,9 +179,10 @@ def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
     maps "diverged", "not_finite" and "unresolved" to a host's own advice (REBOUND's sim.dt,
     ASE's timestep).  ``energy_tol`` is the check the step ran (:func:`integrators.engine.
     energy_check`: negative for the energy-flow check of a method not exact for H).
-    ``method``: the name the message gives the step ("HBVM", "EQUIP")."""
+    ``method``: the name the message gives the step ("HBVM", "EQUIP"; None: the error's own,
+    HBVM but for EQUIP's energy condition)."""
     exc = _step_error(status, h, t, counters, solver, energy_tol, hints or {})
-    if method != exc.method:
+    if method is not None and method != exc.method:
         exc.method = method
         exc.args = (re.sub(r"^\w+ step", f"{method} step", str(exc), count=1),)
     return exc

@@ -246,9 +246,10 @@ def test_step_errors_name_the_method():
     assert str(step_error(DIVERGED, 0.1, 2.0, c, "newton")).startswith("HBVM step of size h=0.1")
     err = step_error(DIVERGED, 0.1, 2.0, c, "newton", method="EQUIP")
     assert str(err).startswith("EQUIP step of size h=0.1 at t=2 did not converge: newton")
-    err = step_error(NO_ENERGY_ROOT, 0.1, None, c, "fixed_point", method="EQUIP")
-    assert isinstance(err, EnergyConditionError) and isinstance(err, ConvergenceError)
-    assert str(err).startswith("EQUIP step of size h=0.1 did not converge: no alpha")
+    for method in ("EQUIP", None):      # (None: a host that does not name the method)
+        err = step_error(NO_ENERGY_ROOT, 0.1, None, c, "fixed_point", method=method)
+        assert isinstance(err, EnergyConditionError) and isinstance(err, ConvergenceError)
+        assert str(err).startswith("EQUIP step of size h=0.1 did not converge: no alpha")
 
 
 class _CoupledOscillators(SeparableSystem):
