@@ -242,9 +242,13 @@ def update_alpha(es, E, scale, floor):
 
     Returns CONVERGED, REITERATE (converged, with alpha's last correction in es[0]: gamma is
     iterated to convergence for it, without measuring again), UPDATED (a new alpha in es[0])
-    or FAILED (MAX_UPDATES reached, or an
-    alpha beyond ALPHA_MAX or not finite: the energy condition has no small solution at this
-    step size).
+    or FAILED (E not finite, or no root found by the fallback, :func:`start_root_search`:
+    no sign change of E within ALPHA_LIMIT of where the secant stopped; the loop's status
+    NO_ENERGY_ROOT).  A secant step beyond ALPHA_MAX with the last step's slope is replaced by
+    a probe that measures this step's slope (dE/dalpha may have changed sign since: its
+    leading term is -xi_1^2 h^3 H'''(f, f, f), :mod:`integrators.equip`); one beyond ALPHA_MAX
+    with this step's own slope, or MAX_UPDATES updates, starts the fallback.  Where the
+    secant converges the answers are those of the secant alone, bit for bit.
 
     The slope is the secant of the last two measurements when their residuals differ by more
     than their rounding (four ulps of the terms' size), else the last step's (E(alpha) is
