@@ -20,13 +20,14 @@ import numpy as np
 from integrators.core import OK
 from integrators.equip_core import (  # (the names the step reads through ``eq``, __all__)
     CONVERGED, CP_B1, CP_B2, CP_PATH_C2, CP_PATH_C2_LO, CP_PATH_I, CP_PATH_I_LO, CP_PATH_S, CP_PS,
-    CP_VEC, CP_X, CP_X_LO, EREF_EQUIP, FAILED, REITERATE, TS_PSE1, TS_S0, UPDATED, WP_PATH,
-    WP_PATH_LO, carve)
+    CP_VEC, CP_X, CP_X_LO, EREF_EQUIP, FAILED, NO_ENERGY_ROOT, REITERATE, TS_PSE1, TS_S0, UPDATED,
+    WP_PATH, WP_PATH_LO, carve)
 from integrators.jit import jit
 
 __all__ = ["CONVERGED", "CP_B1", "CP_B2", "CP_PATH_C2", "CP_PATH_C2_LO", "CP_PATH_I",
            "CP_PATH_I_LO", "CP_PATH_S", "CP_PS", "CP_VEC", "CP_X", "CP_X_LO", "EREF_EQUIP",
-           "FAILED", "REITERATE", "TS_PSE1", "TS_S0", "UPDATED", "WP_PATH", "WP_PATH_LO", "carve",
+           "FAILED", "NO_ENERGY_ROOT", "REITERATE", "TS_PSE1", "TS_S0", "UPDATED", "WP_PATH",
+           "WP_PATH_LO", "carve",
            "follow", "full_stages", "full_stages_narrow", "symplectic", "commit_full",
            "tangent_map", "read_tangents", "write_tangents", "delta2", "start", "finish",
            "stage_correction", "path_correction", "energy_residual", "update_alpha",

@@ -1067,7 +1067,8 @@ class Stepper(Counted):
     def _fail(self, status: int, h: float, solver: str) -> None:
         self.counters[C_STATUS] = status
         self.status = "failed"
-        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self._etol)
+        raise step_error(status, h, self.t, self.counters, solver, energy_tol=self._etol,
+                         method=type(self.method).__name__)
 
     def _result(self, t, y, e, h, t_start, status, message) -> "IntegrationResult":
         self.status = "running" if status == "finished" else status

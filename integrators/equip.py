@@ -48,14 +48,44 @@ Choices made here, and why (measured on Kepler, e = 0.6, h = 2 pi / 100):
   from where it is; the step ends when the residual is at its round-off with a slope measured
   in the step, after one last correction of alpha for which gamma is iterated to convergence
   once more (without it the residual keeps one sign step after step and the energy drifts).
-  Typically two or three path evaluations a step.  Where no small alpha satisfies the
-  energy condition (dE/dalpha crosses zero where the Gauss step's energy error does not:
-  FPU's stiff chain with s = 2; ASE's EMT copper nanoparticle, 43 atoms, at 5 fs with
-  s = 2, where over the five steps before t = 205 fs dE/dalpha fell from 5e-4 to 4e-6 while
-  Gauss's residual stayed near 1e-7, so that the root moved from |alpha| ~ 1e-4 to 4e-3,
-  0.08 and then 2.7) the step fails with a ConvergenceError, never silently.  The gamma
-  iteration has converged there (its increment, the one the message reports, is at
-  round-off): it is the energy condition that has no small solution at that step size.
+  Typically two or three path evaluations a step.
+
+Why the energy condition can lose its small root, and what the step then does
+-----------------------------------------------------------------------------
+X_s(alpha) moves A by alpha P_s S P_s^T Omega and c = A 1 by alpha xi_1 P_1(c) (S e_1 =
+xi_1 e_2).  In y1's B-series the weights of the two trees of order 3 change by b^T c^2:
++xi_1^2 (2 alpha + alpha^2) and b^T A c: -xi_1^2 (2 alpha + alpha^2), so y1(alpha) - y1(0) =
+xi_1^2 h^3 (alpha + alpha^2 / 2) (f''(f, f) - 2 f'f'f) + O(h^4); with f = J grad H the
+identities grad H^T f' v = -v^T H'' f and grad H^T f''(f, f) = -H'''(f, f, f) - 2 H''(f'f, f)
+leave
+
+    H(y1(alpha)) - H(y0) = g_0 - xi_1^2 h^3 H'''(y0)(f, f, f) (alpha + alpha^2 / 2) + O(h^4),
+
+g_0 = O(h^(2s+1)) the Gauss step's own energy error.  The small root alpha ~ g_0 / (xi_1^2 h^3
+H'''(f, f, f)) = O(h^(2s-2)) exists while H'''(f, f, f) stays away from zero: for a separable
+H it is V'''(q)(v, v, v), the third derivative of the potential along the velocities, a sum
+over all atoms of terms of both signs, which passes through zero along a trajectory where
+g_0 need not.  There the small root moves out through large alpha, and E(alpha) may have no
+root at all: for s = 2 alpha and -2 - alpha are the same method with its two stages swapped
+(E is a function of (1 + alpha)^2, with an extremum at alpha = -1 that can stay on g_0's
+side).  Measured on ASE's EMT copper nanoparticle (43 atoms, 5 fs, s = 2): at t = 205 fs the
+slope dE/dalpha had changed sign since the last step (root -0.07 there, +0.031 here), and the
+secant with the last step's slope left |alpha| <= 0.25 (the step failed before the root
+search); at t = 985 fs the only roots are alpha = -0.48 and -1.52.  On 19 atoms (seed 2) at
+t = 0, E(alpha) < 0 for every alpha: no EQUIP step of 5 fs exists there.
+
+So :func:`integrators.equip_core.update_alpha` takes this step's own slope when the last
+step's sends alpha out of range, and when the secant with its own slope does too, scans from
+its last alpha (+-1/32, doubling, up to 1) and narrows the first bracket by regula falsi: the
+root closest to where the secant stopped, never a point that is not a root.  A root with
+|alpha| of order 1 is a symplectic step that keeps the energy and every quadratic invariant
+but has order 2 (c moves by alpha xi_1 P_1): at t = 985 fs on the nanoparticle (alpha =
+-0.48) the step moved the positions 3.7e-5 A from a converged reference, Gauss's step
+4.1e-8 A.  No root within 1: the step fails with :class:`integrators.EnergyConditionError`
+(a ConvergenceError naming EQUIP and the energy condition); a shorter step helps (the window
+of states without a small root shrinks as h^2).  With s >= 3 a second skew direction (pairs
+(0, 2) or (1, 2), whose first effect on H is of higher order and a different function of the
+state) would keep a small root there; not done.
 
 Cost a step: s forces an iteration (Gauss's) plus k at each residual, against k an iteration
 for HBVM(k, s); the iterations after each change of alpha make it 2-9 times HBVM's time on
@@ -184,8 +214,8 @@ class EQUIP:
     @property
     def work_rows(self) -> int:
         """Rows of stage work the engine sizes the step's buffer for (:mod:`.equip_core`'s
-        views of the path fit in the space of k more stages)."""
-        return self.s + self.k
+        views of the path and the root search's scratch fit in the space of k + 1 more stages)."""
+        return self.s + self.k + 1
 
     def X_alpha(self, alpha: float = 0.0) -> np.ndarray:
         """X_s(alpha) = X_s + alpha S, shape (s, s)."""

@@ -68,16 +68,27 @@ WP_PATH, WP_PATH_LO = 2, 3   # Wp (4, s, K): W, W_lo (Gauss), P_k^T Omega_k (the
 # the state carried between steps in eref (length EREF_EQUIP): [energy, alpha, dE/dalpha]
 EREF_EQUIP = 3
 # the per-step scratch es (ES entries): alpha, alpha and residual of the last measurement,
-# the slope dE/dalpha, updates made, whether the slope was measured in this step
-ES = 6
+# the slope dE/dalpha, updates made, whether the slope was measured in this step; then the
+# root search of the fallback (update_alpha): its mode (0: the secant; j + 1: scanning, the
+# j-th offset being measured; -1, -2, -3: regula falsi (Illinois) in a bracket, nothing / A /
+# B kept last), the centre of the scan, its first direction, and two points (alpha, E): the
+# last of each side of the scan, then the bracket's ends A and B
+ES = 13
+ES_MODE, ES_CENTRE, ES_DIR, ES_A, ES_EA, ES_B, ES_EB = 6, 7, 8, 9, 10, 11, 12
 ENERGY_ULPS = 16.0    # a residual that stops decreasing within this many ulps of its terms'
                       # size is round-off (two ulps: converged at once)
 MAX_UPDATES = 12      # alpha updates a step at most (two or three are typical)
 ALPHA_MAX = 0.25      # |alpha| beyond this: the step is far too long for the energy condition
 FRESH_ULPS = 32.0     # the step past the root that measures this step's slope, in ulps of E
 ALPHA_PROBE = 1e-6    # the first secant step when no slope is known (the first step)
+SCAN_STEP = 1.0 / 32.0   # the fallback's first offset from the centre (doubled every two)
+ALPHA_LIMIT = 1.0     # the fallback's largest offset: no root closer than this fails the step
+FALLBACK_UPDATES = 36  # alpha updates the fallback may add to MAX_UPDATES
 # update_alpha's answers
 CONVERGED, UPDATED, FAILED, REITERATE = 0, 1, 2, 3
+# the step's status when update_alpha fails (after core's OK .. TOO_SMALL, 0 .. 4; mapped to
+# integrators.errors.EnergyConditionError by errors.step_error, the one table)
+NO_ENERGY_ROOT = 5
 
 
 @jit
@@ -118,6 +129,7 @@ def start(es, eref):
     es[3] = eref[2]
     es[4] = 0.0
     es[5] = 0.0
+    es[ES_MODE] = 0.0
 
 
 @jit
@@ -233,9 +245,13 @@ def update_alpha(es, E, scale, floor):
 
     Returns CONVERGED, REITERATE (converged, with alpha's last correction in es[0]: gamma is
     iterated to convergence for it, without measuring again), UPDATED (a new alpha in es[0])
-    or FAILED (MAX_UPDATES reached, or an
-    alpha beyond ALPHA_MAX or not finite: the energy condition has no small solution at this
-    step size).
+    or FAILED (E not finite, or no root found by the fallback, :func:`start_root_search`:
+    no sign change of E within ALPHA_LIMIT of where the secant stopped; the loop's status
+    NO_ENERGY_ROOT).  A secant step beyond ALPHA_MAX with the last step's slope is replaced by
+    a probe that measures this step's slope (dE/dalpha may have changed sign since: its
+    leading term is -xi_1^2 h^3 H'''(f, f, f), :mod:`integrators.equip`); one beyond ALPHA_MAX
+    with this step's own slope, or MAX_UPDATES updates, starts the fallback.  Where the
+    secant converges the answers are those of the secant alone, bit for bit.
 
     The slope is the secant of the last two measurements when their residuals differ by more
     than their rounding (four ulps of the terms' size), else the last step's (E(alpha) is
@@ -277,8 +293,10 @@ def update_alpha(es, E, scale, floor):
             es[0] -= E / D
             return REITERATE
         return CONVERGED
+    if es[ES_MODE] != 0.0:
+        return root_search(es, E)
     if es[4] >= MAX_UPDATES:
-        return FAILED
+        return start_root_search(es, E, D)
     es[1] = es[0]
     es[2] = E
     if slope:
@@ -290,8 +308,99 @@ def update_alpha(es, E, scale, floor):
     else:
         a = es[0] + ALPHA_PROBE
     if not (abs(a) <= ALPHA_MAX):
-        return FAILED
+        if es[5] == 0.0 and slope:
+            # the last step's slope sends alpha out of range: dE/dalpha changes along the
+            # trajectory and may have changed sign since (its leading term is a third
+            # derivative of H, module docstring of integrators.equip): measure this step's
+            a = es[0] + ALPHA_PROBE
+        else:
+            return start_root_search(es, E, D)
     es[0] = a
+    es[4] += 1.0
+    return UPDATED
+
+
+@jit
+def start_root_search(es, E, D):
+    """The fallback of :func:`update_alpha` when the secant with this step's own slope leaves
+    |alpha| <= ALPHA_MAX, or makes no progress in MAX_UPDATES updates: E(alpha) is smooth, but
+    the secant's linear model does not hold so far out (E is nearly quadratic in alpha where
+    dE/dalpha passes through zero).  The point just measured, (es[0], E), becomes the centre of
+    a scan at offsets +-SCAN_STEP, +-2 SCAN_STEP, +-4 SCAN_STEP, ... (first towards the
+    secant's side) up to ALPHA_LIMIT, and the first sign change of E on either side gives a
+    bracket, narrowed by regula falsi (:func:`root_search`): the root closest to the centre,
+    never a point that is not a root (the step then fails)."""
+    c = es[0]
+    es[1] = c
+    es[2] = E
+    direction = 1.0
+    if np.isfinite(D) and D != 0.0 and E / D > 0.0:
+        direction = -1.0
+    es[ES_CENTRE] = c
+    es[ES_DIR] = direction
+    es[ES_A] = c
+    es[ES_EA] = E
+    es[ES_B] = c
+    es[ES_EB] = E
+    es[ES_MODE] = 1.0
+    es[0] = c + direction * SCAN_STEP
+    es[4] += 1.0
+    return UPDATED
+
+
+@jit
+def root_search(es, E):
+    """One step of the fallback's scan or regula falsi (:func:`start_root_search`) from the
+    residual E measured at es[0]; UPDATED (the next alpha in es[0]) or FAILED (no sign change
+    up to ALPHA_LIMIT from the centre, or a bracket narrowed to adjacent numbers without a
+    residual at round-off: E is not continuous there)."""
+    if es[4] >= MAX_UPDATES + FALLBACK_UPDATES:
+        return FAILED
+    mode = es[ES_MODE]
+    a = es[0]
+    es[1] = a
+    es[2] = E
+    if mode > 0.0:
+        j = int(mode) - 1
+        ia, ie = (ES_A, ES_EA) if j % 2 == 0 else (ES_B, ES_EB)
+        Ep = es[ie]
+        if (E > 0.0) != (Ep > 0.0):
+            # a sign change between this side's last point and this one: the bracket
+            es[ES_A] = es[ia]
+            es[ES_EA] = Ep
+            es[ES_B] = a
+            es[ES_EB] = E
+            mode = -1.0
+        else:
+            es[ia] = a
+            es[ie] = E
+            j += 1
+            offset = SCAN_STEP * 2.0 ** (j // 2)
+            if offset > ALPHA_LIMIT:
+                return FAILED
+            side = 1.0 if j % 2 == 0 else -1.0
+            es[ES_MODE] = j + 1.0
+            es[0] = es[ES_CENTRE] + side * es[ES_DIR] * offset
+            es[4] += 1.0
+            return UPDATED
+    elif (E > 0.0) == (es[ES_EA] > 0.0):
+        es[ES_A] = a
+        es[ES_EA] = E
+        if mode == -2.0:           # A kept twice: Illinois halves B's residual
+            es[ES_EB] *= 0.5
+        mode = -2.0
+    else:
+        es[ES_B] = a
+        es[ES_EB] = E
+        if mode == -3.0:
+            es[ES_EA] *= 0.5
+        mode = -3.0
+    aA, eA, aB, eB = es[ES_A], es[ES_EA], es[ES_B], es[ES_EB]
+    new = (aA * eB - aB * eA) / (eB - eA)
+    if not (min(aA, aB) < new < max(aA, aB)):
+        return FAILED
+    es[ES_MODE] = mode
+    es[0] = new
     es[4] += 1.0
     return UPDATED
 

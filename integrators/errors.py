@@ -6,7 +6,10 @@ to the last committed step (like scipy's ``solve_ivp``).
 """
 from __future__ import annotations
 
+import re
+
 from .core import DIVERGED, NOT_FINITE, UNRESOLVED
+from .equip_core import ALPHA_LIMIT, NO_ENERGY_ROOT
 
 
 def _rebuild(cls, args, state):
@@ -36,6 +39,7 @@ class StepError(RuntimeError):
     """
 
     result = None
+    method = "HBVM"     # the method's name in the message (errors.step_error sets EQUIP's)
 
     def __reduce__(self):
         # the subclasses' __init__ take other arguments than args: copy and pickle (dask sends
@@ -43,7 +47,8 @@ class StepError(RuntimeError):
         return _rebuild, (type(self), self.args, self.__dict__)
 
     def _where(self) -> str:
-        return f"HBVM step of size h={self.h:.6g}" + ("" if self.t is None else f" at t={self.t:.17g}")
+        return (f"{self.method} step of size h={self.h:.6g}"
+                + ("" if self.t is None else f" at t={self.t:.17g}"))
 
 
 class ConvergenceError(StepError):
@@ -64,6 +69,29 @@ class ConvergenceError(StepError):
                 else f"{solver} iteration stopped")
         super().__init__(f"{self._where()} did not converge: {what} after {iterations} "
                          f"iterations with increment {residual:.3e}; {hint}")
+
+
+class EnergyConditionError(ConvergenceError):
+    """An EQUIP step whose energy condition has no root near the last step's alpha: its Gauss
+    iteration converged for every alpha tried, but H(y1(alpha)) - H(y0) kept one sign over
+    |alpha - alpha_last| <= :data:`integrators.equip_core.ALPHA_LIMIT`
+    (:func:`integrators.equip_core.update_alpha`; the derivation is in
+    :mod:`integrators.equip`).  Nothing was committed.  A subclass of ConvergenceError: the
+    step's nonlinear system (stages and alpha together) has no solution there."""
+
+    def __init__(self, h: float, residual: float, iterations: int, solver: str,
+                 t: float | None = None, hint: str | None = None, method: str = "EQUIP"):
+        self.h, self.residual, self.iterations, self.solver, self.t = h, residual, iterations, solver, t
+        self.method = method
+        self.hint = hint or ("use a smaller step (the energy condition's root moves towards "
+                             "alpha = 0 as h^(2s-2)), or HBVM(k, s), which conserves the energy "
+                             "without alpha")
+        RuntimeError.__init__(self, f"{self._where()} did not converge: no alpha (the "
+                                    f"perturbation of the Gauss method) within {ALPHA_LIMIT:g} "
+                                    f"of the secant's last conserves the energy (E(alpha) keeps "
+                                    f"one sign there: dE/dalpha, whose leading term is -xi_1^2 "
+                                    f"h^3 H'''(y)(f, f, f), passes through zero near this "
+                                    f"state); {self.hint}")
 
 
 class NonFiniteError(ConvergenceError):
@@ -142,17 +170,30 @@ class StepSizeError(StepError):
 
 
 def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
-               energy_tol: float | None = None, hints: dict | None = None) -> StepError:
+               energy_tol: float | None = None, hints: dict | None = None,
+               method: str | None = None) -> StepError:
     """The exception for a failed step's status code (the one table of the project).
 
     ``counters`` is the step's counter array (layout in :mod:`integrators.core`); ``solver``
     the solver that failed, or "auto" when the automatic switch to Newton failed too; ``hints``
     maps "diverged", "not_finite" and "unresolved" to a host's own advice (REBOUND's sim.dt,
     ASE's timestep).  ``energy_tol`` is the check the step ran (:func:`integrators.engine.
-    energy_check`: negative for the energy-flow check of a method not exact for H)."""
+    energy_check`: negative for the energy-flow check of a method not exact for H).
+    ``method``: the name the message gives the step ("HBVM", "EQUIP"; None: the error's own,
+    HBVM but for EQUIP's energy condition)."""
+    exc = _step_error(status, h, t, counters, solver, energy_tol, hints or {})
+    if method is not None and method != exc.method:
+        exc.method = method
+        exc.args = (re.sub(r"^\w+ step", f"{method} step", str(exc), count=1),)
+    return exc
+
+
+def _step_error(status, h, t, counters, solver, energy_tol, hints):
     from .core import C_CHANGE, C_LAST, C_LASTIT
-    hints = hints or {}
     it = int(counters[C_LASTIT])
+    if status == NO_ENERGY_ROOT:
+        return EnergyConditionError(h, float(counters[C_LAST]), it, solver, t,
+                                    hints.get("energy_condition"))
     if status == DIVERGED:
         return ConvergenceError(h, float(counters[C_LAST]), it, solver, t, hints.get("diverged"))
     if status == NOT_FINITE:

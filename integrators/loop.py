@@ -263,7 +263,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     hist[2] = np.inf
                     hist[3] = np.inf
                 else:
-                    break                       # status DIVERGED: no small alpha conserves H
+                    status = eq.NO_ENERGY_ROOT      # no alpha near the last conserves H
+                    break
                 continue
             if newton:
                 if narrowb:

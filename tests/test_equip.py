@@ -130,14 +130,126 @@ def test_fpu_quartic_energy_exact():
     assert g.max_energy_error > 10 * r.max_energy_error
 
 
-@pytest.mark.xfail(strict=True, raises=ConvergenceError,
-                   reason="with s = 2 the energy condition on FPU's stiff chain loses its small "
-                          "solution: dE/dalpha crosses zero where the Gauss step's energy error "
-                          "does not; the step fails loudly (s = 4 works, above)")
 def test_fpu_s2():
+    """FPU's stiff chain with s = 2 (issue 35, item 5): dE/dalpha (leading term -xi_1^2 h^3
+    H'''(f, f, f)) changes sign along the trajectory, and the secant with the last step's slope
+    left |alpha| <= 0.25 (a ConvergenceError before the fix); the root is small (|alpha| <=
+    0.034 over the run) and the step now measures its own slope and finds it."""
     fpu = FPU(3, 50.0)
     r = integrate(EQUIP(4, 2), fpu, fpu.initial_state(), 0.001, 2000, sample_every=100)
     assert r.max_energy_error <= 1e-13
+
+
+# -- the energy condition's root search (integrators.equip_core.update_alpha) ----------------
+def _solve_alpha(E_of, alpha_last, slope_last, scale=1e-3):
+    """update_alpha driven by a given E(alpha), as the step drives it: (answer, alpha, updates)."""
+    from integrators import equip_core as ec
+    es = np.zeros(ec.ES)
+    ec.start(es, np.array([np.nan, alpha_last, slope_last]))
+    while True:
+        answer = ec.update_alpha(es, E_of(es[0]), scale, 0.0)
+        if answer != ec.UPDATED:
+            return answer, es[0], int(es[4])
+
+
+def test_root_search_with_a_stale_slope_of_the_wrong_sign():
+    """ASE's copper nanoparticle at t = 205 fs (43 atoms, 5 fs, s = 2), E(alpha) as measured
+    there (E = g0 + a (alpha + alpha^2 / 2), exact for s = 2 at order h^3): the last step's
+    root was alpha = -0.07 with slope -2.5e-6, this step's slope is +6.5e-6 and its root +0.031.
+    The secant with the stale slope jumped to alpha < -0.25 and the step failed; the step
+    measures its own slope first, and converges to the root."""
+    from integrators import equip_core as ec
+    E_of = lambda a: -2.0e-7 + 6.5e-6 * (a + 0.5 * a * a)       # noqa: E731
+    answer, alpha, updates = _solve_alpha(E_of, -0.07, -2.5e-6)
+    assert answer in (ec.CONVERGED, ec.REITERATE), answer
+    root = (-6.5e-6 + np.sqrt(6.5e-6 ** 2 + 4 * 3.25e-6 * 2.0e-7)) / 6.5e-6
+    assert abs(alpha - root) <= 1e-12 and updates <= 6, (alpha, root, updates)
+
+
+def test_root_search_beyond_the_secant_range():
+    """No root with |alpha| <= 0.25 (ALPHA_MAX), one at -0.4 (E a function of (1 + alpha)^2,
+    as for s = 2): the fresh secant leaves the range, the scan brackets the root closest to
+    the start and regula falsi finds it."""
+    from integrators import equip_core as ec
+    E_of = lambda a: 9.4e-8 + 9.4e-8 / 0.64 * ((1 + a) ** 2 - 1)      # noqa: E731
+    answer, alpha, updates = _solve_alpha(E_of, 1e-3, 2.9e-7)
+    assert answer in (ec.CONVERGED, ec.REITERATE), answer
+    assert abs(alpha + 0.4) <= 1e-9 and updates <= ec.MAX_UPDATES + ec.FALLBACK_UPDATES
+
+
+def test_root_search_without_a_root_fails():
+    """E(alpha) < 0 for every alpha (the 19-atom copper cluster at t = 0, seed 2, 5 fs): the
+    search fails (never a converged alpha that is not a root) within its budget."""
+    from integrators import equip_core as ec
+    E_of = lambda a: -4.7e-8 + 1.6e-7 * a - 5.0e-7 * a * a        # max -3.4e-8 at 0.16
+    answer, alpha, updates = _solve_alpha(E_of, np.nan, np.nan)
+    assert answer == ec.FAILED
+    assert updates <= ec.MAX_UPDATES + ec.FALLBACK_UPDATES
+
+
+def _copper19(seed):
+    from ase.calculators.emt import EMT
+    from ase.cluster.cubic import FaceCenteredCubic
+    from hbvm_md.reports.md_comparison import maxwell_boltzmann
+    atoms = FaceCenteredCubic("Cu", [(1, 0, 0), (1, 1, 0), (1, 1, 1)], [2, 2, 2],
+                              latticeconstant=3.61)
+    maxwell_boltzmann(atoms, 300.0, seed)
+    atoms.calc = EMT()
+    return atoms
+
+
+def test_ase_copper_cluster_where_the_secant_failed():
+    """19 EMT copper atoms (ASE's tutorial cluster, smaller), 5 fs, s = 2, seed 3: before the
+    root search the step at t = 75 fs failed ("did not converge", increment at round-off);
+    now the steps past it keep the energy to 1e-9 eV/atom and the angular momentum to
+    round-off."""
+    from ase import units
+    from hbvm_md import HBVMDynamics
+    atoms = _copper19(3)
+    dyn = HBVMDynamics(atoms, 5 * units.fs, method="equip")
+    E, L = [], []
+
+    def observe():
+        E.append(atoms.get_potential_energy() + atoms.get_kinetic_energy())
+        L.append(np.cross(atoms.get_positions(), atoms.get_momenta()).sum(axis=0))
+    dyn.attach(observe)
+    dyn.run(18)
+    L = np.array(L)
+    scale = np.sum(np.linalg.norm(atoms.get_positions(), axis=1)
+                   * np.linalg.norm(atoms.get_momenta(), axis=1))
+    assert np.ptp(E) / len(atoms) <= 1e-9, np.ptp(E)
+    assert np.max(np.linalg.norm(L - L[0], axis=1)) / scale <= 1e-14
+
+
+def test_ase_copper_cluster_without_a_root_says_equip():
+    """Where no alpha conserves the energy (19 copper atoms at t = 0, seed 2, 5 fs, s = 2:
+    E(alpha) < 0 for every alpha) the step fails loudly, names EQUIP and the energy
+    condition, and leaves the atoms as they were."""
+    from ase import units
+    from hbvm_md import HBVMDynamics
+    from integrators import EnergyConditionError
+    atoms = _copper19(2)
+    q, p = atoms.get_positions(), atoms.get_momenta()
+    dyn = HBVMDynamics(atoms, 5 * units.fs, method="equip")
+    with pytest.raises(EnergyConditionError, match=r"^EQUIP step of size h=5 fs at t=0 fs did "
+                                                   r"not converge: no alpha .* conserves the "
+                                                   r"energy .*use a smaller timestep"):
+        dyn.run(1)
+    assert np.array_equal(atoms.get_positions(), q) and np.array_equal(atoms.get_momenta(), p)
+
+
+def test_step_errors_name_the_method():
+    from integrators.core import DIVERGED, N_COUNTERS
+    from integrators.equip_core import NO_ENERGY_ROOT
+    from integrators.errors import EnergyConditionError, step_error
+    c = np.zeros(N_COUNTERS)
+    assert str(step_error(DIVERGED, 0.1, 2.0, c, "newton")).startswith("HBVM step of size h=0.1")
+    err = step_error(DIVERGED, 0.1, 2.0, c, "newton", method="EQUIP")
+    assert str(err).startswith("EQUIP step of size h=0.1 at t=2 did not converge: newton")
+    for method in ("EQUIP", None):      # (None: a host that does not name the method)
+        err = step_error(NO_ENERGY_ROOT, 0.1, None, c, "fixed_point", method=method)
+        assert isinstance(err, EnergyConditionError) and isinstance(err, ConvergenceError)
+        assert str(err).startswith("EQUIP step of size h=0.1 did not converge: no alpha")
 
 
 class _CoupledOscillators(SeparableSystem):
