@@ -263,3 +263,18 @@ def test_changing_the_integrator_gives_a_short_message():
     msg = str(info.value)
     assert re.fullmatch(r"sim\.integrator is 'whfast', not HBVM .*", msg)
     assert len(msg) < 160 and "IntegratorConfiguration" not in msg
+
+
+@pytest.mark.parametrize("method", ["hbvm", "equip"])
+def test_a_failed_step_names_the_method_it_ran(method):
+    """A fixed step far too long for the orbit fails, and REBOUND's message names the method
+    the simulation runs (EQUIP's said "HBVM step" before), with the particles unchanged."""
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.9)
+    sim.move_to_com()
+    HBVMIntegrator(sim, method=method, s=4, dt=50.0)
+    before = [(p.x, p.vx) for p in sim.particles]
+    with pytest.raises(Exception, match=rf"^{method.upper()} step of size h=50"):
+        sim.integrate(100.0)
+    assert [(p.x, p.vx) for p in sim.particles] == before and sim.t == 0.0

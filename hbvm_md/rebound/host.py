@@ -479,16 +479,18 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
         return _test_particle_failure(sim, st, sd, h, t, counters)
     enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
     near = _encounter_text(sim, enc, h)
+    which = int(st[L.SL_METHOD])                       # the message names the method run
+    name = L.METHODS[which].upper() if 0 <= which < len(L.METHODS) else None
     if status == TOO_SMALL:
         cause_status = int(sd[L.SL_CAUSE_STATUS])
         cause = (f"error estimate {sd[L.SL_CAUSE_ERR]:.3e} > epsilon={sd[L.SL_EPSILON]:.3e}"
                  if cause_status == OK else
                  str(step_error(cause_status, h, t, counters, "fixed_point", energy_tol=etol,
-                                hints={k: "a smaller step" for k in _HINTS})))
+                                hints={k: "a smaller step" for k in _HINTS}, method=name)))
         exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
     else:
         exc = step_error(status, h, t, counters, "fixed_point", energy_tol=etol,
-                         hints={k: near + v for k, v in _HINTS.items()})
+                         hints={k: near + v for k, v in _HINTS.items()}, method=name)
     exc.encounter = enc
     return exc
 
