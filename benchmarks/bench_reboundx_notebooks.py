@@ -165,7 +165,18 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
             result["uses"].append(f"operator {n}")
             return lo(self, n)
 
+        cf, co = E.create_force, E.create_operator
+
+        def create_force(self, n):
+            result["uses"].append(f"Python force {n}")
+            return cf(self, n)
+
+        def create_operator(self, n):
+            result["uses"].append(f"Python operator {n}")
+            return co(self, n)
+
         E.load_force, E.load_operator = load_force, load_operator
+        E.create_force, E.create_operator = create_force, create_operator
         del io
     except ImportError:
         pass
@@ -337,6 +348,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", help="only notebooks whose name contains one of these")
     ap.add_argument("--save", help="also pickle every run's raw results to this file")
     ap.add_argument("--load", help="compare the runs pickled by --save instead of running")
+    ap.add_argument("--no-run", action="store_true",
+                    help="with --load: list the notebooks not loaded as not run")
     ap.add_argument("--timeout", type=float, default=TIMEOUT, help="seconds a run may take")
     args = ap.parse_args()
     globals()["TIMEOUT"] = args.timeout
@@ -355,6 +368,9 @@ def main() -> None:
             continue
         sh = SHORTEN.get(nb, [])
         runs = saved.get(nb, {}) if args.load else {}
+        if args.no_run and len(runs) < 3:
+            rows.append(f"| {who} {nb} | - | not run in this session | - | - | - | - |")
+            continue
         for integ in ("ias15", "hbvm", "ias15 tight"):
             if integ in runs:
                 continue
@@ -362,7 +378,7 @@ def main() -> None:
             print(f"  {nb} {integ}: {runs[integ]['status']} {runs[integ]['time']:.2f} s "
                   f"{runs[integ]['message']}", file=sys.stderr, flush=True)
         saved[nb] = runs
-        if args.save:
+        if args.save and not args.no_run:
             with open(args.save, "wb") as fh:
                 pickle.dump(saved, fh)
         h, i, it = runs["hbvm"], runs["ias15"], runs["ias15 tight"]
@@ -386,6 +402,7 @@ def main() -> None:
         print(rows[-1], flush=True)
     if args.only:
         return
+    incomplete = sum("not run in this session" in r for r in rows)
     import rebound
     import reboundx
     from hbvm_md.reports.machine import machine
@@ -399,7 +416,8 @@ def main() -> None:
            "defaults, then by IAS15's defaults, then by IAS15 at epsilon 1e-11. Difference: the "
            "largest over the arrays the notebook plots and the final positions of its "
            "simulations of max |a - b| / max |b|. Time: the notebook's code cells, HBVM / "
-           "IAS15, one run each.", "",
+           "IAS15, one run each." + (f" {incomplete} notebooks were not run in the session that "
+                                     "wrote this file (time)." if incomplete else ""), "",
            "| notebook | what it uses | runs with HBVM? | HBVM vs IAS15 | IAS15 vs IAS15 at "
            "1e-11 (IAS15's own error) | error measures it plots (largest): HBVM / IAS15 / "
            "IAS15 at 1e-11 | time HBVM / IAS15 |",
