@@ -250,6 +250,77 @@ def test_reboundx_operators_are_applied(order, operator):
         assert abs(out["ias15"] / math.exp(-1.0) - 1) < 1e-2
 
 
+def _losing_mass(integ, *, planets=0.0, softening=0.0, dt=None):
+    """REBOUNDx's ModifyMass notebook: a star losing mass through ``modify_mass`` (tau_mass =
+    -100 here, -1e4 there) with bodies at 1, 2 and 3 AU (test particles there; ``planets``:
+    the mass of the two inner ones), in AU, yr, Msun; fixed steps of ``dt`` when given
+    (IAS15 at epsilon 0), so that both integrators apply the operator at the same times."""
+    sim = rebound.Simulation()
+    sim.G = 4 * np.pi ** 2
+    sim.add(m=1.0)
+    for a, m in ((1.0, planets), (2.0, planets), (3.0, 0.0)):
+        sim.add(m=m, a=a, e=0.05)
+    sim.move_to_com()
+    sim.softening = softening
+    sim.integrator = integ
+    if dt is not None:
+        sim.dt = dt
+        if integ == "ias15":
+            sim.integrator.epsilon = 0.0
+        else:
+            HBVMIntegrator(sim, dt=dt)
+    rebx = reboundx.Extras(sim)
+    op = rebx.load_operator("modify_mass")
+    rebx.add_operator(op)
+    sim.particles[0].params["tau_mass"] = -100.0
+    return sim, rebx
+
+
+@pytest.mark.filterwarnings("ignore:REBOUNDx")
+@pytest.mark.filterwarnings("ignore:HBVM. the gravitating bodies have no energy")
+@pytest.mark.parametrize("planets, softening", [(0.0, 0.0), (1e-3, 0.0), (1e-3, 1e-6)])
+def test_modify_mass_continues_in_place_as_ias15(monkeypatch, planets, softening):
+    """A mass changed by a REBOUNDx operator after every step: the step continues with the new
+    masses in place (hbvm_md.rebound.masses), without preparing the model again at each step
+    (it did: 34 times IAS15's time on the ModifyMass notebook), and the run agrees with IAS15's
+    at the same fixed steps: test particles about the star (the notebook's scene), massive
+    planets with a test particle (the followers' parameters), and on REBOUND's own
+    accelerations (softening).  Measured: 1e-12 to 9e-12 AU after 10 yr (mass 1 -> 0.905)."""
+    from hbvm_md.rebound import host
+    prepared = []
+    real = host._prepare
+    monkeypatch.setattr(host, "_prepare", lambda sim, p: prepared.append(1) or real(sim, p))
+    sims = {}
+    for integ in ("ias15", "hbvm"):
+        sims[integ] = sim, _ = _losing_mass(integ, planets=planets, softening=softening,
+                                            dt=0.01)
+        sim.integrate(10.0)
+    hb = sims["hbvm"][0]
+    assert hb.particles[0].m == pytest.approx(math.exp(-0.1), rel=1e-5)
+    assert hb.particles[0].m == sims["ias15"][0].particles[0].m    # (the same steps)
+    assert _diff(sims["ias15"][0], hb) < 1e-8
+    assert len(prepared) == 1 and int(hb.integrator.nsteps) >= 1000
+    # each step's mass change taken in place (the first step's resync is the first prepare)
+    assert int(hb.integrator.resyncs) >= int(hb.integrator.nsteps) - 1
+
+
+@pytest.mark.filterwarnings("ignore:REBOUNDx")
+def test_modify_mass_in_place_equals_a_fresh_prepare(monkeypatch):
+    """The in-place update is the step a fresh prepare builds: massive planets and a test
+    particle, adaptive steps, with and without it (the fresh prepare zeroes the previous
+    coefficients and the step-size history, so the steps differ at round-off only)."""
+    from hbvm_md.rebound import host
+    runs = []
+    for in_place in (True, False):
+        if not in_place:
+            monkeypatch.setattr(host, "masses_only", lambda r, p: False)
+        sim, rebx = _losing_mass("hbvm", planets=1e-3)
+        sim.integrate(10.0)
+        runs.append(sim)
+    assert runs[0].particles[0].m == pytest.approx(runs[1].particles[0].m, rel=1e-12)
+    assert _diff(*runs) < 1e-10
+
+
 def test_failed_step_on_rebound_forces_leaves_the_simulation():
     """A step on REBOUND's own accelerations writes its stages into the particles and sim.t; a
     failed one leaves them exactly as they were."""

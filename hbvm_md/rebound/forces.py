@@ -189,6 +189,18 @@ def rebound_energy(y, params):
     return 0.5 * kin + G * v + u
 
 
+@jit
+def scene_set_masses(params, masses):
+    """A :class:`ReboundScene`'s parameters <- those of the same scene with the masses (N,),
+    in place: the gravitating masses g (the energy's; REBOUND reads its own masses for the
+    accelerations).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
+    N = int(params[P_N])
+    g0 = P_HEAD + 4 * int(params[P_NPOT]) + 2 * N
+    for i in range(N):
+        if params[g0 + i] > 0.0:
+            params[g0 + i] = masses[i]
+
+
 # -- what a scene has, read from the simulation ---------------------------------------------------
 def _reboundx_forces(sim):
     """[(name, address of the rebx_force)] of the REBOUNDx forces attached to ``sim`` when its
