@@ -349,6 +349,36 @@ def test_refusals_name_the_reason():
         HBVMIntegrator(sim)
 
 
+def test_spin_odes_are_refused_naming_the_reboundx_effect():
+    """REBOUNDx ``tides_spin`` evolves the spins as an ODE attached to the simulation, which
+    REBOUND steps with BS after each step of IAS15 (split): HBVM refuses it naming the effect,
+    the reason and the fixes (it said "1 user ODEs attached ... BS only"); a user's own ODE is
+    named as such."""
+    sim = rebound.Simulation()
+    sim.units = ("AU", "Msun", "yr")
+    sim.add(m=2, r=1e-2)
+    sim.add(m=3e-3, r=5e-4, a=0.03)
+    sim.move_to_com()
+    sim.integrator = "hbvm"
+    rebx = reboundx.Extras(sim)
+    sf = rebx.load_force("tides_spin")
+    rebx.add_force(sf)
+    for p, omega, k in ((sim.particles[0], [0, 0, 2e3], 0.1), (sim.particles[1], [0, 0, 1e4], 0.25)):
+        p.params["Omega"] = omega
+        p.params["I"] = k * p.m * p.r ** 2
+        p.params["k2"] = 0.1
+    rebx.initialize_spin_ode(sf)
+    with pytest.raises(ValueError, match=r"REBOUNDx 'tides_spin''s ODE \(its bodies' spins\) "
+                       r"attached: REBOUND steps attached ODEs with its BS integrator after each "
+                       r"step of any integrator but BS.*use integrator 'ias15'.* or 'bs'"):
+        sim.integrate(1e-3)
+    ode = sim.create_ode(length=1)
+    with pytest.raises(ValueError, match=r"REBOUNDx 'tides_spin''s ODE \(its bodies' spins\) "
+                       r"and 1 user ODEs attached: "):
+        sim.integrate(1e-3)
+    del ode
+
+
 @pytest.mark.xfail(strict=True, reason="known weakness: on REBOUND's own accelerations (the full "
                    "form) H drifts linearly at a rate that grows with k (about -1e-14 over 20 yr "
                    "at k = 12, -5e-14 over 100 yr; k = 8, the default, about 4e-15 over 100 yr); "

@@ -235,6 +235,34 @@ def added_forces(sim) -> list[str]:
     return [f"REBOUNDx '{name}'" for name, _ in rebx]
 
 
+def ode_owners(sim) -> list[str | None]:
+    """What each ODE attached to ``sim`` (``sim._odes``) is: "REBOUNDx 'NAME''s ODE (...)" for the
+    one a REBOUNDx force carries (``Extras.initialize_spin_ode``: the spins that ``tides_spin``
+    evolves, found as the force's ``ode`` parameter; ``spin_ode`` in older REBOUNDx), else "a user's ODE"."""
+    n = int(sim._N_odes)
+    odes = [ctypes.cast(sim._odes[i], ctypes.c_void_p).value for i in range(n)]
+    owner = {}
+    if n and sim.extras:
+        try:
+            import reboundx
+        except ImportError:
+            reboundx = None
+        if reboundx is not None:
+            E = reboundx.extras
+            node = E.Extras.from_address(sim.extras)._allocated_forces
+            while node:
+                force = E.Force.from_address(node.contents.object)
+                ap = force.ap
+                while ap:
+                    par = E.Param.from_address(ap.contents.object)
+                    if par.name in (b"ode", b"spin_ode") and par.value in odes:
+                        owner[par.value] = force.name.decode() if force.name else "?"
+                    ap = ap.contents.next
+                node = node.contents.next
+    return [f"REBOUNDx '{owner[o]}''s ODE (its bodies' spins)" if o in owner else None
+            for o in odes]
+
+
 def semi_active(sim) -> bool:
     """Does ``sim`` have semi-active particles (``testparticle_type = 1`` with particles past
     ``N_active``)?"""
