@@ -72,7 +72,7 @@ SHORTEN: dict[str, list[tuple[str, str]]] = {
     "ParameterInterpolation": [("np.linspace(0., 4.e6, Nout)", "np.linspace(0., 4.e5, Nout)")],
     "Radiation_Forces_Circumplanetary_Dust": [("np.linspace(0,100.*yr, Noutput)",
                                                "np.linspace(0,10.*yr, Noutput)")],
-    "Simulationarchive": [("integrate(1.e6)", "integrate(1.e4)")],
+    "Simulationarchive": [("integrate(1.e6)", "integrate(1.e4)"), ("interval=1e3", "interval=10")],
     "SpinsIntro": [("tmax = 4e4*ps[1].P", "tmax = 4e3*ps[1].P")],
     "StochasticForces": [("1e4*np.pi*2., 1000", "1e3*np.pi*2., 1000"),
                          ("np.logspace(0.,5, 1000)", "np.logspace(0.,4, 1000)")],
