@@ -203,13 +203,18 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
                  "imshow", "pcolormesh", "contour", "contourf"):
         capture(meth)
 
-    # warm-up, untimed: the compiled step loaded from disk (both of HBVM's paths)
-    for soft in (0.0, 0.01):
+    # warm-up, untimed: the compiled step loaded from disk (both of HBVM's paths, with and
+    # without test particles: each a compiled variant of its own)
+    for soft, tp in ((0.0, False), (0.01, False), (0.0, True), (0.01, True)):
         w = rebound.Simulation()
         w.add(m=1.0)
         w.add(m=1e-3, a=1.0)
+        if tp:
+            w.add(m=0.0, a=2.0)
         w.softening = soft
-        w.integrate(1.0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            w.integrate(1.0)
     result["uses"].clear()
 
     import __main__                     # (a notebook's Pool pickles its functions by name)
