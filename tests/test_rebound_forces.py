@@ -349,6 +349,22 @@ def test_refusals_name_the_reason():
         HBVMIntegrator(sim)
 
 
+def test_stochastic_forces_are_refused_naming_them():
+    """REBOUNDx ``stochastic_forces`` draws new kicks at every call: an HBVM step's iteration
+    cannot converge (a fixed step failed with a ConvergenceError blaming an encounter; adaptive
+    steps shrank without end: REBOUNDx's StochasticForces notebook ran over 900 s, IAS15 2 min).
+    Refused at once, naming the force and the fixes."""
+    sim = _planets("hbvm")
+    rebx = reboundx.Extras(sim)
+    sto = rebx.load_force("stochastic_forces")
+    rebx.add_force(sto)
+    sim.particles[1].params["kappa"] = 1e-5
+    with pytest.raises(ValueError, match=r"REBOUNDx 'stochastic_forces' \(draws new random kicks "
+                       r"at every call, .*use integrator 'ias15' or 'whfast'"):
+        sim.integrate(1.0)
+    assert sim.t == 0.0
+
+
 def test_spin_odes_are_refused_naming_the_reboundx_effect():
     """REBOUNDx ``tides_spin`` evolves the spins as an ODE attached to the simulation, which
     REBOUND steps with BS after each step of IAS15 (split): HBVM refuses it naming the effect,

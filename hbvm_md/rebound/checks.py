@@ -16,7 +16,8 @@ def check_simulation(sim) -> None:
     Additional forces (REBOUNDx's or a user's), softening, semi-active particles
     (``testparticle_type = 1``) and ``gravity = 'none'`` are honoured: such a scene runs on
     REBOUND's own accelerations at the stages (:mod:`hbvm_md.rebound.forces`)."""
-    from hbvm_md.rebound.forces import host_reasons, ode_owners
+    from hbvm_md.rebound.forces import (NOT_OF_THE_STATE, host_reasons, ode_owners,
+                                        random_forces)
     problems = []
     host = host_reasons(sim)
     for j in range(int(sim.N_var_config) if sim.N_var > 0 else 0):
@@ -43,6 +44,12 @@ def check_simulation(sim) -> None:
         problems.append(f"boundary={sim.boundary!r} (REBOUND wraps or removes particles "
                         "between steps, which a high-order step's polynomial cannot follow; "
                         "set sim.boundary = 'none')")
+    for name in random_forces(sim):
+        problems.append(
+            f"REBOUNDx '{name}' ({NOT_OF_THE_STATE[name]}, so the stage equations of an "
+            "implicit HBVM step have no solution: its iteration cannot converge, and adaptive "
+            "steps shrink without end; IAS15 accepts its last iterate, WHFast takes one kick "
+            "a step); use integrator 'ias15' or 'whfast'")
     if sim._N_odes > 0:
         owners = ode_owners(sim)
         users = owners.count(None)

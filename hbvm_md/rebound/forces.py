@@ -224,6 +224,17 @@ def _reboundx_forces(sim):
     return out
 
 
+#: REBOUNDx forces that are not functions of the state (name -> why): an implicit step has no
+#: stage equations to solve with them
+NOT_OF_THE_STATE = {"stochastic_forces": "draws new random kicks at every call"}
+
+
+def random_forces(sim) -> list[str]:
+    """Names of the REBOUNDx forces attached to ``sim`` that are not functions of the state
+    (:data:`NOT_OF_THE_STATE`)."""
+    return [name for name, _ in (_reboundx_forces(sim) or []) if name in NOT_OF_THE_STATE]
+
+
 def added_forces(sim) -> list[str]:
     """Names of the forces added to ``sim`` beyond its gravity: REBOUNDx's by name, else
     "a user's additional_forces function"; [] when there are none."""
