@@ -81,7 +81,9 @@ SHORTEN: dict[str, list[tuple[str, str]]] = {
     "TidesSpinPseudoSynchronization": [("tmax = 2 * np.pi * 1e4", "tmax = 2 * np.pi * 1e3")],
     "TypeIMigration": [("np.linspace(0, 4e3, 1000)", "np.linspace(0, 4e2, 1000)")],
     "YarkovskyEffect": [("tmax=100000", "tmax=10000")],
-    "PoincareMap": [("N_points_max = 2000", "N_points_max = 200"), ("Nsim = 10", "Nsim = 4")],
+    "PoincareMap": [("N_points_max = 2000", "N_points_max = 200"), ("Nsim = 10", "Nsim = 4"),
+                    # (the standard library's Pool: the multiprocess package is not a dependency)
+                    ("from multiprocess import Pool", "from multiprocessing import Pool")],
     "PrimordialEarth": [("N_pl = 8500", "N_pl = 300"),
                         ("np.linspace(0.,1000.,1000)", "np.linspace(0.,100.,1000)")],
     "EccentricComets": [("tmax = 1e4", "tmax = 1e3")],
