@@ -349,6 +349,33 @@ def test_refusals_name_the_reason():
         HBVMIntegrator(sim)
 
 
+def test_open_boundary_removes_the_escaper_and_continues_as_ias15():
+    """``boundary = 'open'`` (REBOUND's EccentricComets notebook) only removes the particles
+    that left the box, after a step: the next step starts afresh from the rest (it was refused
+    as if REBOUND wrapped them).  An escaping test particle: removed by both, the planet where
+    IAS15 leaves it (measured 2e-14).  A wrapping boundary stays refused."""
+    sims = []
+    for integ in ("ias15", "hbvm"):
+        sim = rebound.Simulation()
+        sim.add(m=1.0)
+        sim.add(m=1e-3, a=1.0, e=0.05)
+        sim.add(m=0.0, a=-2.0, e=1.5, f=0.3)
+        sim.move_to_com()
+        sim.boundary = "open"
+        sim.root_size = 20.0
+        sim.integrator = integ
+        sim.integrate(30.0)
+        sims.append(sim)
+    assert sims[0].N == sims[1].N == 2
+    assert _diff(*sims) < 1e-8
+    sim = _planets("hbvm")
+    sim.boundary = "periodic"
+    sim.root_size = 20.0
+    with pytest.raises(ValueError, match="boundary='periodic' .*set sim.boundary = 'none' or "
+                                         "'open'"):
+        sim.integrate(1.0)
+
+
 def test_stochastic_forces_are_refused_naming_them():
     """REBOUNDx ``stochastic_forces`` draws new kicks at every call: an HBVM step's iteration
     cannot converge (a fixed step failed with a ConvergenceError blaming an encounter; adaptive

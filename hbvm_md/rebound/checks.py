@@ -40,10 +40,12 @@ def check_simulation(sim) -> None:
         problems.append(f"gravity={sim.gravity!r} (an approximate or integrator-specific "
                         "gravity; HBVM takes direct steps: use 'basic', 'compensated' or "
                         "'none')")
-    if sim.boundary != "none":
-        problems.append(f"boundary={sim.boundary!r} (REBOUND wraps or removes particles "
+    if sim.boundary not in ("none", "open"):
+        # ('open' only removes the particles that left the box, after a step: the next step
+        # starts afresh from those that remain, as after any removal between runs)
+        problems.append(f"boundary={sim.boundary!r} (REBOUND wraps particles across the box "
                         "between steps, which a high-order step's polynomial cannot follow; "
-                        "set sim.boundary = 'none')")
+                        "set sim.boundary = 'none' or 'open')")
     for name in random_forces(sim):
         problems.append(
             f"REBOUNDx '{name}' ({NOT_OF_THE_STATE[name]}, so the stage equations of an "
