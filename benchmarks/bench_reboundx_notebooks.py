@@ -258,7 +258,8 @@ def _run(path: str, integ: str, shorten: list) -> dict:
     with tempfile.TemporaryDirectory() as d:
         for f in os.listdir(os.path.dirname(path)):           # (data files the notebook reads)
             if f.endswith((".txt", ".bin", ".csv", ".dat")):
-                os.symlink(os.path.join(os.path.dirname(path), f), os.path.join(d, f))
+                os.symlink(os.path.abspath(os.path.join(os.path.dirname(path), f)),
+                           os.path.join(d, f))
         out = os.path.join(d, "result.pkl")
         env = dict(os.environ, MPLBACKEND="Agg",
                    PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]))
