@@ -74,6 +74,7 @@ SHORTEN: dict[str, list[tuple[str, str]]] = {
                                                "np.linspace(0,10.*yr, Noutput)")],
     "Simulationarchive": [("integrate(1.e6)", "integrate(1.e4)"), ("interval=1e3", "interval=10")],
     "SpinsIntro": [("tmax = 4e4*ps[1].P", "tmax = 4e3*ps[1].P")],
+    "StochasticForcesCartesian": [("np.linspace(0.,100, 1000)", "np.linspace(0.,10, 1000)")],
     "StochasticForces": [("1e4*np.pi*2., 1000", "1e3*np.pi*2., 1000"),
                          ("np.logspace(0.,5, 1000)", "np.logspace(0.,4, 1000)")],
     "TidesConstantTimeLag": [("tmax = 2.5e5", "tmax = 2.5e4")],
