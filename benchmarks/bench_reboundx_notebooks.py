@@ -425,7 +425,8 @@ def main() -> None:
            "defaults, then by IAS15's defaults, then by IAS15 at epsilon 1e-11. Difference: the "
            "largest over the arrays the notebook plots and the final positions of its "
            "simulations of max |a - b| / max |b|. Time: the notebook's code cells, HBVM / "
-           "IAS15, one run each." + (f" {incomplete} notebooks were not run in the session that "
+           "IAS15, one run each, taken back to back (with --load, notebooks run in several "
+           "sessions at different loads: a ratio compares two runs of one session)." + (f" {incomplete} notebooks were not run in the session that "
                                      "wrote this file (time)." if incomplete else ""), "",
            "| notebook | what it uses | runs with HBVM? | HBVM vs IAS15 | IAS15 vs IAS15 at "
            "1e-11 (IAS15's own error) | error measures it plots (largest): HBVM / IAS15 / "
