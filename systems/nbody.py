@@ -267,6 +267,32 @@ def followers_block(G, masses, is_source) -> np.ndarray:
 
 
 @jit
+def nbody_set_masses(params, masses):
+    """The kernel parameters of :meth:`NBody.separable_kernels` (``kernel_params`` then
+    ``followers_block``) <- those of the same sources with the masses (N,), in place: each
+    source's w and g, and its entries in the followers block's own parameters.  Every other
+    entry depends on which bodies are sources, not on the masses' values: the caller keeps
+    the sources (no source's mass becomes 0, no other body's nonzero, the same ``n_active``).
+    The REBOUND host changes masses in place with it (a REBOUNDx operator changing a mass at
+    every step)."""
+    N = int(params[1])
+    f = 3 * N + 3
+    own = -1
+    if params.shape[0] > f:                   # the followers block: its sources' own params
+        own = f + 4 + int(params[f + 2]) + int(params[f])
+    ns = int(params[own + 1]) if own >= 0 else 0
+    k = 0
+    for i in range(N):
+        if params[2 + N + i] > 0.0:           # g: the gravitating mass (0: not a source)
+            params[2 + i] = masses[i]
+            params[2 + N + i] = masses[i]
+            if own >= 0:
+                params[own + 2 + k] = masses[i]
+                params[own + 2 + ns + k] = masses[i]
+            k += 1
+
+
+@jit
 def nbody_followers(params):
     """Where :func:`followers_block` starts in ``params``, or -1 when it is empty (a scene of
     sources only, or of test particles only): the step's hook (:mod:`integrators.loop`)."""

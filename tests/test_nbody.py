@@ -213,6 +213,22 @@ def test_test_particles_far_outside_the_sources_leave_them_bit_for_bit():
     assert d == 0.0
 
 
+@pytest.mark.parametrize("masses, n_active", [
+    ([1.0, 1e-3, 3e-4], None),                      # sources only
+    ([1.0, 0.0, 1e-3, 0.0, 2e-4], None),            # sources and test particles (followers)
+    ([1.0, 1e-3, 5e-4, 1e-6], 2),                   # bodies past n_active
+    ([0.0, 0.0], None)])                            # test particles only
+def test_set_masses_gives_the_parameters_of_the_new_masses(masses, n_active):
+    """nbody_set_masses (the REBOUND host's change of masses in place) writes exactly the
+    kernel parameters an NBody of the new masses has, the followers block included."""
+    from systems.nbody import nbody_set_masses
+    m = np.array(masses)
+    new = m * np.linspace(0.5, 0.9, m.size)               # the same bodies nonzero
+    params = NBody(m, G=2.0, n_active=n_active)._params.copy()
+    nbody_set_masses(params, new)
+    assert np.array_equal(params, NBody(new, G=2.0, n_active=n_active)._params)
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="`masses` must be finite and >= 0"):
         NBody([1.0, -1.0])

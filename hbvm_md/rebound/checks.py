@@ -16,7 +16,8 @@ def check_simulation(sim) -> None:
     Additional forces (REBOUNDx's or a user's), softening, semi-active particles
     (``testparticle_type = 1``) and ``gravity = 'none'`` are honoured: such a scene runs on
     REBOUND's own accelerations at the stages (:mod:`hbvm_md.rebound.forces`)."""
-    from hbvm_md.rebound.forces import host_reasons
+    from hbvm_md.rebound.forces import (NOT_OF_THE_STATE, host_reasons, ode_owners,
+                                        random_forces)
     problems = []
     host = host_reasons(sim)
     for j in range(int(sim.N_var_config) if sim.N_var > 0 else 0):
@@ -39,13 +40,30 @@ def check_simulation(sim) -> None:
         problems.append(f"gravity={sim.gravity!r} (an approximate or integrator-specific "
                         "gravity; HBVM takes direct steps: use 'basic', 'compensated' or "
                         "'none')")
-    if sim.boundary != "none":
-        problems.append(f"boundary={sim.boundary!r} (REBOUND wraps or removes particles "
+    if sim.boundary not in ("none", "open"):
+        # ('open' only removes the particles that left the box, after a step: the next step
+        # starts afresh from those that remain, as after any removal between runs)
+        problems.append(f"boundary={sim.boundary!r} (REBOUND wraps particles across the box "
                         "between steps, which a high-order step's polynomial cannot follow; "
-                        "set sim.boundary = 'none')")
+                        "set sim.boundary = 'none' or 'open')")
+    for name in random_forces(sim):
+        problems.append(
+            f"REBOUNDx '{name}' ({NOT_OF_THE_STATE[name]}, so the stage equations of an "
+            "implicit HBVM step have no solution: its iteration cannot converge, and adaptive "
+            "steps shrink without end; IAS15 accepts its last iterate, WHFast takes one kick "
+            "a step); use integrator 'ias15' or 'whfast'")
     if sim._N_odes > 0:
-        problems.append(f"{sim._N_odes} user ODEs attached (REBOUND integrates them with BS "
-                        "only; use integrator 'bs')")
+        owners = ode_owners(sim)
+        users = owners.count(None)
+        what = [o for o in owners if o] + ([f"{users} user ODEs"] if users else [])
+        problems.append(
+            f"{' and '.join(what)} attached: REBOUND steps "
+            "attached ODEs with its BS integrator after each step of any integrator but BS, "
+            "split from the N-body step (IAS15 runs such a scene so, at its short steps); at "
+            "HBVM's long steps that splitting error is large (measured on REBOUNDx's "
+            "SpinsIntro scene: the planet's spin 1.3e-3 off after 400 orbits, IAS15's 7e-5), "
+            "so HBVM refuses them; use integrator 'ias15' (the ODEs split at its steps) or "
+            "'bs' (the ODEs and the N-body step integrated together)")
     if problems:
         raise ValueError("HBVM cannot honour this simulation: " + "; ".join(problems))
 

@@ -189,6 +189,18 @@ def rebound_energy(y, params):
     return 0.5 * kin + G * v + u
 
 
+@jit
+def scene_set_masses(params, masses):
+    """A :class:`ReboundScene`'s parameters <- those of the same scene with the masses (N,),
+    in place: the gravitating masses g (the energy's; REBOUND reads its own masses for the
+    accelerations).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
+    N = int(params[P_N])
+    g0 = P_HEAD + 4 * int(params[P_NPOT]) + 2 * N
+    for i in range(N):
+        if params[g0 + i] > 0.0:
+            params[g0 + i] = masses[i]
+
+
 # -- what a scene has, read from the simulation ---------------------------------------------------
 def _reboundx_forces(sim):
     """[(name, address of the rebx_force)] of the REBOUNDx forces attached to ``sim`` when its
@@ -212,6 +224,17 @@ def _reboundx_forces(sim):
     return out
 
 
+#: REBOUNDx forces that are not functions of the state (name -> why): an implicit step has no
+#: stage equations to solve with them
+NOT_OF_THE_STATE = {"stochastic_forces": "draws new random kicks at every call"}
+
+
+def random_forces(sim) -> list[str]:
+    """Names of the REBOUNDx forces attached to ``sim`` that are not functions of the state
+    (:data:`NOT_OF_THE_STATE`)."""
+    return [name for name, _ in (_reboundx_forces(sim) or []) if name in NOT_OF_THE_STATE]
+
+
 def added_forces(sim) -> list[str]:
     """Names of the forces added to ``sim`` beyond its gravity: REBOUNDx's by name, else
     "a user's additional_forces function"; [] when there are none."""
@@ -221,6 +244,34 @@ def added_forces(sim) -> list[str]:
     if rebx is None:
         return ["a user's additional_forces function"]
     return [f"REBOUNDx '{name}'" for name, _ in rebx]
+
+
+def ode_owners(sim) -> list[str | None]:
+    """What each ODE attached to ``sim`` (``sim._odes``) is: "REBOUNDx 'NAME''s ODE (...)" for the
+    one a REBOUNDx force carries (``Extras.initialize_spin_ode``: the spins that ``tides_spin``
+    evolves, found as the force's ``ode`` parameter; ``spin_ode`` in older REBOUNDx), else "a user's ODE"."""
+    n = int(sim._N_odes)
+    odes = [ctypes.cast(sim._odes[i], ctypes.c_void_p).value for i in range(n)]
+    owner = {}
+    if n and sim.extras:
+        try:
+            import reboundx
+        except ImportError:
+            reboundx = None
+        if reboundx is not None:
+            E = reboundx.extras
+            node = E.Extras.from_address(sim.extras)._allocated_forces
+            while node:
+                force = E.Force.from_address(node.contents.object)
+                ap = force.ap
+                while ap:
+                    par = E.Param.from_address(ap.contents.object)
+                    if par.name in (b"ode", b"spin_ode") and par.value in odes:
+                        owner[par.value] = force.name.decode() if force.name else "?"
+                    ap = ap.contents.next
+                node = node.contents.next
+    return [f"REBOUNDx '{owner[o]}''s ODE (its bodies' spins)" if o in owner else None
+            for o in odes]
 
 
 def semi_active(sim) -> bool:

@@ -25,6 +25,7 @@ from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
 from hbvm_md.rebound.forces import ReboundScene, host_reasons
 from hbvm_md.rebound.glue import Host, Rebound
+from hbvm_md.rebound.masses import masses_only
 from integrators import records as R
 
 NAME = "hbvm"
@@ -349,7 +350,8 @@ def _drop_messages(sim, ours: str) -> None:
 # -- the callbacks the compiled step calls --------------------------------------------------------
 def _prepare_cb(r: int, p: int) -> int:
     try:
-        _prepare(_rebound().Simulation.from_address(r), p)
+        if not masses_only(r, p):                  # (a change of masses only: in place)
+            _prepare(_rebound().Simulation.from_address(r), p)
         return OK
     except BaseException as exc:  # noqa: BLE001 - ctypes would print and swallow it
         _PENDING[r] = exc

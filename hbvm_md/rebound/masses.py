@@ -1,0 +1,136 @@
+"""Masses changed between two steps, taken in place: the REBOUND host's answer to a RESYNC
+that a change of masses alone caused.
+
+REBOUNDx's ``modify_mass`` (and any operator or callback that changes masses) changes a mass
+after every step.  The compiled step then answers RESYNC (:mod:`hbvm_md.rebound.glue` reads
+moved particles itself, but a mass is part of the model), and the host's ``prepare`` used to
+build the model, the binding and the context block again at every step (measured on REBOUNDx's
+ModifyMass notebook: about 0.4 ms a step, 34 times IAS15's time for the run).  With the same
+particle array, N, G, N_active, settings and method, no variational particles and the same
+bodies gravitating (no mass became zero or nonzero), nothing of that changes but numbers:
+:func:`masses_only` writes the new masses where the step reads them and returns True, and the
+step goes on.
+
+What is updated: the masses in the kernel parameters (:func:`systems.nbody.nbody_set_masses`,
+:func:`hbvm_md.rebound.forces.scene_set_masses`: each model owns its layout); on the separable
+N-body form the weights 1/m and the kinetic weights of the sources (as
+:class:`integrators.engine.Binding` computes them from ``NBody.masses``); the context's copy of
+the particles; the state from REBOUND's particles (q = x, and p = m v with the new masses, or
+the velocities on REBOUND's own accelerations; the compensations zeroed, as the glue does
+for moved particles).  The reference energy starts afresh, as after any resync: the energy
+check then compares each step with its own start, and the energy that the mass change moved
+is not counted as the step's error.  The previous coefficients stay the next step's initial
+guess (the fixed-point iteration converges from them to the same solution).
+"""
+from __future__ import annotations
+
+import ctypes
+
+import numpy as np
+
+from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.forces import scene_set_masses
+from integrators.jit import jit
+from systems.nbody import nbody_set_masses
+
+_METHOD_SLOTS = ((L.SL_S, L.D_S), (L.SL_K, L.D_K), (L.SL_NODES, L.D_NODES),
+                 (L.SL_METHOD, L.D_METHOD))
+
+
+def _int64s(addr: int, n: int) -> np.ndarray:
+    return np.frombuffer((ctypes.c_int64 * n).from_address(addr), np.int64)
+
+
+def _doubles(addr: int, n: int) -> np.ndarray:
+    return np.frombuffer((ctypes.c_double * n).from_address(addr), np.float64)
+
+
+def masses_only(r: int, p: int) -> bool:
+    """Take a change of masses only in place (module docstring): True when done, False
+    (nothing changed) when the host must prepare the step afresh.  r: the simulation's
+    address, p: HBVM's state's."""
+    st = _int64s(p, L.N_SLOTS)
+    if not (st[L.SL_CTX] and st[L.SL_CORE]):
+        return False
+    ctx = _int64s(int(st[L.SL_CTX]), L.N_HEADER)
+    if ctx[L.D_NV] != 0 or any(st[a] != ctx[b] for a, b in _METHOD_SLOTS):
+        return False
+    # what the compiled step's RESYNC tests compare (glue.core_step, step_arrays)
+    simi = _int64s(r, int(ctx[L.R_HEAD]))
+    N = int(ctx[L.D_N])
+    host = _doubles(int(ctx[L.A_HOST]), L.N_HOST)
+    if (simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N
+            or simi.view(np.float64)[ctx[L.R_G]] != host[0]
+            or float(simi[ctx[L.R_NACTIVE]]) != host[1]
+            or not np.array_equal(simi[ctx[L.C_WORDS:L.C_VALUES]],
+                                  ctx[L.C_VALUES:L.C_VALUES + L.N_CFG])):
+        return False
+    m = int(ctx[L.D_M])
+    stride = int(ctx[L.R_STRIDE])
+    done = update_masses(
+        _doubles(int(ctx[L.D_PTR]), N * stride).reshape(N, stride),
+        _doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7),
+        _doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P])),
+        _doubles(int(ctx[L.A_MINV]), 2 * m if ctx[L.D_FULL] else m),
+        _doubles(int(ctx[L.A_KINW]), m), _doubles(int(st[L.SL_Y]), 4 * m),
+        _doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_FULL]),
+        int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]))
+    if done:
+        st[L.SL_RESYNCS] += 1
+    return done
+
+
+@jit
+def update_masses(view, written, params, minv, kin_w, y, eref, full, ix, ivx, im):
+    """The step's arrays <- REBOUND's particles whose masses (and perhaps positions and
+    velocities) changed since the last commit, in place (module docstring).
+
+    view: (N, stride) REBOUND's particles (x, vx, m at columns ix, ivx, im); written (N, 7):
+    the last commit's x, v, m; params: the kernel parameters; minv (u,), kin_w (m,): the
+    step's weights; y (4m,): the state and its compensations; eref: the energy reference (and
+    EQUIP's alpha and slope); full: the state is (q, clock, v, 0) on REBOUND's own
+    accelerations, else (q, p) of the N-body kernel.  Returns False, changing nothing, when no
+    mass changed, a value is not finite or negative, or a body's mass became or stopped
+    being zero (the model's structure changes: the host prepares afresh)."""
+    N = view.shape[0]
+    changed = False
+    for i in range(N):
+        mi, wi = view[i, im], written[i, 6]
+        if not (np.isfinite(mi) and mi >= 0.0) or (mi > 0.0) != (wi > 0.0):
+            return False
+        changed = changed or mi != wi
+        for c in range(3):
+            if not (np.isfinite(view[i, ix + c]) and np.isfinite(view[i, ivx + c])):
+                return False
+    if not changed:
+        return False
+    mass = np.empty(N)
+    for i in range(N):
+        mass[i] = view[i, im]
+    m = y.shape[0] // 4
+    if full:
+        scene_set_masses(params, mass)
+    else:
+        nbody_set_masses(params, mass)
+    for i in range(N):
+        # a source's momentum is m v and its weights 1/m (kin_w > 0 marks a source: a test
+        # particle's momentum is its velocity, weight 1, kinetic weight 0); the full form's
+        # state holds velocities
+        source = not full and kin_w[3 * i] > 0.0
+        for c in range(3):
+            j = 3 * i + c
+            y[j] = view[i, ix + c]
+            if source:
+                minv[j] = 1.0 / mass[i]
+                kin_w[j] = minv[j]
+                y[m + j] = view[i, ivx + c] * mass[i]
+            else:
+                y[m + j] = view[i, ivx + c]
+            written[i, c] = view[i, ix + c]
+            written[i, 3 + c] = view[i, ivx + c]
+        written[i, 6] = mass[i]
+    for j in range(2 * m, 4 * m):
+        y[j] = 0.0                     # the compensations
+    for j in range(eref.shape[0]):
+        eref[j] = np.nan
+    return True
