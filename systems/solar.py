@@ -119,7 +119,6 @@ def solar_system(epoch="2000-01-01T12:00:00", bodies: Sequence[str] = ("sun", "j
         (N,); ``masses`` has one per degree of freedom (3N,), as the integrators need.
     """
     from astropy import units as u
-    from astropy.time import Time
     if isinstance(bodies, str):
         raise ValueError(f"`bodies` must be a sequence of names, e.g. bodies=('sun', {bodies!r}) "
                          f"(got the string {bodies!r}, which would be read letter by letter)")

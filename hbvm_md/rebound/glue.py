@@ -93,7 +93,8 @@ def reread_particles(view, written, ix, ivx, im, y, cy, minv):
     same masses: q = x, p = v / minv (the momenta, or the velocities of the state on REBOUND's
     own accelerations, whose weights are 1), their compensations zeroed; ``written`` <- them.
     Returns False, changing nothing, when a mass changed or a value is not finite: the host
-    then prepares the step afresh (and names what is wrong)."""
+    then updates the masses in place (:mod:`hbvm_md.rebound.masses`, when nothing else
+    changed) or prepares the step afresh (and names what is wrong)."""
     N = view.shape[0]
     for i in range(N):
         if view[i, im] != written[i, 6]:
