@@ -25,7 +25,7 @@ from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NF
 from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
-from integrators.records import Samples, State, StepConstants, tableau
+from integrators.records import Samples, State, StepConstants, Tableau
 from integrators.followers import follow
 
 _force = None        # bound by integrators.specialise
@@ -34,6 +34,14 @@ _followers = None    # (the followers hook: core.no_followers when none; their s
                      # integrators.followers, bound with its own hook _field)
 _EQUIP = None        # the method the step is built for (True: EQUIP, False: HBVM), bound by
                      # integrators.specialise; None (a step built for both): from its arrays
+
+
+def tableau(method):
+    """The method's packed arrays (:class:`integrators.records.Method`) named at their shapes
+    (:class:`integrators.records.Tableau`): tau, tau_lo (k,), X0, X0_lo (s,) (X_s's first row),
+    W, W_lo (s, k), C2, C2_lo, I, I_lo (k, s) (for EQUIP, Gauss's: HBVM(s, s)'s)."""
+    tn, ts, Wp, Cp = method
+    return Tableau(tn[0], tn[1], ts[0], ts[1], Wp[0], Wp[1], Cp[0], Cp[1], Cp[2], Cp[3])
 
 
 def is_equip(method):

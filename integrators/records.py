@@ -19,7 +19,9 @@ The step's signatures (:mod:`integrators.loop`, :mod:`integrators.tangent`,
   nodes tau and their rounding remainders, ``ts`` (2+, s) X_s's first row, ``Wp`` (2+, s, K)
   the projection W = P_s^T Omega and its remainders, ``Cp`` (4+, K, s) C2 = I_s X_s and I_s with
   their remainders; EQUIP adds planes (:mod:`integrators.equip_core`).
-  :func:`integrators.loop.tableau` names them at their natural shapes (:class:`Tableau`);
+  :func:`integrators.loop.tableau` names them at their natural shapes (:class:`Tableau`)
+  inside the step (where a compiled step never returns it to Python: boxing a named tuple
+  runs Python code, which a signal handler could interrupt);
 * :class:`Newton` -- the simplified-Newton matrices of :mod:`integrators.core` (``NM`` of shape
   (0, u, u): the fixed-point iteration);
 * :class:`Options` -- the iteration cap, its tolerance (0: to round-off) and the energy check's
@@ -45,7 +47,6 @@ from __future__ import annotations
 
 from collections import namedtuple
 
-from integrators.jit import jit
 
 System = namedtuple("System", ["full", "minv", "kin_w", "params"])
 State = namedtuple("State", ["y", "cy", "gamma", "eref", "clock"])
@@ -66,14 +67,5 @@ Variational = namedtuple("Variational", ["max_iter", "y0", "cy0", "gsave", "snap
 
 
 
-@jit(inline=True)
-def tableau(method):
-    """The method's packed arrays (:class:`Method`) named at their shapes: tau, tau_lo (k,),
-    X0, X0_lo (s,) (X_s's first row), W, W_lo (s, k), C2, C2_lo, I, I_lo (k, s) (for EQUIP,
-    Gauss's: HBVM(s, s)'s)."""
-    tn, ts, Wp, Cp = method
-    return Tableau(tn[0], tn[1], ts[0], ts[1], Wp[0], Wp[1], Cp[0], Cp[1], Cp[2], Cp[3])
-
-
-__all__ = ["tableau", "System", "State", "Method", "Tableau", "Newton", "Options", "Work", "Samples",
+__all__ = ["System", "State", "Method", "Tableau", "Newton", "Options", "Work", "Samples",
            "Extrapolation", "Adaptive", "StepConstants", "Block", "Tangents", "Variational"]

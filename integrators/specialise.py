@@ -51,7 +51,7 @@ import numba
 from . import (absent, core, equip_core, followers, jit as _jitmod, loop, pointers as _pointersmod,
                records as _recordsmod, tangent)
 
-LOOP_FUNCTIONS = ("is_equip", "evaluate", "energy_parts", "run",
+LOOP_FUNCTIONS = ("tableau", "is_equip", "evaluate", "energy_parts", "run",
                   "advance", "attempt")
 # the followers' step (integrators.followers), appended for a system with followers
 FOLLOWER_FUNCTIONS = ("follower_stages", "gather_followers", "follow")
@@ -66,7 +66,7 @@ _TANGENT_PATH = Path(tangent.__file__)
 # inlined into their compiled callers (module docstring, "Compile time"): a REBOUND step is
 # then one compiled function (glue.core_step), an engine's step one (advance, run or
 # run_variational); each also compiles as its own entry point when called from Python
-INLINED = ("advance", "attempt", "step_arrays")
+INLINED = ("tableau", "advance", "attempt", "step_arrays")
 # the full form's pieces of integrators.core, bound to integrators.absent in a separable step
 FULL_FUNCTIONS = ("full_stages", "full_stages_narrow", "symplectic", "commit_full")
 # what a host's glue calls for variational particles, bound to integrators.absent without

@@ -42,7 +42,7 @@ from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, R
                               max_abs2, newton_update, project, project_narrow, stage_positions,
                               stage_positions_narrow, step_constants, symplectic, work_sizes)
 from integrators.pointers import view1
-from integrators.records import StepConstants, tableau
+from integrators.records import StepConstants
 
 _force_jvp = None    # bound by integrators.specialise
 TANGENT_FAILED = 16  # run_variational's return for a step whose tangent map failed: + status
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     # run_variational calls the loop's advance and energy_parts: integrators.specialise appends
     # this text to the loop's, where they are the loop's bound to the same kernels (imported
     # here for readers and linters only: integrators.loop's own are not bound to any kernel)
-    from integrators.loop import advance, energy_parts
+    from integrators.loop import advance, energy_parts, tableau
 
 
 def evaluate_jvp(full, X, dX, params, dF, dG):
