@@ -12,6 +12,7 @@ import warnings
 import numpy as np
 
 from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
 from integrators.core import (C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error,
@@ -61,9 +62,6 @@ def _slots(p: int) -> tuple[np.ndarray, np.ndarray]:
     buf = (ctypes.c_int64 * L.N_SLOTS).from_address(p)
     return np.frombuffer(buf, np.int64), np.frombuffer(buf, np.float64)
 
-
-def _doubles(addr: int, n: int) -> np.ndarray:
-    return np.frombuffer((ctypes.c_double * n).from_address(addr), np.float64) if n else np.zeros(0)
 
 
 def _user_stacklevel() -> int:
@@ -428,10 +426,10 @@ def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> Unresol
     """A fixed step refused for its test particle (the glue's check, layout.TEST_PARTICLE)."""
     from hbvm_md.rebound.glue import TP_FACTOR, TP_FLOOR
     i, err, s = int(sd[L.SL_CAUSE_STATUS]), float(sd[L.SL_CAUSE_ERR]), int(st[L.SL_S])
-    ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st[L.SL_CTX])), np.int64)
+    ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
     m = int(ctx[L.D_M])
-    gammat = _doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
-    minv, kin_w = _doubles(int(ctx[L.A_MINV]), m), _doubles(int(ctx[L.A_KINW]), m)
+    gammat = doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
+    minv, kin_w = doubles(int(ctx[L.A_MINV]), m), doubles(int(ctx[L.A_KINW]), m)
     _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR)
     # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
     h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
@@ -467,7 +465,7 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
     if status in (L.RESYNC, L.BAD_SETTINGS):
         raise RuntimeError("HBVM: the step refused the state its host had just prepared (an "
                            "internal inconsistency; please report it)")
-    counters = _doubles(int(st[L.SL_COUNTERS]), N_COUNTERS)
+    counters = doubles(int(st[L.SL_COUNTERS]), N_COUNTERS)
     h, t = float(sd[L.SL_H_FAIL]), float(sd[L.SL_T_FAIL])
     etol = float(sd[L.SL_ETOL])
     if status > TANGENT_FAILED:
@@ -564,7 +562,7 @@ def _prepare(sim, p: int) -> None:
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     if N == 0 or not ptr:
         raise ValueError("the simulation has no particles")
-    view = _doubles(ptr, N * stride).reshape(N, stride)
+    view = doubles(ptr, N * stride).reshape(N, stride)
     na = sim.N_active
     x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     s = method.s
@@ -598,7 +596,7 @@ def _prepare(sim, p: int) -> None:
                           jvp=nbody_force_jvp if sim.N_var > 0 else None)
         dim = nb.dim
         u, vw = dim, binding.minv
-    y, g, c = (_doubles(int(st[a]), int(st[n])) for a, n in
+    y, g, c = (doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
     keep = (not model_changed and y.size == 4 * dim and g.size == s * u
             and np.array_equal(y[:3 * N], x.reshape(-1))
@@ -657,21 +655,20 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
     without a context (new, loaded, copied) keeps what it carries."""
     if not st[L.SL_CTX]:
         return False
-    ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st[L.SL_CTX])), np.int64)
-    old = _doubles(int(ctx[L.A_HOST]), L.N_HOST)
+    ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
+    old = doubles(int(ctx[L.A_HOST]), L.N_HOST)
     now = (sim.G, float(np.uint64(sim.N_active).astype(np.int64)))
     if old[0] != now[0] or old[1] != now[1] or bool(ctx[L.D_FULL]) != host:
         return True
     N = int(ctx[L.D_N])
     if N == sim.N and host:      # (a state of velocities does not see a mass changed)
-        written = _doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
+        written = doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
         m = np.zeros(N)
         sim.serialize_particle_data(m=m)
         if not np.array_equal(written[:, 6], m):
             return True
     words = ctx[L.C_WORDS:L.C_VALUES]
-    sim_words = np.frombuffer(
-        (ctypes.c_int64 * (int(max(words)) + 1)).from_address(ctypes.addressof(sim)), np.int64)
+    sim_words = int64s(ctypes.addressof(sim), int(max(words)) + 1)
     return not np.array_equal(sim_words[words], ctx[L.C_VALUES:L.C_VALUES + L.N_CFG])
 
 
@@ -706,7 +703,7 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
         if not addr:
             raise MemoryError("HBVM: could not allocate its state")
         st[slot], st[slot_n] = addr, n
-    return _doubles(int(st[slot]), n)
+    return doubles(int(st[slot]), n)
 
 
 def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=False) -> None:
@@ -746,7 +743,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=False) -
     base = _LIBC.malloc(total + 16)
     if not base:
         raise MemoryError("HBVM: could not allocate its step's context")
-    header = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(base), np.int64)
+    header = int64s(base, L.N_HEADER)
     at = base + head
     for k, a in arrays.items():
         header[k] = at
@@ -772,8 +769,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=False) -
     header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1)
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
-    sim_words = np.frombuffer(
-        (ctypes.c_int64 * (max(words) + 1)).from_address(ctypes.addressof(sim)), np.int64)
+    sim_words = int64s(ctypes.addressof(sim), max(words) + 1)
     header[L.C_VALUES:L.C_VALUES + L.N_CFG] = sim_words[words]
     st[L.SL_CTX] = base
 
@@ -782,10 +778,9 @@ def _python_step(code, st):
     """The glue's step_arrays run as Python on views of the state and context block."""
     def step(r: int, p: int) -> int:
         st_, sd = _slots(p)
-        ctx = np.frombuffer((ctypes.c_int64 * L.N_HEADER).from_address(int(st_[L.SL_CTX])),
-                            np.int64)
+        ctx = int64s(int(st_[L.SL_CTX]), L.N_HEADER)
         head = int(ctx[L.R_HEAD])
-        simi = np.frombuffer((ctypes.c_int64 * head).from_address(r), np.int64)
+        simi = int64s(r, head)
         simd = simi.view(np.float64)
         N = int(ctx[L.D_N])
         if simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N or any(
@@ -806,8 +801,8 @@ def _python_step(code, st):
                 return np.zeros(shape, dtype)
             return np.frombuffer((ctypes.c_char * size).from_address(int(ctx[slot])),
                                  dtype).reshape(shape)
-        y = _doubles(int(st_[L.SL_Y]), 4 * m)
-        view = _doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
+        y = doubles(int(st_[L.SL_Y]), 4 * m)
+        view = doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
         pv = f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
         return int(code.step_arrays(
             Rebound(simd, simi, view, ctx, r, pv),
@@ -815,7 +810,7 @@ def _python_step(code, st):
                    f(L.A_HOST, L.N_HOST), f(L.A_VIDX, nv), f(L.A_DGS, (nv, s, m))),
             R.System(bool(ctx[L.D_FULL]), f(L.A_MINV, u), f(L.A_KINW, m),
                      f(L.A_PARAMS, int(ctx[L.D_P]))),
-            R.State(y[:2 * m], y[2 * m:], _doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
+            R.State(y[:2 * m], y[2 * m:], doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
                     sd[L.SL_EREF:L.SL_EREF + L.N_EREF], f(L.A_CLOCK, 2)),
             R.State(f(L.A_YT, 2 * m), f(L.A_CYT, 2 * m), f(L.A_GAMMAT, (s, u)),
                     f(L.A_EREFT, L.N_EREF), f(L.A_CLOCK, 2)),
@@ -824,7 +819,7 @@ def _python_step(code, st):
             R.Newton(f(L.A_NV, (s, s), complex), f(L.A_NVINV, (s, s), complex),
                      f(L.A_NM, (0, m, m), complex)),
             R.Work(f(L.A_WORK, int(ctx[L.D_NF])), f(L.A_CWORK, int(ctx[L.D_NC]), complex),
-                   _doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS)),
+                   doubles(int(st_[L.SL_COUNTERS]), N_COUNTERS)),
             R.Extrapolation(f(L.A_E1, (s, s)), f(L.A_ET, s), f(L.A_EW, s), f(L.A_EBUF, (s, s)),
                             f(L.A_EZERO, (s, s))),
             R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),

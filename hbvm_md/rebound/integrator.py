@@ -7,9 +7,10 @@ import math
 import numpy as np
 
 from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.memory import doubles
 from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
                                     shortest_period)
-from hbvm_md.rebound.host import NAME, _doubles, _rebound, _slots, method_of, register
+from hbvm_md.rebound.host import NAME, _rebound, _slots, method_of, register
 from integrators import EQUIP, HBVM
 from integrators.equip import DEFAULT_EPSILON as EQUIP_DEFAULT_EPSILON, DEFAULT_S as EQUIP_DEFAULT_S
 from integrators.core import N_COUNTERS
@@ -330,7 +331,7 @@ class HBVMIntegrator(Counted):
         """The core's counters (layout of :mod:`integrators.core`), as saved with the run."""
         st, _ = self._slots()
         n = int(st[L.SL_NCOUNTERS])
-        return _doubles(int(st[L.SL_COUNTERS]), n).copy() if n else np.zeros(N_COUNTERS)
+        return doubles(int(st[L.SL_COUNTERS]), n).copy() if n else np.zeros(N_COUNTERS)
 
     nsteps = property(lambda self: self._get(L.SL_NSTEPS), doc="Steps committed.")
     rejected = property(lambda self: self._get(L.SL_REJECTED),

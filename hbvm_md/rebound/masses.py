@@ -24,11 +24,10 @@ guess (the fixed-point iteration converges from them to the same solution).
 """
 from __future__ import annotations
 
-import ctypes
-
 import numpy as np
 
 from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.forces import scene_set_masses
 from integrators.jit import jit
 from systems.nbody import nbody_set_masses
@@ -37,28 +36,20 @@ _METHOD_SLOTS = ((L.SL_S, L.D_S), (L.SL_K, L.D_K), (L.SL_NODES, L.D_NODES),
                  (L.SL_METHOD, L.D_METHOD))
 
 
-def _int64s(addr: int, n: int) -> np.ndarray:
-    return np.frombuffer((ctypes.c_int64 * n).from_address(addr), np.int64)
-
-
-def _doubles(addr: int, n: int) -> np.ndarray:
-    return np.frombuffer((ctypes.c_double * n).from_address(addr), np.float64)
-
-
 def masses_only(r: int, p: int) -> bool:
     """Take a change of masses only in place (module docstring): True when done, False
     (nothing changed) when the host must prepare the step afresh.  r: the simulation's
     address, p: HBVM's state's."""
-    st = _int64s(p, L.N_SLOTS)
+    st = int64s(p, L.N_SLOTS)
     if not (st[L.SL_CTX] and st[L.SL_CORE]):
         return False
-    ctx = _int64s(int(st[L.SL_CTX]), L.N_HEADER)
+    ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
     if ctx[L.D_NV] != 0 or any(st[a] != ctx[b] for a, b in _METHOD_SLOTS):
         return False
     # what the compiled step's RESYNC tests compare (glue.core_step, step_arrays)
-    simi = _int64s(r, int(ctx[L.R_HEAD]))
+    simi = int64s(r, int(ctx[L.R_HEAD]))
     N = int(ctx[L.D_N])
-    host = _doubles(int(ctx[L.A_HOST]), L.N_HOST)
+    host = doubles(int(ctx[L.A_HOST]), L.N_HOST)
     if (simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N
             or simi.view(np.float64)[ctx[L.R_G]] != host[0]
             or float(simi[ctx[L.R_NACTIVE]]) != host[1]
@@ -68,12 +59,12 @@ def masses_only(r: int, p: int) -> bool:
     m = int(ctx[L.D_M])
     stride = int(ctx[L.R_STRIDE])
     done = update_masses(
-        _doubles(int(ctx[L.D_PTR]), N * stride).reshape(N, stride),
-        _doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7),
-        _doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P])),
-        _doubles(int(ctx[L.A_MINV]), 2 * m if ctx[L.D_FULL] else m),
-        _doubles(int(ctx[L.A_KINW]), m), _doubles(int(st[L.SL_Y]), 4 * m),
-        _doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_FULL]),
+        doubles(int(ctx[L.D_PTR]), N * stride).reshape(N, stride),
+        doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7),
+        doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P])),
+        doubles(int(ctx[L.A_MINV]), 2 * m if ctx[L.D_FULL] else m),
+        doubles(int(ctx[L.A_KINW]), m), doubles(int(st[L.SL_Y]), 4 * m),
+        doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_FULL]),
         int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]))
     if done:
         st[L.SL_RESYNCS] += 1
