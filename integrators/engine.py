@@ -453,6 +453,8 @@ class Binding:
             self.kin_w = np.ascontiguousarray(getattr(system, "kinetic_weights", self.minv),
                                               dtype=float)
         self.c1, self.c2 = method_arrays(method)
+        # the method's packed arrays as the step takes them (integrators.records.Method)
+        self.method_record = Method(*self.c1, *self.c2)
         u = d if self.full else m
         s = method.s
         self.u = u
@@ -467,11 +469,6 @@ class Binding:
         """The step's :class:`integrators.records.System` (built at each call: a host may
         replace the binding's arrays)."""
         return System(self.full, self.minv, self.kin_w, self.params)
-
-    @property
-    def method_record(self) -> Method:
-        """The method's packed arrays as the step takes them (:class:`integrators.records.Method`)."""
-        return Method(*self.c1, *self.c2)
 
     def work_record(self, counters: np.ndarray) -> Work:
         """The step's work buffers and the caller's counters (:class:`integrators.records.Work`)."""
@@ -558,10 +555,11 @@ class Binding:
         self.force(np.ascontiguousarray(X), self.params, out)
         return out
 
-    def newton_matrices(self, y: np.ndarray, h: float, counters: np.ndarray) -> tuple:
-        """(NV, NVinv, NM): the simplified-Newton matrices of the Gauss method, I - h X_s (x) J0
-        (full form) or I - h^2 X_s^2 (x) dF/dq M^{-1} (separable), split through X_s's
-        eigenvalues (by the isospectral property they are Gauss's whatever k is).  J0 comes
+    def newton_matrices(self, y: np.ndarray, h: float, counters: np.ndarray) -> "Newton | None":
+        """Newton(NV, NVinv, NM) (:class:`integrators.records.Newton`): the simplified-Newton
+        matrices of the Gauss method, I - h X_s (x) J0 (full form) or I - h^2 X_s^2 (x) dF/dq
+        M^{-1} (separable), split through X_s's eigenvalues (by the isospectral property they
+        are Gauss's whatever k is); None when h is at an eigenvalue of the Jacobian.  J0 comes
         from the system's ``hessian`` or from central differences of the kernel (2u
         evaluations, counted)."""
         system, u, d = self.system, self.u, int(self.system.dim)
@@ -594,7 +592,7 @@ class Binding:
                 NM[i] = np.conj(NM[j]) if j is not None else np.linalg.inv(eye - m_i * L)
             except np.linalg.LinAlgError:   # h at an eigenvalue of the Jacobian: no Newton step
                 return None
-        return V, Vinv, NM
+        return Newton(V, Vinv, NM)
 
 
 def _attach(err: BaseException, result) -> None:
@@ -1047,7 +1045,7 @@ class Stepper(Counted):
             newton = b.no_newton
         status = b.step_code.advance(b.system_record, self._state_record(), h,
                                      self._extrapolation(h, self._h_prev), b.method_record,
-                                     Newton(*newton), self._options(solver),
+                                     newton, self._options(solver),
                                      b.work_record(self.counters))
         if status != OK and solver == "newton":
             self.counters[C_NFEV] = nfev     # the Jacobian's evaluations were the failed step's too

@@ -64,7 +64,6 @@ def follow(y, cy, minv, g, Xs, params, at, sc, tab, opts, R, fb):
     iterations of the slowest follower, the polish included, and the last increment of the
     follower that failed (after max_iter iterations: the largest of those still iterating), 0
     when none did)."""
-    fo = 0
     h, W, W_lo = sc.h, tab.W, tab.W_lo
     max_iter, tol = opts.max_iter, opts.tol
     P = int(params[at])
@@ -77,8 +76,8 @@ def follow(y, cy, minv, g, Xs, params, at, sc, tab, opts, R, fb):
     m = minv.shape[0]
     nmax = min(P, FOLLOWER_GROUP)
     up = nmax * w
-    o_y, o_cy, o_m = fo, fo + 2 * up, fo + 4 * up
-    o_g = fo + 5 * up
+    o_y, o_cy, o_m = 0, 2 * up, 4 * up
+    o_g = 5 * up
     o_all = o_g + s * up
     o_a = o_g + 2 * s * up
     o_x = o_a + s * up

@@ -65,7 +65,5 @@ Tangents = namedtuple("Tangents", ["V", "DG", "Vt", "DGt", "tw", "tcw", "tcount"
 Variational = namedtuple("Variational", ["max_iter", "y0", "cy0", "gsave", "snap", "mg", "wv",
                                          "out_v", "out_m"])
 
-
-
 __all__ = ["System", "State", "Method", "Tableau", "Newton", "Options", "Work", "Samples",
            "Extrapolation", "Adaptive", "StepConstants", "Block", "Tangents", "Variational"]

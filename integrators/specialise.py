@@ -25,10 +25,11 @@ binding uses it, EQUIP only for EQUIP, the tangent map only when a ``jvp`` is bo
 variational particles); what a variant leaves out is bound to the stand-ins of
 :mod:`integrators.absent`, never reached (the variant is part of the module's name).  numba
 optimises and translates a caller together with every compiled function it calls, so a chain
-of calls compiles the callee's code once per level: the wrapper ``advance`` around
-:func:`loop.run` is inlined into its compiled callers instead (:func:`integrators.jit.jit`,
-``inline=True``; the same floating-point operations in the same order, so the same numbers bit
-for bit).  Measured on REBOUND's three-body scene with
+of calls compiles the callee's code once per level: the wrappers around :func:`loop.run`
+(``advance``, ``attempt``, the glue's ``step_arrays``; :data:`INLINED`) are inlined into their
+compiled callers instead (:func:`integrators.jit.jit`, ``inline=True``; the same
+floating-point operations in the same order, so the same numbers bit for bit), and ``run``
+itself is not (numba copies an inlined function's IR once per level: measured dearer).  Measured on REBOUND's three-body scene with
 empty caches: see ``benchmarks/results/cold_start.md`` (``benchmarks/bench_cold_start.py``).
 A compile that is about to run logs one line (logger ``hbvm_md``) saying so;
 :func:`hbvm_md.precompile` (``hbvm-md compile``) compiles the usual variants ahead.

@@ -51,7 +51,7 @@ from . import engine as _engine
 from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
 from .jit import jit
-from .records import Newton, Samples, Tangents, Variational
+from .records import Samples, Tangents, Variational
 from .specialise import specialise
 from .tableau import HBVM
 
@@ -384,7 +384,7 @@ class VariationalStepper(Stepper):
                       else b.no_newton)
             status = b.step_code.tangent_map(
                 b.system_record, y0, cy0, self._gamma, h, self._extrapolation(h, h_prev),
-                b.method_record, Newton(*newton), TANGENT_MAX_ITER[self._solver],
+                b.method_record, newton, TANGENT_MAX_ITER[self._solver],
                 self._tangents())
         except BaseException:
             self.restore_state(before)
