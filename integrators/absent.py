@@ -3,13 +3,14 @@
 :mod:`integrators.specialise` compiles the step of :mod:`integrators.loop` once per scene
 variant: the followers (test particles) only when the system has any, the full form or the
 separable form only as the binding uses, EQUIP only for EQUIP, the tangent map only when
-variational particles ask for it.  The step's code is the same for every variant; what a
-variant leaves out is bound to the functions here, which numba compiles in a fraction of a
-second instead of the real ones (the followers alone are about a sixth of the REBOUND step's
-first compile).  A stand-in is never reached in the variant it is bound in (the step's own
-branches keep it out: ``_followers`` of a system without followers returns -1, the host binds
-the method and the form it then runs), and if it ever were it raises instead of computing
-something else: it is a guard, not a fallback.
+variational particles ask for it.  The step's code is the same for every variant.  The variant
+is declared by module globals of the generated step (``_FULL``, ``_EQUIP``, ``_FOLLOWERS``,
+``_TANGENTS``) that numba reads as constants: the branches they decide are pruned before typing,
+so the parts a variant leaves out are not compiled at all (measured on REBOUND's three-body
+scene with empty caches: 12 % less compile time than compiling these stand-ins in their place).
+The names a variant leaves out are still bound to the functions here, as guards: a stand-in is
+never reached, and if it ever were (a binding that does not match its system or method) it
+raises instead of computing something else.
 
 The EQUIP stand-ins are bound as the step's ``eq`` (the names of
 :mod:`integrators.equip_core`): its constants and ``carve`` (the empty views an HBVM step

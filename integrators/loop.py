@@ -32,8 +32,12 @@ _force = None        # bound by integrators.specialise
 _potential = None
 _followers = None    # (the followers hook: core.no_followers when none; their step is
                      # integrators.followers, bound with its own hook _field)
-_EQUIP = None        # the method the step is built for (True: EQUIP, False: HBVM), bound by
-                     # integrators.specialise; None (a step built for both): from its arrays
+# What the step is built for, bound by integrators.specialise (module docstring there, "Compile
+# time"): numba reads a module global as a constant and prunes the branches it decides before it
+# types them, so the code of a form, a method or a feature a scene does not use is not compiled
+_EQUIP = None        # the method: True EQUIP, False HBVM, None (a step for both): from its arrays
+_FULL = None         # the form: True full, False separable, None (both): from system.full
+_FOLLOWERS = True    # False: a system without followers (test particles)
 
 
 def tableau(method):
@@ -44,17 +48,13 @@ def tableau(method):
     return Tableau(tn[0], tn[1], ts[0], ts[1], Wp[0], Wp[1], Cp[0], Cp[1], Cp[2], Cp[3])
 
 
-def is_equip(method):
-    """Is the step EQUIP's?  As the step was built (:data:`_EQUIP`), else from the method's
-    packed arrays (EQUIP packs its own planes after Gauss's four)."""
-    if _EQUIP is None:
-        return method.Cp.shape[0] > 4
-    return _EQUIP
-
-
 def evaluate(full, X, params, F, G):
     """F <- the right-hand side at the stages X: forces (separable) or J grad H (full)."""
-    if full:
+    if _FULL is None:
+        f = full
+    else:
+        f = _FULL                   # (as built: the other form's branch is not compiled)
+    if f:
         _force(X, params, G)
         symplectic(G, F)
     else:
@@ -63,7 +63,11 @@ def evaluate(full, X, params, F, G):
 
 def energy_parts(full, y, kin_w, params):
     """(T, V) of the separable form (kinetic weights kin_w), or (H, 0) of the full form."""
-    if full:
+    if _FULL is None:
+        f = full
+    else:
+        f = _FULL
+    if f:
         return _potential(y, params), 0.0
     m = kin_w.shape[0]
     return weighted_kinetic(y[m:], kin_w), _potential(y[:m], params)
@@ -90,7 +94,15 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
 
     The step is written inside the loop, not called: a call with this many arrays costs about
     half a microsecond a step (measured on Kepler, where a step costs one)."""
-    full, minv, kin_w, params = system
+    _, minv, kin_w, params = system
+    if _FULL is None:
+        full = system.full
+    else:
+        full = _FULL
+        if system.full != _FULL:
+            raise RuntimeError("hbvm-md: internal error: the step was compiled for the other "
+                               "form (integrators.specialise); its binding does not match the "
+                               "system")
     y, cy, gamma, eref, clock = state
     NV, NVinv, NM = newton
     max_iter, tol, etol = opts
@@ -109,20 +121,29 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         work, cwork, n, s, u, m, y.shape[0])
     # EQUIP (integrators.equip): Gauss's arrays in the places above, its own in more planes;
     # for HBVM the views are empty and every EQUIP branch below is skipped
-    equip = is_equip(method)
-    K = Cp.shape[1] if equip else 0
-    Xk, Fk, rho, htk, htk_lo, es = eq.carve(work, n, s, u, m, y.shape[0], K)
-    if equip and eref.shape[0] < eq.EREF_EQUIP:
-        raise ValueError("internal error: EQUIP carries alpha in eref[1:3]: eref too short")
+    if _EQUIP is None:
+        equip = Cp.shape[0] > 4
+    else:
+        equip = _EQUIP
+    if equip:
+        Xk, Fk, rho, htk, htk_lo, es = eq.carve(work, n, s, u, m, y.shape[0], Cp.shape[1])
+        if eref.shape[0] < eq.EREF_EQUIP:
+            raise ValueError("internal error: EQUIP carries alpha in eref[1:3]: eref too short")
+    else:
+        Xk, Fk, rho = view(work, 0, 0, u), view(work, 0, 0, u), view(work, 0, 0, u)
+        htk, htk_lo, es = view1(work, 0, 0), view1(work, 0, 0), view1(work, 0, 0)
+    K = Xk.shape[0]
     # Followers (module docstring): the sources' stage equations are solved as if alone, on
     # their own copies (the "block" the iteration below works on), then each follower's in
     # their field (follow); without followers the block is the whole system
-    at = -1 if (full or equip or NM.shape[0] > 0) else _followers(params)
+    at = -1
+    if _FOLLOWERS and not (full or equip or NM.shape[0] > 0):
+        at = _followers(params)
     yb, cyb, mb, gb, ab, Xb, Fb, Xpb, Fpb, pb = y, cy, minv, g, a, X, F, Xp, Fp, params
     fb = work[:0]
     fo = 0
     us = 0
-    if at >= 0:
+    if _FOLLOWERS and at >= 0:
         us = int(params[at + 2])
         fb = np.empty(follower_size(n, s, us, int(params[at + 1]), int(params[at])))
         yb, cyb, mb = view1(fb, 0, 2 * us), view1(fb, 2 * us, 2 * us), view1(fb, 4 * us, us)
@@ -166,7 +187,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             guess_narrow(E, gamma, g)
         else:
             guess(E, gamma, g)
-        if at >= 0:          # the sources' block (their guess as computed for all: the same)
+        if _FOLLOWERS and at >= 0:          # the sources' block (their guess as computed for all: the same)
             for c in range(us):
                 col = int(params[at + 4 + c])
                 yb[c], yb[us + c] = y[col], y[m + col]
@@ -231,6 +252,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                 if energy_ok:
                     status = OK
                     break
+                if not equip:      # (never reached: HBVM's energy_ok is True; this test lets
+                    break          # numba leave EQUIP's energy condition out of HBVM's step)
                 # EQUIP: gamma has converged for this alpha (and is polished: a residual
                 # measured before the polish misses the coefficients' low parts, the same
                 # every step, and the energy drifts: 1.8e-13 over 5000 steps of Kepler, s = 4);
@@ -294,7 +317,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             elif action != ITERATE:
                 status = -action
                 break
-        if at >= 0 and status == OK:
+        if _FOLLOWERS and at >= 0 and status == OK:
             for c in range(us):
                 col = int(params[at + 4 + c])
                 for i in range(s):

@@ -22,8 +22,11 @@ once (``integrators/loop.py``) with the kernels as two module globals, and:
 Compile time.  A generated module is compiled once per scene *variant* and cached: the
 followers only for a system with test particles, the full or the separable form only as the
 binding uses it, EQUIP only for EQUIP, the tangent map only when a ``jvp`` is bound (REBOUND:
-variational particles); what a variant leaves out is bound to the stand-ins of
-:mod:`integrators.absent`, never reached (the variant is part of the module's name).  numba
+variational particles).  The variant is declared by the generated module's globals ``_FULL``,
+``_EQUIP``, ``_FOLLOWERS`` (:mod:`integrators.loop`) and ``_TANGENTS`` (the REBOUND glue):
+numba reads a global as a constant and prunes the branches it decides before typing them, so
+what a variant leaves out is not compiled; its names stay bound to the stand-ins of
+:mod:`integrators.absent`, guards never reached (the variant is part of the module's name).  numba
 optimises and translates a caller together with every compiled function it calls, so a chain
 of calls compiles the callee's code once per level: the wrappers around :func:`loop.run`
 (``advance``, ``attempt``, the glue's ``step_arrays``; :data:`INLINED`) are inlined into their
@@ -52,7 +55,7 @@ import numba
 from . import (absent, core, equip_core, followers, jit as _jitmod, loop, pointers as _pointersmod,
                records as _recordsmod, tangent)
 
-LOOP_FUNCTIONS = ("tableau", "is_equip", "evaluate", "energy_parts", "run",
+LOOP_FUNCTIONS = ("tableau", "evaluate", "energy_parts", "run",
                   "advance", "attempt")
 # the followers' step (integrators.followers), appended for a system with followers
 FOLLOWER_FUNCTIONS = ("follower_stages", "gather_followers", "follow")
@@ -156,7 +159,9 @@ def _variant_lines(refs, glue, frefs, variant) -> str:
     full, equip = variant
     lines = ["from integrators import absent as _absent  # noqa: E402"]
     if frefs == NO_FOLLOWERS:
-        lines.append("follow = _absent.follow")
+        lines += ["_FOLLOWERS = False", "follow = _absent.follow"]
+    if full is not None:
+        lines.append(f"_FULL = {bool(full)}")
     if full is False:
         lines += [f"{f} = _absent.{f}" for f in FULL_FUNCTIONS]
     if equip is not None:
@@ -164,7 +169,8 @@ def _variant_lines(refs, glue, frefs, variant) -> str:
     if equip is False:
         lines.append("eq = _absent")
     if glue is not None and len(refs) <= 2:
-        lines += [f"{f} = _absent.{f}" for f in TANGENT_GLUE if hasattr(absent, f)]
+        lines += ["_TANGENTS = False"] + [f"{f} = _absent.{f}" for f in TANGENT_GLUE
+                                          if hasattr(absent, f)]
     return "\n".join(lines) + "\n"
 
 
@@ -271,6 +277,8 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
         functions = functions + glue[1]
     ns["_force"], ns["_potential"] = force, potential
     ns["_EQUIP"] = None if equip is None else bool(equip)
+    ns["_FOLLOWERS"] = follow is not None
+    ns["_TANGENTS"] = jvp is not None
     ns["_followers"], ns["_field"] = follow if follow is not None else (core.no_followers,
                                                                         core.no_field)
     if compile_:

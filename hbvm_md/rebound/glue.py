@@ -57,6 +57,9 @@ GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebou
 #: ends 1e-11 AU from IAS15 at a largest estimate of 7e-3, 1e-7 AU off at 0.19, 0.1 AU off at
 #: 27; the outer solar system's sources at a step of 200 days reach 1.5e-4, test particles at
 #: 7 to 60 AU 4e-4 (1e-12 AU off), an asteroid at 2.5 AU 2e-2 (4e-8 AU off).
+#: False in a step built without the tangent map (no variational particles): numba reads it as a
+#: constant and leaves the tangents' branches out of the compiled step (integrators.specialise)
+_TANGENTS = True
 TP_FLOOR = 1e-2
 TP_FACTOR = 10.0
 
@@ -232,7 +235,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     if full:
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
         cy[m - 1] = 0.0
-    if nv > 0:
+    if _TANGENTS and nv > 0:
         read_tangents(pv, vidx, N, ix, ivx, minv, V, DG)
     res[2] = 0.0
     # a fixed step's test-particle check may refuse a converged step: its work then comes out
@@ -267,7 +270,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     # regular one, whose gamma is kept
     sliver = not np.isnan(hp) and abs(h_done) < TINY_RATIO * abs(hp)
     d2_0 = 0.0
-    if nv > 0:
+    if _TANGENTS and nv > 0:
         # the previous d gamma extrapolated as the step's gamma was (a sliver's are not kept)
         E = select_extrapolation(h_done, hp, ext.E1, ext.t, ext.w, ext.buf, ext.zero)
         dg = DG
@@ -307,7 +310,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     simd[ctx[R_DTL]] = h_done
     if adaptive:
         simd[ctx[R_DT]] = res[1]               # the next step proposed
-    if nv > 0:
+    if _TANGENTS and nv > 0:
         write_tangents(pv, vidx, N, ix, ivx, minv, V)
         if (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0:
             t0 = simd[ctx[R_MEGNO_T0]]
