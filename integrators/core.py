@@ -70,8 +70,8 @@ FLOW_FRACTION = (1.0, 1.5e-2, 1e-3)
 # what the iteration does next (stop_action)
 ITERATE, POLISH = 0, 1
 # counters: one float64 array, the same layout on every path
-C_STEPS, C_ITER, C_NFEV, C_STATUS, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT = range(8)
-N_COUNTERS = 8
+C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT = range(7)
+N_COUNTERS = 7
 
 
 def two_product(a, b):
@@ -831,12 +831,12 @@ def carve(work, cwork, n, s, u, m, d):
 
 @jit
 def fail(counters, status, work_iter, work_nfev, work_newton):
-    """Record a failed step's status and take its work back out of the counters (they count
-    committed steps; the failure's iterations stay in counters[C_LASTIT] for the error)."""
+    """Take a failed step's work back out of the counters (they count committed steps; the
+    failure's iterations stay in counters[C_LASTIT] for the error) and return its status (the
+    status travels as the return value, never in the counters)."""
     counters[C_ITER] = work_iter
     counters[C_NFEV] = work_nfev
     counters[C_NEWTON] = work_newton
-    counters[C_STATUS] = status
     return status
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
+from .core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, work_sizes)
 from .core import next_step, select_extrapolation
 from .core import step_error as error_estimate
@@ -853,10 +853,9 @@ class Stepper(Counted):
     def _run(self, h, steps, sample_every, start, t_start, out_t, out_y, out_e):
         b = self.binding
         if self._solver == "fixed_point":
-            self._run_chunks(h, steps, sample_every, start, out_t, out_y, out_e)
+            status = self._run_chunks(h, steps, sample_every, start, out_t, out_y, out_e)
             done = self.nsteps - start
             k = done // sample_every + 1
-            status = int(self.counters[C_STATUS])
             if done < steps and status == OK:     # the step loop's contract, checked
                 raise RuntimeError(f"internal error: the step loop stopped after {done} of "
                                    f"{steps} steps without a failure status")
@@ -886,7 +885,7 @@ class Stepper(Counted):
             raise
         return self._result(out_t, out_y, out_e, h, t_start, "finished", "")
 
-    def _run_chunks(self, h, steps, sample_every, start, out_t, out_y, out_e) -> None:
+    def _run_chunks(self, h, steps, sample_every, start, out_t, out_y, out_e) -> int:
         """The fixed-point steps of :meth:`run` through the step loop, in chunks of about
         CHUNK_SECONDS each: between two calls the interpreter runs its signal handlers, so
         that Ctrl-C stops a compiled run within a chunk (a compiled loop never returns to
@@ -895,8 +894,8 @@ class Stepper(Counted):
         left (the same E throughout, as one call uses), and a chunk starting on a sample writes
         that sample again, the same numbers; a chunk that starts between two samples (a chunk
         shorter than ``sample_every``) ends at the next one, which is written here with the
-        loop's own energy function.  Stops at the first failed step (its status in the
-        counters)."""
+        loop's own energy function.  Stops at the first failed step; returns its status (OK
+        when every step was committed)."""
         b = self.binding
         E = self._extrapolation(h, self._h_prev)
         args = (b.system_record, self._state_record(), h, E, b.method_record, b.no_newton,
@@ -913,20 +912,20 @@ class Stepper(Counted):
             i = done // sample_every if aligned else 0
             every, n_out = (sample_every, out_t.shape[0]) if aligned else (0, 0)
             t0 = time.perf_counter()
-            b.step_code.run(*args, Samples(end - done, every, out_t[i:i + n_out],
+            status = b.step_code.run(*args, Samples(end - done, every, out_t[i:i + n_out],
                                            out_y[i:i + n_out], out_e[i:i + n_out]))
             took = time.perf_counter() - t0
             if self.nsteps > start:
                 self._h_prev = h
             if self.nsteps - start < end:          # a failed step
-                return
+                return int(status)
             if not aligned and end % sample_every == 0:
                 j = end // sample_every
                 out_t[j], out_y[j] = self.t, self._y
                 out_e[j] = b.energy(self._y)
             done = end
             if done >= steps:
-                return
+                return OK
             # the next chunk aims at CHUNK_SECONDS, growing at most CHUNK_GROWTH times (the
             # first is one step: a step of 1e5 atoms can take a fifth of a second)
             chunk = max(1, min(CHUNK_GROWTH * chunk, int(chunk * CHUNK_SECONDS / max(took, 1e-9))))
@@ -1063,7 +1062,6 @@ class Stepper(Counted):
         self.status = "interrupted" if isinstance(err, (KeyboardInterrupt, SystemExit)) else "failed"
 
     def _fail(self, status: int, h: float, solver: str) -> None:
-        self.counters[C_STATUS] = status
         self.status = "failed"
         raise step_error(status, h, self.t, self.counters, solver, energy_tol=self._etol,
                          method=type(self.method).__name__)

@@ -14,7 +14,7 @@ step: the documentation's design page "One step, written once" (``docs/design/st
 """
 import numpy as np
 
-from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV, C_STATUS,
+from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
                               C_STEPS, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
                               all_finite, all_zero, carve, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
@@ -77,7 +77,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
     """``samples.nsteps`` steps of size h from the double-double state (state.y, state.cy), each
     committed in place when it succeeds; samples of (t, y, H) at steps 0, every, 2 every, ...
     into samples.t, .y, .e (none when samples.every is 0).  Returns OK, or the status of the
-    first failed step (also left in counters[C_STATUS]), with everything as after the last
+    first failed step, with everything as after the last
     committed step.  The clock (t, its compensation) is read from and written back to
     ``state.clock``.  The records: :mod:`integrators.records` (E: the initial guess's
     extrapolation matrix (s, s)); opts.etol is the energy check's tolerance:
@@ -383,7 +383,6 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             e0, e1 = energy_parts(full, y, kin_w, params)
             out_e[isample] = e0 + e1
             isample += 1
-    counters[C_STATUS] = OK
     return OK
 
 

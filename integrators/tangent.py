@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from integrators.core import (C_STATUS, DIVERGED, EPS, NARROW, NOT_FINITE, OK, ROUNDOFF_ULPS,
+from integrators.core import (DIVERGED, EPS, NARROW, NOT_FINITE, OK, ROUNDOFF_ULPS,
                               STATE_ULPS, all_finite, carve, commit_full, commit_separable, copy1,
                               copy2, full_stages, full_stages_narrow, guess, guess_narrow, max_abs,
                               max_abs2, newton_update, project, project_narrow, stage_positions,
@@ -232,8 +232,8 @@ def run_variational(system, state, h, E, method, newton, opts, wk, tan, var, sam
     vectors tan.V (nv, d) and, when var.mg has entries, the MEGNO of V[0] (:func:`megno_step`,
     weights var.wv).  var.y0, var.cy0 (d), var.gsave (s, u), var.snap (>= len(counters)):
     scratch for the state before a step.  A step whose tangent map fails is taken back: state,
-    clock, coefficients, counters and tangents as before it, its status in counters[C_STATUS],
-    and status + TANGENT_FAILED returned (a failed step: its status).  Samples (none when
+    clock, coefficients, counters and tangents as before it, and status + TANGENT_FAILED
+    returned (a failed step: its status).  Samples (none when
     samples.every is 0) at steps every, 2 every, ... (the caller records step 0): t, y, H into
     samples.t, .y, .e, and V and the MEGNO <Y> into var.out_v (n, nv, d) and var.out_m.
     (:class:`integrators.records.Variational`)."""
@@ -265,7 +265,6 @@ def run_variational(system, state, h, E, method, newton, opts, wk, tan, var, sam
             clock[1] = ct0
             for i in range(counters.shape[0]):
                 counters[i] = snap[i]
-            counters[C_STATUS] = status
             return status + TANGENT_FAILED
         if mg.shape[0] > 0:
             megno_step(mg, clock[0], V[0], wv)

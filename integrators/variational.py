@@ -46,7 +46,7 @@ import numpy as np
 
 from . import tangent
 from .tangent import TANGENT_FAILED
-from .core import C_STATUS, DIVERGED, NOT_FINITE, OK
+from .core import DIVERGED, NOT_FINITE, OK
 from . import engine as _engine
 from .engine import MAX_ITER, Stepper, _attach, check_count, check_step
 from .errors import ConvergenceError, NonFiniteError, StepError
@@ -400,7 +400,6 @@ class VariationalStepper(Stepper):
                         self._tcount)
 
     def _tangent_fail(self, status: int, h: float, solver: str) -> None:
-        self.counters[C_STATUS] = status
         self.status = "failed"
         it = int(self._tcount[2])
         if status == NOT_FINITE:

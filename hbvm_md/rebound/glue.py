@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import carray
 
-from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STATUS, C_STEPS, N_COUNTERS, OK, TINY_RATIO,
+from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, N_COUNTERS, OK, TINY_RATIO,
                               copy1, copy2, select_extrapolation, test_particle_error)
 from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
@@ -251,7 +251,6 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         if worst >= 0:
             counters[C_ITER], counters[C_NFEV], counters[C_NEWTON] = c_iter, c_nfev, c_newton
             counters[C_STEPS] -= 1
-            counters[C_STATUS] = TEST_PARTICLE
             clock[0], clock[1] = clock0, clock1
             res[3], res[4] = err, worst
             status = TEST_PARTICLE
