@@ -602,24 +602,15 @@ def no_field(Xt, Xs, params, out):
 
 @jit
 def project_compensated(W, W_lo, F, g, R):
-    """g <- (W + W_lo) F as if in twice the working precision (Dot2), rounded once (R:
-    scratch (5, >= min(m, BLOCK)), the sums column-innermost in blocks).  Returns (max
-    |increment|, max |g|) as :func:`project` does (the full form iterates with it: see
-    :func:`integrators.loop.run`); the callers that only polish ignore them."""
+    """g <- W F as if in twice the working precision (Dot2), rounded once (R: scratch, the
+    sums column-innermost in blocks)."""
     s, m = g.shape
     n = F.shape[0]
     acc = R[0]
     acc_lo = R[1]
-    dcol = R[3]
-    scol = R[4]
-    delta = 0.0
-    scale = 0.0
     for j0 in range(0, m, BLOCK):
         nb = np.uint64(min(BLOCK, m - j0))
         ju = np.uint64(j0)
-        for jj in range(nb):
-            dcol[jj] = 0.0
-            scol[jj] = 0.0
         for i in range(s):
             for jj in range(nb):
                 acc[jj] = 0.0
@@ -634,21 +625,7 @@ def project_compensated(W, W_lo, F, g, R):
                     acc[jj] = hi
                     acc_lo[jj] += (e + pl) + w_lo * f
             for jj in range(nb):
-                j = ju + jj
-                v = acc[jj] + acc_lo[jj]
-                d = abs(v - g[i, j])
-                c = dcol[jj]
-                dcol[jj] = d if (d > c or d != d) else c
-                x = abs(v)
-                c = scol[jj]
-                scol[jj] = x if x > c else c
-                g[i, j] = v
-        for jj in range(nb):
-            if dcol[jj] > delta or dcol[jj] != dcol[jj]:
-                delta = dcol[jj]
-            if scol[jj] > scale:
-                scale = scol[jj]
-    return delta, scale
+                g[i, ju + jj] = acc[jj] + acc_lo[jj]
 
 @jit
 def newton_update(g, pg, NV, NVinv, NM, Rt, Z):
