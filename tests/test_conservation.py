@@ -63,15 +63,19 @@ def test_polynomial_hamiltonian_conserved_exactly(name, s):
 
 @pytest.mark.xfail(strict=True, reason="known weakness: the full form (y' = J grad H, the form of "
                    "REBOUND's own accelerations in hbvm_md.rebound) drifts linearly on a cubic H "
-                   "that its quadrature integrates exactly (HBVM(12, 6), h = 0.5, 10^4 steps: "
-                   "7.8e-14 against a scatter of 6e-16; HBVM(5, 3): 2.5e-14), the separable form "
-                   "at the same settings does not (9e-16): a rounding bias of the full-form step, "
-                   "not of REBOUND, the clock or the velocity form (tests/test_rebound_forces.py "
-                   "::test_full_form_h_does_not_drift_with_many_nodes is the same defect).  Its "
-                   "rate per step scales as h^2 (7.8e-18, 2.0e-18, 4.5e-19 at h = 0.5, 0.25, "
-                   "0.125); the coefficients' low parts in every iteration (not only the polish) "
-                   "cut it to a third at k = 12, none at all removes it at k = 12 but triples it "
-                   "at k = 8")
+                   "that its quadrature integrates exactly, the separable form does not; rate per "
+                   "step (median of 5 perturbed starts, 4000 steps, all of one sign), HBVM(12, 6) "
+                   "h = 0.5: 5.3e-18 (7.8e-18 before the stages kept I_lo gamma on average), "
+                   "h = 0.25: 1.3e-18; HBVM(5, 3) h = 0.5: 1.5e-18.  Located (exact arithmetic on "
+                   "each step): the iterations leave out the coefficients' low parts and the "
+                   "polish adds them (W_lo F: the same sign every step) after the stages were "
+                   "evaluated, so the stages lie off the final path by h I_s times that; the full "
+                   "form's stages depend on gamma at order h (the separable form's at h^2), hence "
+                   "a drift of order h^2 a step (4.7e-18 of the 7.8e-18).  Iterating the full "
+                   "form with the low parts and the compensated projection removes it (5.3e-19, "
+                   "the rest the stop rule's truncation, same sign) but made the step 27 % dearer "
+                   "(Kepler's Poincare transform, HBVM(6, 3)); tests/test_rebound_forces.py::"
+                   "test_full_form_h_does_not_drift_with_many_nodes is the same defect")
 def test_full_form_conserves_a_polynomial_hamiltonian_without_drift():
     """Hénon-Heiles (degree 3) in the full form with HBVM(12, 6), exact for it (k >= 3 s / 2):
     no linear drift beyond the round-off scatter, as the separable form keeps

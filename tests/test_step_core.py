@@ -509,3 +509,41 @@ def test_a_strong_contraction_polishes_at_round_off_without_waiting_for_the_stal
     assert _stop_sequence([1e-1, 1e-5, 1e-9, 1e-15, 1e-15], hstate=1.0) == (core.POLISH, 5)
     # strong, but the increments stop above every round-off level: never accepted
     assert _stop_sequence([1e-3, 1e-8, 1e-13, 5e-14, 4e-14, 4e-14, 4e-14]) == (-core.DIVERGED, 7)
+
+
+@pytest.mark.parametrize("narrow", [False, True])
+def test_full_stages_keep_the_coefficients_low_parts_on_average(narrow):
+    """The full form's stages with the low parts (the polish's) must carry h I_lo gamma on
+    average: left to the rounded sum it was rounded away, the same way on every step (a stage
+    error of exactly -h I_lo gamma plus round-off), and the energy of a polynomial H drifted
+    (tests/test_conservation.py).  Regression of the stage error Y - S on h I_lo gamma, S
+    computed exactly (fractions) over random states: slope -1 before the fix, 0 after."""
+    from fractions import Fraction
+
+    from integrators import core
+    m_ = HBVM(12, 6)
+    I, I_lo = np.ascontiguousarray(m_.I), np.ascontiguousarray(m_.I_lo)
+    n, s = I.shape
+    rng = np.random.default_rng(7)
+    u, h = 120, 0.5
+    y = rng.uniform(0.1, 0.3, u) * rng.choice([-1.0, 1.0], u)
+    cy = (rng.uniform(-0.5, 0.5, u) * np.spacing(np.abs(y)))    # the state's low part
+    g = np.empty((s, u))
+    g[0] = rng.uniform(-0.3, 0.3, u)
+    for l in range(1, s):
+        g[l] = g[0] * rng.uniform(-0.3, 0.3, u) * h ** l
+    Y = np.empty((n, u))
+    if narrow:
+        core.full_stages_narrow(y, cy, g, I, I_lo, h, Y, True)
+    else:
+        core.full_stages(y, cy, g, I, I_lo, h, Y, np.empty((5, u)), True)
+    err, lo = [], []
+    for i in range(n):
+        for j in range(u):
+            S = Fraction(y[j]) - Fraction(cy[j]) + Fraction(h) * sum(
+                (Fraction(I[i, l]) + Fraction(I_lo[i, l])) * Fraction(g[l, j]) for l in range(s))
+            err.append(float(Fraction(Y[i, j]) - S))
+            lo.append(h * float(sum(Fraction(I_lo[i, l]) * Fraction(g[l, j]) for l in range(s))))
+    err, lo = np.array(err), np.array(lo)
+    slope = float(np.dot(err, lo) / np.dot(lo, lo))
+    assert abs(slope) < 0.3, slope
