@@ -418,8 +418,10 @@ def scene_energy(sim) -> float:
     t = sim.t
     y = sc.state(xv[:, :3], xv[:, 3:], t)
     try:
-        kin = 0.5 * float(np.sum(sc.kinetic_weights * y[sc.dim:] ** 2))
-        e = kin + float(rebound_potential(y[:sc.dim], sc.params))
+        kin = 0.0
+        for w, v in zip(sc.kinetic_weights, y[sc.dim:]):      # (summed in order)
+            kin += w * (v * v)
+        e = 0.5 * kin + float(rebound_potential(y[:sc.dim], sc.params))
     finally:        # (REBOUNDx's potentials read the particles: the positions went through q)
         sim.set_serialized_particle_data(xyzvxvyvz=xv.reshape(-1))
         sim.t = t
