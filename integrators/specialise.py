@@ -150,17 +150,22 @@ def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False
         h.update(f"{mod}:{name}".encode())
         h.update(Path(sys.modules[mod].__file__).read_bytes())
     h.update(f"{numba.__version__} {sys.version} full={variant[0]} equip={variant[1]}".encode())
-    if variant[2]:                     # (the plain variants keep their names)
+    if _velocities(variant):           # (the plain variants keep their names)
         h.update(b" stage velocities")
     return h.hexdigest()[:24]
+
+
+def _velocities(variant) -> bool:
+    """Is the variant (full, equip[, velocities]) the separable step with stage velocities?"""
+    return len(variant) > 2 and bool(variant[2])
 
 
 def _variant_lines(refs, glue, frefs, variant) -> str:
     """The generated module's lines binding what this variant leaves out to the stand-ins of
     :mod:`integrators.absent` (module docstring, "Compile time")."""
-    full, equip, velocities = variant
+    full, equip = variant[:2]
     lines = ["from integrators import absent as _absent  # noqa: E402"]
-    if velocities:
+    if _velocities(variant):
         lines.append("_STAGE_VELOCITIES = True")
     if frefs == NO_FOLLOWERS:
         lines += ["_FOLLOWERS = False", "follow = _absent.follow"]
@@ -207,7 +212,7 @@ def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
              "EQUIP" if variant[1] else "HBVM" if variant[1] is False else "HBVM and EQUIP"]
     if frefs != NO_FOLLOWERS:
         parts.append("test particles")
-    if variant[2]:
+    if _velocities(variant):
         parts.append("stage velocities")
     if len(refs) > 2:
         parts.append("tangent map")
