@@ -253,7 +253,8 @@ def main() -> None:
            f"{time.strftime('%Y-%m-%d')}. Time: median over {args.repeat} interleaved runs of "
            "building the scene and integrating it, HBVM / IAS15 (both at their defaults unless "
            "the setting says otherwise). H: median over 5 starts. Every scene here runs on REBOUND's accelerations at "
-           "HBVM's stages (full form), except the change of G and the damping operator (plain "
+           "HBVM's stages (separable form; gr, the migration and the Python drag with the stage "
+           "velocities), except the change of G and the damping operator (plain "
            "gravity: the compiled N-body kernel).", "",
            "| scene | HBVM | time HBVM / IAS15 | errors (HBVM, against IAS15) |",
            "|---|---|---|---|", *rows, ""]

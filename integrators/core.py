@@ -170,12 +170,14 @@ def lipschitz_probe(X, F, Xp, Fp, lip):
             d = abs(X[i, j] - Xp[i, j])
             if d > dx:
                 dx = d
-            d = abs(F[i, j] - Fp[i, j])
-            if d > df:
-                df = d
             if abs(X[i, j]) > xmax:
                 xmax = abs(X[i, j])
             Xp[i, j] = X[i, j]
+        # (F may be narrower than X: the stage velocities' step hands the kernel (q, v))
+        for j in range(F.shape[1]):
+            d = abs(F[i, j] - Fp[i, j])
+            if d > df:
+                df = d
             Fp[i, j] = F[i, j]
     if dx > 1024.0 * EPS * xmax and df / dx > lip:
         lip = df / dx
@@ -453,6 +455,47 @@ def full_stages_narrow(y, cy, g, I, I_lo, h, Y, exact):
                 for l in range(s):
                     acc_lo += I_lo[i, l] * g[l, j]
             Y[i, j] = y[j] + (h * acc + (h * acc_lo - cy[j]))
+
+
+@jit
+def stage_velocities(y, cy, minv, g, I, I_lo, h, Z, exact):
+    """Separable form with stage velocities: Z[:, m:] = (p0 + h I_s gamma_p) M^{-1}, the
+    velocities at the stages, beside the positions Z[:, :m] that :func:`stage_positions`
+    writes (Z (n, 2m), y = (q, p) the double-double state less cy).  These are the Runge-Kutta
+    stages of the first-order system (q, p)' = (M^{-1} p, f(t, q, M^{-1} p)) whose position
+    stages are the separable step's Q (Brugnano-Iavernaro-Trigiante: HBVM(k, s) is a k-stage
+    Runge-Kutta method with A = I_s P_s^T Omega, and P_s^T Omega I_s = X_s), so the step stays
+    of order 2s for a force that reads velocities.  I_lo only when ``exact`` (as in
+    :func:`full_stages`)."""
+    s, m = g.shape
+    for i in range(Z.shape[0]):
+        for j in range(m):
+            acc = 0.0
+            acc_lo = 0.0
+            for l in range(s):
+                acc += I[i, l] * g[l, j]
+            if exact:
+                for l in range(s):
+                    acc_lo += I_lo[i, l] * g[l, j]
+            Z[i, m + j] = (y[m + j] + (h * (acc + acc_lo) - cy[m + j])) * minv[j]
+
+
+@jit
+def velocity_work(n, m, on):
+    """The float work a step with stage velocities adds after :func:`work_sizes`'s (``on``
+    False: none): the stages (q, v) and their previous iterate, (n, 2m) each."""
+    return 4 * n * m if on else 0
+
+
+@jit
+def carve_velocities(work, o, n, m, on):
+    """The stage velocities' work arrays (:func:`velocity_work`) at offset o of ``work``:
+    Z, Zp (n, 2m) (empty when not ``on``)."""
+    w = 2 * m if on else 0
+    if work.shape[0] < o + 2 * n * w:
+        raise ValueError("internal error: the step's work buffer is too short for its stage "
+                         "velocities (core.velocity_work)")
+    return view(work, o, n, w), view(work, o + n * w, n, w)
 
 
 @jit

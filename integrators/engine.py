@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
-                   OK, work_sizes)
+                   OK, velocity_work, work_sizes)
 from .core import next_step, select_extrapolation
 from .core import step_error as error_estimate
 from .jit import entry_point
@@ -396,10 +396,14 @@ class Binding:
     jvp : callable, optional
         The force kernel's derivative ``jvp(X, dX, params, out)``: the tangent map is bound
         with the step (:mod:`integrators.variational`), for a glue that calls it.
+    velocities : bool
+        The separable step hands the force kernel the stage velocities too (X of shape
+        (n, 2m): positions, then velocities M^{-1} p; :func:`integrators.core.stage_velocities`):
+        for a force that reads velocities.  HBVM only, no followers, no tangent map.
     """
 
     def __init__(self, method, system, form: str = "auto", fast: bool | None = None,
-                 glue: str | None = None, jvp=None):
+                 glue: str | None = None, jvp=None, velocities: bool = False):
         if form == "separable" and not _is_separable(system):
             raise ValueError("`form='separable'` needs a system with `masses`, `forces` and "
                              "`potential`; use form='full'")
@@ -429,8 +433,16 @@ class Binding:
                        else None)
         # (the form and the method are fixed for a binding: the step leaves the others out)
         self.equip = hasattr(method, "step_arrays")         # EQUIP packs its own arrays
+        self.velocities = bool(velocities)
+        if self.velocities and (self.full or self.equip or self.follow is not None
+                                or jvp is not None):
+            raise ValueError("`velocities=True` (stage velocities for a force that reads them) "
+                             "needs the separable form, method HBVM, no test particles and no "
+                             f"tangent map (got form={'full' if self.full else 'separable'}, "
+                             f"{type(method).__name__}); use form='full' for such a system")
         self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp,
-                                    follow=self.follow, full=self.full, equip=self.equip)
+                                    follow=self.follow, full=self.full, equip=self.equip,
+                                    velocities=self.velocities)
         self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"
@@ -460,7 +472,9 @@ class Binding:
         self.u = u
         self.no_newton = Newton(np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
                                 np.zeros((0, u, u), dtype=complex))
-        nf, nc = work_sizes(getattr(method, "work_rows", method.n_stages), s, u, self.minv.shape[0], d)
+        n = getattr(method, "work_rows", method.n_stages)
+        nf, nc = work_sizes(n, s, u, self.minv.shape[0], d)
+        nf += velocity_work(n, m, self.velocities)
         self.work, self.cwork = np.empty(nf), np.empty(nc, dtype=complex)
         self._eig = None
 

@@ -17,11 +17,11 @@ import numpy as np
 from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
                               C_STEPS, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
-                              all_finite, all_zero, carve, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
+                              all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
                               guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
-                              stage_positions, stage_positions_narrow, step_constants, stop_action, symplectic, tick,
-                              weighted_kinetic)
+                              stage_positions, stage_positions_narrow, stage_velocities, step_constants,
+                              stop_action, symplectic, tick, weighted_kinetic, work_sizes)
 from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
@@ -38,6 +38,9 @@ _followers = None    # (the followers hook: core.no_followers when none; their s
 _EQUIP = None        # the method: True EQUIP, False HBVM, None (a step for both): from its arrays
 _FULL = None         # the form: True full, False separable, None (both): from system.full
 _FOLLOWERS = True    # False: a system without followers (test particles)
+_STAGE_VELOCITIES = False  # True: the separable step hands the kernel the stages (q, v), X of
+                     # shape (n, 2m), instead of the positions (n, m) (core.stage_velocities),
+                     # for a kernel that reads velocities
 
 
 def tableau(method):
@@ -133,11 +136,15 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         Xk, Fk, rho = view(work, 0, 0, u), view(work, 0, 0, u), view(work, 0, 0, u)
         htk, htk_lo, es = view1(work, 0, 0), view1(work, 0, 0), view1(work, 0, 0)
     K = Xk.shape[0]
+    vel = _STAGE_VELOCITIES
+    if vel and (full or equip):
+        raise ValueError("internal error: stage velocities are the separable HBVM step's")
+    XV, XVp = carve_velocities(work, work_sizes(n, s, u, m, y.shape[0])[0], n, m, vel)
     # Followers (module docstring): the sources' stage equations are solved as if alone, on
     # their own copies (the "block" the iteration below works on), then each follower's in
     # their field (follow); without followers the block is the whole system
     at = -1
-    if _FOLLOWERS and not (full or equip or NM.shape[0] > 0):
+    if _FOLLOWERS and not (full or equip or vel or NM.shape[0] > 0):
         at = _followers(params)
     yb, cyb, mb, gb, ab, Xb, Fb, Xpb, Fpb, pb = y, cy, minv, g, a, X, F, Xp, Fp, params
     fb = work[:0]
@@ -155,6 +162,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         pb = view1(params, at + 4 + us + int(params[at]), int(params[at + 3]))
         for c in range(us):
             mb[c] = minv[int(params[at + 4 + c])]
+    if vel:              # the kernel reads (q, v) at the stages; the probe compares them too
+        Xb, Xpb = XV, XVp
     narrowb = gb.shape[1] < NARROW
     isample = 0
     if sample_every > 0:
@@ -176,9 +185,15 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         if all_zero(gamma):
             # no previous step: start from the right-hand side at y0, evaluated once
             u = g.shape[1]
-            for j in range(u):
-                X[0, j] = y[j]
-            evaluate(full, X[:1], params, F[:1], G[:1])
+            if vel:
+                for j in range(u):
+                    XV[0, j] = y[j]
+                    XV[0, u + j] = y[u + j] * minv[j]
+                _force(XV[:1], params, F[:1])
+            else:
+                for j in range(u):
+                    X[0, j] = y[j]
+                evaluate(full, X[:1], params, F[:1], G[:1])
             counters[C_NFEV] += 1
             for i in range(g.shape[0]):
                 for j in range(u):
@@ -240,6 +255,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     stage_positions_narrow(yb, cyb, mb, gb, C2, C2_lo, sc, ab, Xb, polish)
                 else:
                     stage_positions(yb, cyb, mb, gb, C2, C2_lo, sc, ab, Xb, R, polish)
+                if vel:
+                    stage_velocities(yb, cyb, mb, gb, I, I_lo, h, Xb, polish)
                 if equip:
                     eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
                 _force(Xb, pb, Fb)

@@ -135,7 +135,7 @@ def _glue(glue):
             dict(getattr(module, "GLUE_CFUNCS", {})), depends)
 
 
-def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None)) -> str:
+def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False)) -> str:
     h = hashlib.sha256()
     paths = [_LOOP_PATH, _FOLLOWERS_PATH, Path(_recordsmod.__file__), Path(core.__file__),
              Path(equip_core.__file__), Path(_jitmod.__file__),
@@ -150,14 +150,23 @@ def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None)) -> s
         h.update(f"{mod}:{name}".encode())
         h.update(Path(sys.modules[mod].__file__).read_bytes())
     h.update(f"{numba.__version__} {sys.version} full={variant[0]} equip={variant[1]}".encode())
+    if _velocities(variant):           # (the plain variants keep their names)
+        h.update(b" stage velocities")
     return h.hexdigest()[:24]
+
+
+def _velocities(variant) -> bool:
+    """Is the variant (full, equip[, velocities]) the separable step with stage velocities?"""
+    return len(variant) > 2 and bool(variant[2])
 
 
 def _variant_lines(refs, glue, frefs, variant) -> str:
     """The generated module's lines binding what this variant leaves out to the stand-ins of
     :mod:`integrators.absent` (module docstring, "Compile time")."""
-    full, equip = variant
+    full, equip = variant[:2]
     lines = ["from integrators import absent as _absent  # noqa: E402"]
+    if _velocities(variant):
+        lines.append("_STAGE_VELOCITIES = True")
     if frefs == NO_FOLLOWERS:
         lines += ["_FOLLOWERS = False", "follow = _absent.follow"]
     if full is not None:
@@ -203,6 +212,8 @@ def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
              "EQUIP" if variant[1] else "HBVM" if variant[1] is False else "HBVM and EQUIP"]
     if frefs != NO_FOLLOWERS:
         parts.append("test particles")
+    if _velocities(variant):
+        parts.append("stage velocities")
     if len(refs) > 2:
         parts.append("tangent map")
     if glue is not None:
@@ -213,7 +224,7 @@ def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
 
 
 def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
-                        variant=(None, None)) -> types.ModuleType:
+                        variant=(None, None, False)) -> types.ModuleType:
     digest = _source_hash(refs, glue, frefs, variant)
     name = f"_hbvm_md_step_{digest}"
     if name in sys.modules:
@@ -259,7 +270,7 @@ def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
 
 
 def _executed(force, potential, compile_: bool, glue=None, jvp=None,
-              follow=None, equip=None) -> types.SimpleNamespace:
+              follow=None, equip=None, velocities=False) -> types.SimpleNamespace:
     ns = {"__name__": "integrators.loop_bound", "__file__": str(_LOOP_PATH)}
     exec(compile(_LOOP_PATH.read_text(), str(_LOOP_PATH), "exec"), ns)
     functions = LOOP_FUNCTIONS
@@ -279,6 +290,7 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
     ns["_EQUIP"] = None if equip is None else bool(equip)
     ns["_FOLLOWERS"] = follow is not None
     ns["_TANGENTS"] = jvp is not None
+    ns["_STAGE_VELOCITIES"] = bool(velocities)
     ns["_followers"], ns["_field"] = follow if follow is not None else (core.no_followers,
                                                                         core.no_field)
     if compile_:
@@ -293,7 +305,8 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
 
 
 def specialise(force, potential, python: bool = False, glue: str | None = None, jvp=None,
-               follow=None, *, full: bool | None = None, equip: bool | None = None):
+               follow=None, *, full: bool | None = None, equip: bool | None = None,
+               velocities: bool = False):
     """The step bound to these kernels: an object with ``advance``, ``run``, ``attempt`` (see
     :mod:`integrators.loop`) and ``kind`` ("compiled" or "python"); ``python=True`` executes
     the step as Python even when the kernels are compiled.
@@ -316,16 +329,21 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
 
     ``full``, ``equip``: the form the step will be called with (True: full, False: separable)
     and whether the method is EQUIP; a compiled step then leaves the other form (EQUIP) out
-    (module docstring, "Compile time").  None: both, as a step called either way needs."""
+    (module docstring, "Compile time").  None: both, as a step called either way needs.
+
+    ``velocities``: the separable HBVM step hands the force kernel the stage velocities too
+    (``_force(X, params, out)`` with X (n, 2m): positions, then velocities; out (n, m)), for a
+    force that reads them (:func:`integrators.core.stage_velocities`).  A variant of its own."""
     if jvp is not None and not _is_compiled(jvp):
         python = True
     if follow is not None and not all(_is_compiled(f) for f in follow):
         python = True
     if python:
-        out = _executed(force, potential, False, _glue(glue), jvp, follow, equip)
+        out = _executed(force, potential, False, _glue(glue), jvp, follow, equip, velocities)
         out.kind = "python"
         return out
-    variant = (None if full is None else bool(full), None if equip is None else bool(equip))
+    variant = (None if full is None else bool(full), None if equip is None else bool(equip),
+               bool(velocities))
     key = (force, potential, glue, jvp, follow, variant)
     try:
         hit = _CACHE.get(key)
@@ -346,10 +364,10 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
                          + (glue_[1] + tuple(glue_[2]) if glue_ else ()))
                 out = types.SimpleNamespace(**{f: getattr(mod, f) for f in names})
             else:
-                out = _executed(force, potential, True, glue_, jvp, follow, equip)
+                out = _executed(force, potential, True, glue_, jvp, follow, equip, velocities)
             out.kind = "compiled"
         else:
-            out = _executed(force, potential, False, glue_, jvp, follow, equip)
+            out = _executed(force, potential, False, glue_, jvp, follow, equip, velocities)
             out.kind = "python"
         if key is not None and out.kind == "compiled":
             _CACHE[key] = out

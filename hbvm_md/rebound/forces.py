@@ -13,41 +13,48 @@ forces) and reads the accelerations back.  A plain Newtonian scene keeps the com
 
 The form of the step
 --------------------
-A force that reads velocities (REBOUNDx ``gr``, ``gr_full``, tides, radiation drag, migration)
-or the time needs the stage velocities and times, so the scene is an ODE y' = f(t, y) in the
-engine's *full* form (:mod:`integrators.loop`): the kernel returns G with J G = f, and the
-step applies J.  The state is y = (q, v): q the positions and a clock tau = CLOCK t, v the
-velocities and the clock's partner pi (always 0).  The kernel's G = (-a, v, 0, CLOCK): dq/dt
-= v, dv/dt = a, dtau/dt = CLOCK.  When the added forces derive from a potential U(q)
-(softening, REBOUNDx ``gr_potential``, ``gravitational_harmonics``, ``central_force``) then
-J G = B grad H with the constant skew-symmetric B = [[0, M^-1], [-M^-1, 0]] (M the masses of
-the bodies that gravitate) and
+The scene is the second-order system q'' = a(t, q, q') in the engine's *separable* form
+(:mod:`integrators.loop`), as the compiled N-body kernel's is: the state is y = (q, v) with q
+the positions and a clock tau = CLOCK t, v the velocities and the clock's rate CLOCK (the
+step's weights M^{-1} are 1: the state holds velocities, the kernel returns accelerations).
+The step solves for the s coefficients of the accelerations only (m unknowns a block, the
+fixed point contracting like (h omega)^2), its stage positions Q = q0 + h c v0 + h^2 (I_s X_s)
+gamma carry the stage times t0 + c_l h in the clock's coordinate, and the kernel writes them
+into the particles and ``sim.t``.  A force that reads velocities (``sim.force_is_velocity_
+dependent``: REBOUNDx ``gr``, ``gr_full``, tides, radiation drag, migration, a user's function
+that sets it) is handed the stage velocities V = v0 + h I_s gamma too
+(:func:`integrators.core.stage_velocities`, the step's variant with stage velocities): these
+are the Runge-Kutta stages of HBVM(k, s) on y' = (v, a(t, q, v)), so the order 2s holds
+(measured in the tests).  Without the flag the particles keep the step's initial velocities
+during the stages, as IAS15 keeps them.
 
-    H(q, v) = sum_i m_i |v_i|^2 / 2 + V(q) + U(q) + CLOCK pi,
+When the added forces derive from a potential U(q) (softening, REBOUNDx ``gr_potential``,
+``gravitational_harmonics``, ``central_force``) the scene is Hamiltonian with
 
-V the (softened) pair potential of the pairs REBOUND computes: a Poisson system with a constant
-structure matrix, for which HBVM's line-integral argument (sum_j a_j^T B a_j = 0 for skew B)
-conserves H as it does J grad H.  The energy check guards this H (:func:`rebound_energy`, U
-from REBOUNDx's own exported potentials).  Velocities rather than momenta m v keep every
-coordinate of a kind at one scale (a Mercury's momentum is 1e-7 of its velocity): the
-iteration's stop rule and the step's error estimate take maxima over coordinates.  For any other added force there is no H to keep:
-the energy check is off, and the adaptive step control (error estimate on the accelerations,
-as IAS15's) and the iteration's convergence test carry the run.  HBVM(k, s) is a k-stage
-Runge-Kutta method of order 2s on any ODE, so the order holds here too (measured in the
-tests).
+    H(q, v) = sum_i m_i |v_i|^2 / 2 + V(q) + U(q)
+
+(the kinetic weights of the step: the gravitating masses per coordinate; V the (softened) pair
+potential of the pairs REBOUND computes), and HBVM's line-integral argument conserves it; the
+energy check guards this H (:func:`rebound_potential` gives V + U, U from REBOUNDx's own
+exported potentials).  Velocities rather than momenta m v keep every coordinate of a kind at
+one scale (a Mercury's momentum is 1e-7 of its velocity): the iteration's stop rule and the
+step's error estimate take maxima over coordinates.  For any other added force there is no H
+to keep: the energy check is off, and the adaptive step control (error estimate on the
+accelerations, as IAS15's) and the iteration's convergence test carry the run.
 
 The clock is scaled by CLOCK = 2^-200 (an exact scaling) so that it takes no part in the
-step's error estimate and convergence test; the glue resets it to ``sim.t`` before each step.
+step's convergence test; its force is 0, so it takes none in the error estimate either; the
+glue resets it to ``sim.t`` before each step.
 
 The parameters (float64; every address and offset below 2^53 is exact in a double):
-``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, then n_pot
-entries (function, arity, arg1, arg2), then w (N), 1/w (N), g (N), active (N)]`` (w = 1: the
-state holds velocities): the
+``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, velocities,
+then n_pot entries (function, arity, arg1, arg2), then g (N), active (N)]``: the
 simulation's address, REBOUND's function, the particle array (the step checks that it has not
 moved), REBOUND's offsets in doubles, the Newtonian G of V (0 for ``gravity = 'none'``), the
-softening squared, REBOUNDx's potential functions with their arguments, the state's weights,
-the gravitating masses (0: acts on nobody) and whether each particle is active.  Addresses are
-run-time values handed in the parameters, never compiled into the (disk-cached) code.
+softening squared, REBOUNDx's potential functions with their arguments, whether the kernel is
+handed stage velocities (1) or positions only (0), the gravitating masses (0: acts on nobody)
+and whether each particle is active.  Addresses are run-time values handed in the parameters,
+never compiled into the (disk-cached) code.
 """
 from __future__ import annotations
 
@@ -66,8 +73,8 @@ from hbvm_md.rebound.cabi import call_void
 CLOCK = 2.0 ** -200
 CLOCK_INV = 2.0 ** 200
 (P_SIM, P_UPDATE, P_PTR, P_N, P_STRIDE, P_IX, P_IVX, P_IAX, P_TWORD, P_G, P_SOFT2,
- P_NPOT) = range(12)
-P_HEAD = 12
+ P_NPOT, P_VEL) = range(13)
+P_HEAD = 13
 #: REBOUNDx forces whose accelerations are -grad of a potential it exports: name ->
 #: (C function, its arity: 1 takes the extras, 2 the extras and the force)
 POTENTIALS = {"gr_potential": ("rebx_gr_potential_potential", 2),
@@ -106,61 +113,59 @@ def call_double2(typingctx, fn, a, b):
 
 
 @jit
-def _write_state(y, params, view, simd):
-    """The particles' x and v and ``sim.t`` <- the state y (2m,) (module docstring's layout)."""
+def _write_positions(x, params, view, simd):
+    """The particles' x and ``sim.t`` <- the stage x (>= m,) (positions, then the clock)."""
     N = int(params[P_N])
-    m = y.shape[0] // 2
-    ix, ivx = int(params[P_IX]), int(params[P_IVX])
-    winv = P_HEAD + 4 * int(params[P_NPOT]) + N
+    ix = int(params[P_IX])
     for i in range(N):
         for c in range(3):
-            view[i, ix + c] = y[3 * i + c]
-            view[i, ivx + c] = y[m + 3 * i + c] * params[winv + i]
-    simd[int(params[P_TWORD])] = y[3 * N] * CLOCK_INV
+            view[i, ix + c] = x[3 * i + c]
+    simd[int(params[P_TWORD])] = x[3 * N] * CLOCK_INV
 
 
 @jit
-def rebound_gradient(Y, params, out):
-    """G (n, 2m) with J G = f(Y[r]) at each state row of Y (n, 2m): REBOUND's accelerations at
-    the row's positions, velocities and time (module docstring).  Leaves the particles and
-    ``sim.t`` at the last row (the glue restores them)."""
+def rebound_accelerations(X, params, out):
+    """out (n, m) <- REBOUND's accelerations at each stage row of X (module docstring): X
+    (n, m) the positions and the clock, or (n, 2m) the positions and the clock, then the
+    velocities and the clock's rate (a scene whose forces read velocities: the parameters'
+    ``velocities`` flag, and the step's variant with stage velocities).  The clock's
+    acceleration is 0.  Leaves the particles and ``sim.t`` at the last row (the glue restores
+    them)."""
     N = int(params[P_N])
-    m = Y.shape[1] // 2
+    m = out.shape[1]
+    vel = params[P_VEL] != 0.0
+    if vel and X.shape[1] != 2 * m:
+        raise ValueError("internal error: a velocity-dependent REBOUND scene bound to a step "
+                         "without stage velocities")
     sim, fn = int(params[P_SIM]), int(params[P_UPDATE])
     view = carray(float64_pointer(int(params[P_PTR])), (N, int(params[P_STRIDE])))
     simd = carray(float64_pointer(sim), int(params[P_TWORD]) + 1)
     iax, ivx = int(params[P_IAX]), int(params[P_IVX])
-    w0 = P_HEAD + 4 * int(params[P_NPOT])
-    for r in range(Y.shape[0]):
-        _write_state(Y[r], params, view, simd)
+    for r in range(X.shape[0]):
+        _write_positions(X[r], params, view, simd)
+        if vel:
+            for i in range(N):
+                for c in range(3):
+                    view[i, ivx + c] = X[r, m + 3 * i + c]
         call_void(fn, sim)
         for i in range(N):
-            w = params[w0 + i]
             for c in range(3):
-                out[r, 3 * i + c] = -w * view[i, iax + c]
-                out[r, m + 3 * i + c] = view[i, ivx + c]
+                out[r, 3 * i + c] = view[i, iax + c]
         out[r, 3 * N] = 0.0
-        out[r, m + 3 * N] = CLOCK
 
 
 @jit
-def rebound_energy(y, params):
-    """H(y) of the module docstring: the kinetic energy of the gravitating particles, the
-    (softened) pair potential of the pairs REBOUND computes (an active particle with any
-    gravitating one) and REBOUNDx's potentials, evaluated with the particles at y.  Only
-    meaningful (and only used by the energy check) for a scene whose added forces have one."""
+def rebound_potential(q, params):
+    """V(q) + U(q) of the module docstring: the (softened) pair potential of the pairs REBOUND
+    computes (an active particle with any gravitating one) and REBOUNDx's potentials,
+    evaluated with the particles at the positions q (m,) (left there: the glue restores
+    them).  Only meaningful (and only used by the energy check) for a scene whose added
+    forces have one."""
     N = int(params[P_N])
-    m = y.shape[0] // 2
     npot = int(params[P_NPOT])
-    w0 = P_HEAD + 4 * npot
-    winv, g0, a0 = w0 + N, w0 + 2 * N, w0 + 3 * N
+    g0 = P_HEAD + 4 * npot
+    a0 = g0 + N
     G, b2 = params[P_G], params[P_SOFT2]
-    kin = 0.0
-    for i in range(N):
-        gi = params[g0 + i]
-        if gi > 0.0:
-            for c in range(3):
-                kin += gi * (y[m + 3 * i + c] * params[winv + i]) ** 2
     v = 0.0
     for i in range(N):
         gi = params[g0 + i]
@@ -170,15 +175,15 @@ def rebound_energy(y, params):
             gj = params[g0 + j]
             if gj == 0.0 or (params[a0 + i] == 0.0 and params[a0 + j] == 0.0):
                 continue
-            dx = y[3 * j] - y[3 * i]
-            dy = y[3 * j + 1] - y[3 * i + 1]
-            dz = y[3 * j + 2] - y[3 * i + 2]
+            dx = q[3 * j] - q[3 * i]
+            dy = q[3 * j + 1] - q[3 * i + 1]
+            dz = q[3 * j + 2] - q[3 * i + 2]
             v -= gi * gj / np.sqrt(dx * dx + dy * dy + dz * dz + b2)
     u = 0.0
     if npot > 0:
         view = carray(float64_pointer(int(params[P_PTR])), (N, int(params[P_STRIDE])))
         simd = carray(float64_pointer(int(params[P_SIM])), int(params[P_TWORD]) + 1)
-        _write_state(y, params, view, simd)
+        _write_positions(q, params, view, simd)
         for e in range(npot):
             at = P_HEAD + 4 * e
             fn = int(params[at])
@@ -186,16 +191,16 @@ def rebound_energy(y, params):
                 u += call_double1(fn, int(params[at + 2]))
             else:
                 u += call_double2(fn, int(params[at + 2]), int(params[at + 3]))
-    return 0.5 * kin + G * v + u
+    return G * v + u
 
 
 @jit
 def scene_set_masses(params, masses):
     """A :class:`ReboundScene`'s parameters <- those of the same scene with the masses (N,),
-    in place: the gravitating masses g (the energy's; REBOUND reads its own masses for the
-    accelerations).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
+    in place: the gravitating masses g (the potential's; REBOUND reads its own masses for the
+    accelerations; the kinetic weights are the step's, updated by the caller).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
     N = int(params[P_N])
-    g0 = P_HEAD + 4 * int(params[P_NPOT]) + 2 * N
+    g0 = P_HEAD + 4 * int(params[P_NPOT])
     for i in range(N):
         if params[g0 + i] > 0.0:
             params[g0 + i] = masses[i]
@@ -295,7 +300,7 @@ def host_reasons(sim) -> list[str]:
 
 
 def hamiltonian(sim) -> bool:
-    """Does the scene conserve :func:`rebound_energy`'s H: no added force, or only REBOUNDx
+    """Does the scene conserve the H of the module docstring: no added force, or only REBOUNDx
     forces whose potential REBOUNDx exports (:data:`POTENTIALS`)?"""
     if not sim._additional_forces:
         return True
@@ -322,10 +327,17 @@ def _potential_entries(sim) -> list[tuple[float, float, float, float]]:
     return out
 
 
+def velocity_dependent(sim) -> bool:
+    """Does a force of ``sim`` read velocities (REBOUND's ``force_is_velocity_dependent``, which
+    REBOUNDx sets for the forces that do and a user sets for a Python one)?"""
+    return bool(sim.force_is_velocity_dependent)
+
+
 class ReboundScene:
-    """A REBOUND simulation's particles as an ODE on REBOUND's accelerations, for the engine's
-    full form (module docstring): ``dim`` = 3N + 1 (the positions and the clock),
-    :meth:`full_kernels`, and the step's error weights.
+    """A REBOUND simulation's particles as a separable system on REBOUND's accelerations
+    (module docstring): ``dim`` = 3N + 1 (the positions and the clock), ``masses`` (ones: the
+    state holds velocities), ``kinetic_weights`` (the gravitating masses per coordinate),
+    :meth:`separable_kernels`, and ``velocities`` (the kernel reads the stage velocities).
 
     Parameters
     ----------
@@ -347,38 +359,47 @@ class ReboundScene:
         semi = sim.testparticle_type == 1
         self.N, self.dim = N, 3 * N + 1
         self.gravitating = (m > 0) & (act | semi)
-        self.w = np.ones(N)           # the state's second half: the velocities (docstring)
+        self.masses = np.ones(self.dim)
+        self.kinetic_weights = np.append(np.repeat(np.where(self.gravitating, m, 0.0), 3), 0.0)
         self.hamiltonian = hamiltonian(sim)
+        self.velocities = velocity_dependent(sim)
         pots = _potential_entries(sim) if self.hamiltonian else []
         fn = ctypes.cast(rebound.clibrebound.reb_simulation_update_acceleration,
                          ctypes.c_void_p).value
         addr = ctypes.addressof(sim)
         head = [addr, fn, ptr, N, stride, ix, ivx, iax, tword,
-                0.0 if sim.gravity == "none" else sim.G, sim.softening ** 2, len(pots)]
+                0.0 if sim.gravity == "none" else sim.G, sim.softening ** 2, len(pots),
+                float(self.velocities)]
         for a in (addr, fn, ptr) + tuple(x for e in pots for x in (e[0], e[2], e[3])):
             if not 0 <= a < 2 ** 53:
                 raise RuntimeError(f"an address (0x{int(a):x}) does not fit a double exactly")
         self.params = np.concatenate([np.array(head, dtype=float),
                                       np.array(pots, dtype=float).reshape(-1),
-                                      self.w, 1.0 / self.w, np.where(self.gravitating, m, 0.0),
-                                      act.astype(float)])
+                                      np.where(self.gravitating, m, 0.0), act.astype(float)])
 
-    def full_kernels(self):
-        return rebound_gradient, rebound_energy, self.params
+    def separable_kernels(self):
+        return rebound_accelerations, rebound_potential, self.params
+
+    def forces(self, q: np.ndarray) -> np.ndarray:
+        """The accelerations (m,) at the positions and clock q (m,) (the step calls the
+        compiled kernel; this is for a reader)."""
+        out = np.empty((1, self.dim))
+        X = np.asarray(q, float).reshape(1, -1)
+        if self.velocities:
+            raise ValueError("this scene's forces read velocities: call the kernel with "
+                             "stage rows (q, v)")
+        rebound_accelerations(X, self.params, out)
+        return out[0]
+
+    def potential(self, q: np.ndarray) -> float:
+        """V(q) + U(q) (module docstring)."""
+        return float(rebound_potential(np.asarray(q, float), self.params))
 
     def state(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
-        """y = (x, CLOCK t, w v, 0) (2 dim,) from positions and velocities (N, 3) (w = 1)."""
+        """y = (x, CLOCK t, v, CLOCK) (2 dim,) from positions and velocities (N, 3)."""
         q = np.append(np.asarray(x, float).reshape(-1), t * CLOCK)
-        p = np.append((np.asarray(v, float) * self.w[:, None]).reshape(-1), 0.0)
+        p = np.append(np.asarray(v, float).reshape(-1), CLOCK)
         return np.concatenate([q, p])
-
-    def error_weights(self) -> np.ndarray:
-        """(2 dim,): 1/w on the velocities, 0 on the positions and the clock, so that the
-        step's error estimate (``integrators.core.step_error``) is taken on the accelerations,
-        as the separable step's and IAS15's are."""
-        wts = np.zeros(2 * self.dim)
-        wts[self.dim:self.dim + 3 * self.N] = np.repeat(1.0 / self.w, 3)
-        return wts
 
 
 def scene_energy(sim) -> float:
@@ -397,8 +418,11 @@ def scene_energy(sim) -> float:
     t = sim.t
     y = sc.state(xv[:, :3], xv[:, 3:], t)
     try:
-        e = float(rebound_energy(y, sc.params))
-    finally:        # (REBOUNDx's potentials read the particles: v went through w v / w)
+        kin = 0.0
+        for w, v in zip(sc.kinetic_weights, y[sc.dim:]):      # (summed in order)
+            kin += w * (v * v)
+        e = 0.5 * kin + float(rebound_potential(y[:sc.dim], sc.params))
+    finally:        # (REBOUNDx's potentials read the particles: the positions went through q)
         sim.set_serialized_particle_data(xyzvxvyvz=xv.reshape(-1))
         sim.t = t
     return e if math.isfinite(e) else math.nan

@@ -34,7 +34,7 @@ from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_FULL,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
@@ -94,7 +94,8 @@ def reread_particles(view, written, ix, ivx, im, y, cy, minv):
     """The state y (2m,) <- REBOUND's particles whose positions or velocities were changed
     between two steps (by a REBOUNDx operator, a post-timestep callback, the user), with the
     same masses: q = x, p = v / minv (the momenta, or the velocities of the state on REBOUND's
-    own accelerations, whose weights are 1), their compensations zeroed; ``written`` <- them.
+    own accelerations, whose weights are 1), their compensations zeroed (the clock's
+    coordinates, after the particles', are the glue's); ``written`` <- them.
     Returns False, changing nothing, when a mass changed or a value is not finite: the host
     then updates the masses in place (:mod:`hbvm_md.rebound.masses`, when nothing else
     changed) or prepares the step afresh (and names what is wrong)."""
@@ -106,12 +107,11 @@ def reread_particles(view, written, ix, ivx, im, y, cy, minv):
             if not (np.isfinite(view[i, ix + c]) and np.isfinite(view[i, ivx + c])):
                 return False
     m = y.shape[0] // 2
-    woff = minv.shape[0] - m
     for i in range(N):
         for c in range(3):
             y[3 * i + c] = view[i, ix + c]
             cy[3 * i + c] = 0.0
-            y[m + 3 * i + c] = view[i, ivx + c] / minv[woff + 3 * i + c]
+            y[m + 3 * i + c] = view[i, ivx + c] / minv[3 * i + c]
             cy[m + 3 * i + c] = 0.0
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
@@ -189,8 +189,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     particles).  Returns OK, RESYNC (nothing done) or a failure status (nothing done, cause
     recorded).
 
-    On REBOUND's own accelerations (system.full, :mod:`hbvm_md.rebound.forces`) the state is
-    (q, clock, p, 0) in the full form: its clock is set to ``sim.t`` before the step, and the
+    On REBOUND's own accelerations (the context's D_HOST, :mod:`hbvm_md.rebound.forces`) the
+    state is (q, clock, v, CLOCK): its clock is set to ``sim.t`` before the step, and the
     stages' positions, velocities and times that the kernel wrote into the particles and
     ``sim.t`` are replaced by the committed state, or restored when the step fails.
 
@@ -203,7 +203,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     at both ends, and the integral is taken as (t'_0 + t'_1) / 2 (ln|delta_1| - ln|delta_0|)."""
     simd, simi, view, ctx, r, pv = rb
     st, sd, res, written, host, vidx, DGs = hb
-    full, minv, kin_w, params = system
+    _, minv, kin_w, params = system
+    host_forces = ctx[D_HOST] != 0
     y, cy, gamma, eref, clock = state
     yt, cyt, gammat, ereft, _ = trial
     counters = wk.counters
@@ -232,7 +233,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     N = view.shape[0]
     nv = V.shape[0]
     m = y.shape[0] // 2
-    if full:
+    if host_forces:
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
         cy[m - 1] = 0.0
     if _TANGENTS and nv > 0:
@@ -246,7 +247,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
                      Options(st[SL_MAX_ITER], sd[SL_TOL], etol), wk,
                      Adaptive(epsilon, sd[SL_MIN_DT], res))
     st[SL_REJECTED] += int(res[2])
-    if status == OK and not adaptive and sd[SL_ETOL] != 0.0 and not full:
+    if status == OK and not adaptive and sd[SL_ETOL] != 0.0 and not host_forces:
         worst, err, _ = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR)
         if worst >= 0:
             counters[C_ITER], counters[C_NFEV], counters[C_NEWTON] = c_iter, c_nfev, c_newton
@@ -255,7 +256,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             res[3], res[4] = err, worst
             status = TEST_PARTICLE
     if status != OK:
-        if full:
+        if host_forces:
             restore_particles(view, written, ix, ivx)
             simd[ctx[R_T]] = t_start
         sd[SL_H_FAIL] = res[0]
@@ -298,11 +299,10 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         # sliver's slope, of the order of its h, would misguide the next regular step
         for i in range(1, eref.shape[0]):
             eref[i] = ereft[i]
-    woff = minv.shape[0] - m                # the velocities' weights: after the positions' (full)
     for i in range(view.shape[0]):
         for c in range(3):
             view[i, ix + c] = y[3 * i + c]
-            view[i, ivx + c] = y[m + 3 * i + c] * minv[woff + 3 * i + c]
+            view[i, ivx + c] = y[m + 3 * i + c] * minv[3 * i + c]
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
@@ -340,7 +340,7 @@ def core_step(r, p):
         if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
             return RESYNC                          # a setting HBVM checks was changed
     s, m, kk = ctx[D_S], ctx[D_M], ctx[D_KK]
-    u = 2 * m if ctx[D_FULL] != 0 else m           # the coefficients' width (full / separable)
+    u = m                                          # the coefficients' width (separable)
 
     def f(slot, n):
         return carray(float64_pointer(ctx[slot]), n)
@@ -363,7 +363,7 @@ def core_step(r, p):
         Rebound(simd, simi, view, ctx, ra, pv),
         Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES), f2(A_WRITTEN, N, 7),
              f(A_HOST, N_HOST), f(A_VIDX, nv), f3(A_DGS, nv, s, m)),
-        System(ctx[D_FULL] != 0, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
+        System(False, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
         State(carray(float64_pointer(st[SL_Y]), 2 * m),
               carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
               carray(float64_pointer(st[SL_GAMMA]), (s, u)),

@@ -15,8 +15,7 @@ from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
-from integrators.core import (C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error,
-                              work_sizes)
+from integrators.core import C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
 from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
@@ -573,20 +572,18 @@ def _prepare(sim, p: int) -> None:
     reasons = host_reasons(sim)
     model_changed = _model_changed(st, sim, bool(reasons))
     if reasons:
-        # REBOUND's own accelerations at the stages (hbvm_md.rebound.forces): the full form
+        # REBOUND's own accelerations at the stages (hbvm_md.rebound.forces), in the separable
+        # form: the state (q, clock, v, CLOCK), with the stage velocities for a force that reads
+        # them
         _check_host_path(sim, method, reasons)
         _clear_gravity_ignore(sim)
         scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
         nb = None
         # (variational particles are refused on this path: no tangent map is compiled)
-        binding = Binding(method, scene, form="full", fast=None, glue="hbvm_md.rebound.glue")
+        binding = Binding(method, scene, form="separable", fast=None,
+                          glue="hbvm_md.rebound.glue", velocities=scene.velocities)
         dim = scene.dim
-        # the error weights (accelerations) in the loop's minv, and work buffers for them
-        binding.minv = scene.error_weights()
-        binding.kin_w = np.zeros(dim)
-        nf, nc = work_sizes(method.n_stages, s, 2 * dim, 2 * dim, 2 * dim)
-        binding.work, binding.cwork = np.empty(nf), np.empty(nc, dtype=complex)
-        u, vw = 2 * dim, binding.minv[dim:dim + 3 * N]     # (1/w: p -> v)
+        u, vw = dim, binding.minv[:3 * N]                  # (1: the state holds v)
     else:
         nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
         # the tangent map is compiled only for a simulation with variational particles (a
@@ -635,7 +632,7 @@ def _prepare(sim, p: int) -> None:
                       "by their own error estimates (fixed steps) or the step control (adaptive)",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
-    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=nb is None)
+    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=nb is None)
     code = binding.step_code
     if code.kind != "compiled" and sim.N_var > 0 and sim._calculate_megno:
         raise ValueError("HBVM hands MEGNO to REBOUND from its compiled step only; unset "
@@ -658,7 +655,7 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
     ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
     old = doubles(int(ctx[L.A_HOST]), L.N_HOST)
     now = (sim.G, float(np.uint64(sim.N_active).astype(np.int64)))
-    if old[0] != now[0] or old[1] != now[1] or bool(ctx[L.D_FULL]) != host:
+    if old[0] != now[0] or old[1] != now[1] or bool(ctx[L.D_HOST]) != host:
         return True
     N = int(ctx[L.D_N])
     if N == sim.N and host:      # (a state of velocities does not see a mass changed)
@@ -706,15 +703,14 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
     return doubles(int(st[slot]), n)
 
 
-def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=False) -> None:
+def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
     allocated with the C library (the state's ``free`` releases it with the state)."""
     ex = Extrapolation(method)
     (tn, ts), (Wp, Cp) = binding.c1, binding.c2
     NV, NVinv, NM = binding.no_newton
     s, N = method.s, view.shape[0]
-    u = binding.minv.shape[0]                 # the coefficients' width: m, or 2m (full)
-    m = u // 2 if full else u
+    u = m = binding.minv.shape[0]             # the coefficients' width (separable: m)
     written = np.empty((N, 7))
     written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     written[:, 6] = view[:, im]
@@ -756,7 +752,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, full=False) -
         binding.work.shape[0],
         binding.cwork.shape[0], ptr)
     header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
-    header[L.D_FULL] = int(full)
+    header[L.D_HOST] = int(host_forces)
     # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
     header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
         tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
@@ -789,7 +785,7 @@ def _python_step(code, st):
                                                (L.SL_METHOD, L.D_METHOD))):
             return L.RESYNC
         s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
-        u = 2 * m if ctx[L.D_FULL] else m
+        u = m
         nv = int(ctx[L.D_NV])
         tnc, tsr, wpp, cpp, kk = (int(ctx[i]) for i in (L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP,
                                                          L.D_KK))
@@ -808,7 +804,7 @@ def _python_step(code, st):
             Rebound(simd, simi, view, ctx, r, pv),
             Host(st_, sd, sd[L.SL_RES:L.SL_RES + L.N_RES], f(L.A_WRITTEN, (N, 7)),
                    f(L.A_HOST, L.N_HOST), f(L.A_VIDX, nv), f(L.A_DGS, (nv, s, m))),
-            R.System(bool(ctx[L.D_FULL]), f(L.A_MINV, u), f(L.A_KINW, m),
+            R.System(False, f(L.A_MINV, u), f(L.A_KINW, m),
                      f(L.A_PARAMS, int(ctx[L.D_P]))),
             R.State(y[:2 * m], y[2 * m:], doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
                     sd[L.SL_EREF:L.SL_EREF + L.N_EREF], f(L.A_CLOCK, 2)),

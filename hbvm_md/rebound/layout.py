@@ -113,7 +113,7 @@ ENUMS = {"method": METHODS, "nodes": NODES}
 #: them, and their values when the step was prepared, follow; a changed word makes the step
 #: answer RESYNC, and the host checks the settings again (a neighbour's change costs only that)
 CONFIG_FIELDS = ("softening", "N_var", "testparticle_type", "_gravity", "_boundary",
-                 "_N_odes", "_additional_forces")
+                 "_N_odes", "_additional_forces", "force_is_velocity_dependent")
 N_CFG = len(CONFIG_FIELDS)
 C_WORDS = R_M + 1
 C_VALUES = C_WORDS + N_CFG
@@ -128,10 +128,10 @@ C_VALUES = C_WORDS + N_CFG
  D_NV, D_TGF, D_TGC, D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0
  ) = range(C_VALUES + N_CFG, C_VALUES + N_CFG + 17)
 #: 1 when the step runs on REBOUND's own accelerations (:mod:`hbvm_md.rebound.forces`: the
-#: full form, the state (q, clock, p, 0) of 2 D_M doubles, gamma and the error weights A_MINV
-#: of width 2 D_M), 0 for the compiled N-body kernel (separable: width D_M)
-D_FULL = R_MEGNO_T0 + 1
-N_HEADER = D_FULL + 1
+#: state (q, clock, v, CLOCK), whose clock the glue sets to ``sim.t`` and whose stages it
+#: restores the particles from), 0 for the compiled N-body kernel; both separable (width D_M)
+D_HOST = R_MEGNO_T0 + 1
+N_HEADER = D_HOST + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")

@@ -62,9 +62,9 @@ def masses_only(r: int, p: int) -> bool:
         doubles(int(ctx[L.D_PTR]), N * stride).reshape(N, stride),
         doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7),
         doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P])),
-        doubles(int(ctx[L.A_MINV]), 2 * m if ctx[L.D_FULL] else m),
+        doubles(int(ctx[L.A_MINV]), m),
         doubles(int(ctx[L.A_KINW]), m), doubles(int(st[L.SL_Y]), 4 * m),
-        doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_FULL]),
+        doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_HOST]),
         int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]))
     if done:
         st[L.SL_RESYNCS] += 1
@@ -72,15 +72,16 @@ def masses_only(r: int, p: int) -> bool:
 
 
 @jit
-def update_masses(view, written, params, minv, kin_w, y, eref, full, ix, ivx, im):
+def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im):
     """The step's arrays <- REBOUND's particles whose masses (and perhaps positions and
     velocities) changed since the last commit, in place (module docstring).
 
     view: (N, stride) REBOUND's particles (x, vx, m at columns ix, ivx, im); written (N, 7):
     the last commit's x, v, m; params: the kernel parameters; minv (u,), kin_w (m,): the
     step's weights; y (4m,): the state and its compensations; eref: the energy reference (and
-    EQUIP's alpha and slope); full: the state is (q, clock, v, 0) on REBOUND's own
-    accelerations, else (q, p) of the N-body kernel.  Returns False, changing nothing, when no
+    EQUIP's alpha and slope); host: the state is (q, clock, v, CLOCK) on REBOUND's own
+    accelerations (weights 1, kinetic weights the gravitating masses), else (q, p) of the
+    N-body kernel.  Returns False, changing nothing, when no
     mass changed, a value is not finite or negative, or a body's mass became or stopped
     being zero (the model's structure changes: the host prepares afresh)."""
     N = view.shape[0]
@@ -99,19 +100,23 @@ def update_masses(view, written, params, minv, kin_w, y, eref, full, ix, ivx, im
     for i in range(N):
         mass[i] = view[i, im]
     m = y.shape[0] // 4
-    if full:
+    if host:
         scene_set_masses(params, mass)
     else:
         nbody_set_masses(params, mass)
     for i in range(N):
         # a source's momentum is m v and its weights 1/m (kin_w > 0 marks a source: a test
-        # particle's momentum is its velocity, weight 1, kinetic weight 0); the full form's
-        # state holds velocities
-        source = not full and kin_w[3 * i] > 0.0
+        # particle's momentum is its velocity, weight 1, kinetic weight 0); on REBOUND's own
+        # accelerations the state holds velocities and a source's kinetic weight is its mass
+        source = kin_w[3 * i] > 0.0
         for c in range(3):
             j = 3 * i + c
             y[j] = view[i, ix + c]
-            if source:
+            if host:
+                if source:
+                    kin_w[j] = mass[i]
+                y[m + j] = view[i, ivx + c]
+            elif source:
                 minv[j] = 1.0 / mass[i]
                 kin_w[j] = minv[j]
                 y[m + j] = view[i, ivx + c] * mass[i]
