@@ -207,7 +207,7 @@ def scene_set_masses(params, masses):
 
 
 # -- what a scene has, read from the simulation ---------------------------------------------------
-def _reboundx_forces(sim):
+def reboundx_forces(sim):
     """[(name, address of the rebx_force)] of the REBOUNDx forces attached to ``sim`` when its
     ``additional_forces`` is REBOUNDx's, else None (a user's function, or none)."""
     if not sim._additional_forces or not sim.extras:
@@ -237,7 +237,7 @@ NOT_OF_THE_STATE = {"stochastic_forces": "draws new random kicks at every call"}
 def random_forces(sim) -> list[str]:
     """Names of the REBOUNDx forces attached to ``sim`` that are not functions of the state
     (:data:`NOT_OF_THE_STATE`)."""
-    return [name for name, _ in (_reboundx_forces(sim) or []) if name in NOT_OF_THE_STATE]
+    return [name for name, _ in (reboundx_forces(sim) or []) if name in NOT_OF_THE_STATE]
 
 
 def added_forces(sim) -> list[str]:
@@ -245,7 +245,7 @@ def added_forces(sim) -> list[str]:
     "a user's additional_forces function"; [] when there are none."""
     if not sim._additional_forces:
         return []
-    rebx = _reboundx_forces(sim)
+    rebx = reboundx_forces(sim)
     if rebx is None:
         return ["a user's additional_forces function"]
     return [f"REBOUNDx '{name}'" for name, _ in rebx]
@@ -304,14 +304,14 @@ def hamiltonian(sim) -> bool:
     forces whose potential REBOUNDx exports (:data:`POTENTIALS`)?"""
     if not sim._additional_forces:
         return True
-    rebx = _reboundx_forces(sim)
+    rebx = reboundx_forces(sim)
     return rebx is not None and all(name in POTENTIALS for name, _ in rebx)
 
 
 def _potential_entries(sim) -> list[tuple[float, float, float, float]]:
     """(function, arity, arg1, arg2) of REBOUNDx's potentials of the scene's forces (a
     one-argument potential sums over every force of its kind: listed once)."""
-    rebx = _reboundx_forces(sim) or []
+    rebx = reboundx_forces(sim) or []
     if not rebx:
         return []
     import reboundx

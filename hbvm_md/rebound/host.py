@@ -23,7 +23,7 @@ from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
-from hbvm_md.rebound.forces import ReboundScene, host_reasons
+from hbvm_md.rebound.forces import ReboundScene, host_reasons, reboundx_forces
 from hbvm_md.rebound.glue import Host, Rebound
 from hbvm_md.rebound.masses import masses_only
 from integrators import records as R
@@ -255,6 +255,7 @@ def _install_runs(rebound) -> None:
             return reb_integrate(self, tmax, exact_finish_time)
         with _OneThread(addr):
             _PENDING.pop(addr, None)
+            _recheck_forces(self, addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
             _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
 
@@ -264,11 +265,38 @@ def _install_runs(rebound) -> None:
             return reb_steps(self, N_steps)
         with _OneThread(addr):
             _PENDING.pop(addr, None)
+            _recheck_forces(self, addr)
             _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+#: simulation address -> the REBOUNDx forces (name, address) its step was last prepared with
+_FORCES: dict[int, tuple] = {}
+
+
+def _recheck_forces(sim, addr: int) -> None:
+    """A REBOUNDx force added or removed between runs changes no word of ``reb_simulation``
+    that the compiled step checks (REBOUNDx keeps one ``additional_forces`` function for all its
+    forces), yet it changes the model: the potentials of the H the energy check guards, whether
+    the scene has an H at all.  So ``integrate`` and ``steps`` compare the attached forces with
+    those the step was prepared with, and on a difference mark the step's context stale (its
+    copy of the ``additional_forces`` word is changed): the step answers RESYNC and the host
+    prepares it again, as for any setting it checks."""
+    seen = _FORCES.get(addr)
+    if seen is None or (not seen and not sim.extras):
+        return
+    if tuple(reboundx_forces(sim) or ()) == seen:
+        return
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if p:
+        st, _ = _slots(p)
+        if st[L.SL_CTX]:
+            ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
+            ctx[L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
+    _FORCES.pop(addr, None)
 
 
 def _install_operators() -> None:
@@ -642,6 +670,7 @@ def _prepare(sim, p: int) -> None:
     else:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
+    _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
 
 
 def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
