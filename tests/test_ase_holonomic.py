@@ -60,14 +60,16 @@ def energy_error(dyn_cls, atoms, steps, **kw):
 
 
 def test_rigid_water_energy_1000x_below_rattle_bonds_kept():
-    """8 rigid waters at 1 fs, 25 steps, 3 perturbed starts (medians): HBVM(3, 2)'s energy
-    error is >= 1000x below VelocityVerlet's (RATTLE) and the bonds hold to 1e-9 A."""
+    """8 rigid waters at 1 fs, 10 steps, 3 perturbed starts (medians): HBVM(3, 2)'s energy
+    error is >= 1000x below VelocityVerlet's (RATTLE) and the bonds hold to 1e-9 A.  Measured:
+    the ratio of the medians 2.7e7 at 10 steps (1.9e8 at the 25 this test took before, at 2.4x
+    its cost), the bonds to 1.5e-13 A at both."""
     hb, vv, bonds = [], [], []
     for seed in range(3):
-        e, b = energy_error(HBVMDynamics, water_cluster(2, seed), 25, s=2)
+        e, b = energy_error(HBVMDynamics, water_cluster(2, seed), 10, s=2)
         hb.append(e)
         bonds.append(b)
-        vv.append(energy_error(VelocityVerlet, water_cluster(2, seed), 25)[0])
+        vv.append(energy_error(VelocityVerlet, water_cluster(2, seed), 10)[0])
     assert max(bonds) < 1e-9
     assert np.median(vv) > 1e3 * np.median(hb), (vv, hb)
 
