@@ -708,6 +708,10 @@ class Stepper(Counted):
         self._eref = np.full(3, np.nan)     # [energy, EQUIP's alpha and slope] (integrators.loop)
         self.counters = np.zeros(N_COUNTERS)
         self.binding.watch(self.counters)
+        # one step is run() of one step without samples (loop.advance, which compiled callers
+        # inline): the same entry point as the runs', so that a first step() does not compile
+        # a second one (numba optimises the linked step again for each entry point)
+        self._one_step = Samples(1, 0, np.empty(0), np.empty((0, self._y.shape[0])), np.empty(0))
         self.solver_option = solver
         self._solver = "newton" if solver == "newton" else "fixed_point"
         self.tol, self.max_iter = tol, max_iter
@@ -1056,10 +1060,10 @@ class Stepper(Counted):
                 return NOT_FINITE
         else:
             newton = b.no_newton
-        status = b.step_code.advance(b.system_record, self._state_record(), h,
-                                     self._extrapolation(h, self._h_prev), b.method_record,
-                                     newton, self._options(solver),
-                                     b.work_record(self.counters))
+        status = b.step_code.run(b.system_record, self._state_record(), h,
+                                 self._extrapolation(h, self._h_prev), b.method_record,
+                                 newton, self._options(solver),
+                                 b.work_record(self.counters), self._one_step)
         if status != OK and solver == "newton":
             self.counters[C_NFEV] = nfev     # the Jacobian's evaluations were the failed step's too
         return status
