@@ -554,7 +554,7 @@ def method_of(st: np.ndarray) -> HBVM | EQUIP:
 
 def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     """Check the settings in ``sim.integrator`` (a user may change them between runs; the
-    compiled step checks the same ranges, ``glue.settings_ok``); returns the method."""
+    compiled step checks the same ranges, ``particles.settings_ok``); returns the method."""
     method = method_of(st)
     bad = [(n, v, want) for n, v, want in (
         ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),

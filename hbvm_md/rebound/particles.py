@@ -1,0 +1,127 @@
+"""REBOUND's particles seen from the compiled step: the helpers of :mod:`hbvm_md.rebound.glue`
+that do not depend on the force kernel or the method (does the simulation hold what the last
+step wrote, read it afresh, restore it, the settings' ranges, the variational particles).
+
+They are an ordinary compiled module, cached once: every generated step module (one per scene
+variant, :mod:`integrators.specialise`) links the same compiled functions instead of compiling
+its own copies (six REBOUND variants in the test suite compiled them six times).
+"""
+import numpy as np
+
+from integrators.jit import jit
+from hbvm_md.rebound.layout import (SL_ADAPTIVE, SL_EPSILON, SL_ETOL, SL_MAX_ITER, SL_MIN_DT,
+                                    SL_TOL)
+
+
+@jit
+def particles_match(view, written, ix, ivx, im):
+    """Are REBOUND's particles (view: (N, stride) doubles over reb_particle, x, vx and m at
+    columns ix, ivx, im) what the last commit wrote (written: x, y, z, vx, vy, vz, m)?"""
+    N = view.shape[0]
+    if written.shape[0] != N:
+        return False
+    for i in range(N):
+        for c in range(3):
+            if view[i, ix + c] != written[i, c] or view[i, ivx + c] != written[i, 3 + c]:
+                return False
+        if view[i, im] != written[i, 6]:
+            return False
+    return True
+
+
+@jit
+def reread_particles(view, written, ix, ivx, im, y, cy, minv):
+    """The state y (2m,) <- REBOUND's particles whose positions or velocities were changed
+    between two steps (by a REBOUNDx operator, a post-timestep callback, the user), with the
+    same masses: q = x, p = v / minv (the momenta, or the velocities of the state on REBOUND's
+    own accelerations, whose weights are 1), their compensations zeroed (the clock's
+    coordinates, after the particles', are the glue's); ``written`` <- them.
+    Returns False, changing nothing, when a mass changed or a value is not finite: the host
+    then updates the masses in place (:mod:`hbvm_md.rebound.masses`, when nothing else
+    changed) or prepares the step afresh (and names what is wrong)."""
+    N = view.shape[0]
+    for i in range(N):
+        if view[i, im] != written[i, 6]:
+            return False
+        for c in range(3):
+            if not (np.isfinite(view[i, ix + c]) and np.isfinite(view[i, ivx + c])):
+                return False
+    m = y.shape[0] // 2
+    for i in range(N):
+        for c in range(3):
+            y[3 * i + c] = view[i, ix + c]
+            cy[3 * i + c] = 0.0
+            y[m + 3 * i + c] = view[i, ivx + c] / minv[3 * i + c]
+            cy[m + 3 * i + c] = 0.0
+            written[i, c] = view[i, ix + c]
+            written[i, 3 + c] = view[i, ivx + c]
+    return True
+
+
+@jit
+def restore_particles(view, written, ix, ivx):
+    """REBOUND's particles' x and v <- what the last commit wrote (a step on REBOUND's own
+    accelerations leaves its last stage in them)."""
+    for i in range(view.shape[0]):
+        for c in range(3):
+            view[i, ix + c] = written[i, c]
+            view[i, ivx + c] = written[i, 3 + c]
+
+
+@jit
+def settings_ok(st, sd):
+    """The ranges :func:`hbvm_md.rebound.host.check_settings` checks (and names), for the
+    settings a user may change in ``sim.integrator`` between runs."""
+    if st[SL_MAX_ITER] < 1 or not 0.0 <= sd[SL_TOL] < 1.0 or not -1.0 < sd[SL_ETOL] < np.inf:
+        return False
+    return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
+
+
+@jit
+def read_tangents(pv, vidx, N, ix, ivx, minv, V, DG):
+    """V (nv, 2u) <- REBOUND's first-order variational particles (pv: (N_var, stride) doubles
+    over ``particles_var``; set v's rows vidx[v] .. vidx[v] + N): dq = dx and dp = dv / minv
+    (the momenta's variation: m dv for a gravitating body, dv for a test particle).
+
+    V holds the tangents as the last step wrote them: a set that differs (edited by the user,
+    rescaled by REBOUND) gets its previous coefficients DG[v] (the tangent map's initial
+    guess, which belongs to the tangent it was computed for) zeroed."""
+    m = minv.shape[0]
+    for v in range(V.shape[0]):
+        i0 = int(vidx[v])
+        same = True
+        for i in range(N):
+            for c in range(3):
+                dx, dv = pv[i0 + i, ix + c], pv[i0 + i, ivx + c]
+                # (as write_tangents wrote them)
+                if dx != V[v, 3 * i + c] or dv != V[v, m + 3 * i + c] * minv[3 * i + c]:
+                    same = False
+                V[v, 3 * i + c] = dx
+                V[v, m + 3 * i + c] = dv / minv[3 * i + c]
+        if not same:
+            for j in range(DG.shape[1]):
+                for u in range(DG.shape[2]):
+                    DG[v, j, u] = 0.0
+
+
+@jit
+def write_tangents(pv, vidx, N, ix, ivx, minv, V):
+    """REBOUND's variational particles <- V (the inverse of :func:`read_tangents`)."""
+    m = minv.shape[0]
+    for v in range(V.shape[0]):
+        i0 = int(vidx[v])
+        for i in range(N):
+            for c in range(3):
+                pv[i0 + i, ix + c] = V[v, 3 * i + c]
+                pv[i0 + i, ivx + c] = V[v, m + 3 * i + c] * minv[3 * i + c]
+
+
+@jit
+def delta2(pv, N, ix, ivx):
+    """|delta|^2 = sum of dx^2 + dv^2 over variational particles 0 .. N-1: the tangent whose
+    growth REBOUND's MEGNO measures (``reb_tools_megno_deltad_delta`` reads these rows)."""
+    acc = 0.0
+    for i in range(N):
+        for c in range(3):
+            acc += pv[i, ix + c] * pv[i, ix + c] + pv[i, ivx + c] * pv[i, ivx + c]
+    return acc
