@@ -477,7 +477,9 @@ def stage_velocities(y, cy, minv, g, I, I_lo, h, Z, exact):
             if exact:
                 for l in range(s):
                     acc_lo += I_lo[i, l] * g[l, j]
-            Z[i, m + j] = (y[m + j] + (h * (acc + acc_lo) - cy[m + j])) * minv[j]
+            # (acc_lo joins -cy, not the rounded sum that would round it away alike at every
+            # step: as in full_stages)
+            Z[i, m + j] = (y[m + j] + (h * acc + (h * acc_lo - cy[m + j]))) * minv[j]
 
 
 @jit

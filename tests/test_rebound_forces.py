@@ -93,21 +93,22 @@ def test_velocity_dependent_force_keeps_order_2s(s, steps):
     assert abs(slope - 2 * s) < 0.3, (errs, slope)
 
 
-def _drag_planets(integrator, flag=1, **hbvm):
-    """Two planets with REBOUND's Forces notebook's Python drag (velocity dependent),
-    ``force_is_velocity_dependent`` = flag."""
+def _drag_planets(integrator, flag=1, rate=1e-2, **hbvm):
+    """Two planets with REBOUND's Forces notebook's Python drag a = -rate v (velocity
+    dependent), ``force_is_velocity_dependent`` = flag; HBVM with settings ``hbvm`` through
+    HBVMIntegrator, else as ``sim.integrator = "hbvm"``."""
     sim = _planets("ias15")
 
     def drag(reb_sim, sim=sim):
         ps = sim.particles
         for i in (1, 2):
-            ps[i].ax -= 1e-2 * ps[i].vx
-            ps[i].ay -= 1e-2 * ps[i].vy
-            ps[i].az -= 1e-2 * ps[i].vz
+            ps[i].ax -= rate * ps[i].vx
+            ps[i].ay -= rate * ps[i].vy
+            ps[i].az -= rate * ps[i].vz
 
     sim.additional_forces = drag
     sim.force_is_velocity_dependent = flag
-    if integrator == "hbvm":
+    if integrator == "hbvm" and hbvm:
         HBVMIntegrator(sim, **hbvm)
     else:
         sim.integrator = integrator
@@ -200,21 +201,9 @@ def test_python_additional_forces_match_ias15():
     """REBOUND's Forces notebook: a Python drag force on the planets (velocity dependent,
     ``force_is_velocity_dependent`` set: HBVM's stages see their own velocities) agrees with
     IAS15 to 1e-8 after 20 time units."""
-    sims = []
-    for integ in ("ias15", "hbvm"):
-        sim = _planets(integ)
-
-        def drag(reb_sim, sim=sim):
-            ps = sim.particles
-            for i in (1, 2):
-                ps[i].ax -= 1e-3 * ps[i].vx
-                ps[i].ay -= 1e-3 * ps[i].vy
-                ps[i].az -= 1e-3 * ps[i].vz
-
-        sim.additional_forces = drag
-        sim.force_is_velocity_dependent = 1
+    sims = [_drag_planets(integ, rate=1e-3) for integ in ("ias15", "hbvm")]
+    for sim in sims:
         sim.integrate(20.0)
-        sims.append(sim)
     assert _diff(*sims) < 1e-8
 
 
