@@ -465,21 +465,15 @@ def stage_velocities(y, cy, minv, g, I, I_lo, h, Z, exact):
     stages of the first-order system (q, p)' = (M^{-1} p, f(t, q, M^{-1} p)) whose position
     stages are the separable step's Q (Brugnano-Iavernaro-Trigiante: HBVM(k, s) is a k-stage
     Runge-Kutta method with A = I_s P_s^T Omega, and P_s^T Omega I_s = X_s), so the step stays
-    of order 2s for a force that reads velocities.  I_lo only when ``exact`` (as in
-    :func:`full_stages`)."""
-    s, m = g.shape
-    for i in range(Z.shape[0]):
+    of order 2s for a force that reads velocities.  The momenta's stages are the full form's
+    (:func:`full_stages_narrow` on p: the same sums and roundings, I_lo only when ``exact``),
+    then scaled by M^{-1}."""
+    m = g.shape[1]
+    V = Z[:, m:]
+    full_stages_narrow(y[m:], cy[m:], g, I, I_lo, h, V, exact)
+    for i in range(V.shape[0]):
         for j in range(m):
-            acc = 0.0
-            acc_lo = 0.0
-            for l in range(s):
-                acc += I[i, l] * g[l, j]
-            if exact:
-                for l in range(s):
-                    acc_lo += I_lo[i, l] * g[l, j]
-            # (acc_lo joins -cy, not the rounded sum that would round it away alike at every
-            # step: as in full_stages)
-            Z[i, m + j] = (y[m + j] + (h * acc + (h * acc_lo - cy[m + j]))) * minv[j]
+            V[i, j] *= minv[j]
 
 
 @jit
