@@ -69,7 +69,8 @@ TANGENT_FUNCTIONS = ("evaluate_jvp", "tangent_converged", "tangent_sizes", "stag
 _TANGENT_PATH = Path(tangent.__file__)
 # inlined into their compiled callers (module docstring, "Compile time"): a REBOUND step is
 # then one compiled function (glue.core_step), an engine's step one (advance, run or
-# run_variational); each also compiles as its own entry point when called from Python
+# run_variational); each also compiles as its own entry point when called from Python (the
+# engine's Stepper calls run, for one step too, so that advance is not a second one)
 INLINED = ("tableau", "advance", "attempt", "step_arrays")
 # the full form's pieces of integrators.core, bound to integrators.absent in a separable step
 FULL_FUNCTIONS = ("full_stages", "full_stages_narrow", "symplectic", "commit_full")
@@ -150,22 +151,18 @@ def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False
         h.update(f"{mod}:{name}".encode())
         h.update(Path(sys.modules[mod].__file__).read_bytes())
     h.update(f"{numba.__version__} {sys.version} full={variant[0]} equip={variant[1]}".encode())
-    if _velocities(variant):           # (the plain variants keep their names)
+    if variant[2]:           # (the stage-velocity variant: the plain variants keep their names)
         h.update(b" stage velocities")
     return h.hexdigest()[:24]
 
 
-def _velocities(variant) -> bool:
-    """Is the variant (full, equip[, velocities]) the separable step with stage velocities?"""
-    return len(variant) > 2 and bool(variant[2])
-
-
 def _variant_lines(refs, glue, frefs, variant) -> str:
     """The generated module's lines binding what this variant leaves out to the stand-ins of
-    :mod:`integrators.absent` (module docstring, "Compile time")."""
-    full, equip = variant[:2]
+    :mod:`integrators.absent` (module docstring, "Compile time"); variant: (full, equip, stage
+    velocities)."""
+    full, equip, velocities = variant
     lines = ["from integrators import absent as _absent  # noqa: E402"]
-    if _velocities(variant):
+    if velocities:
         lines.append("_STAGE_VELOCITIES = True")
     if frefs == NO_FOLLOWERS:
         lines += ["_FOLLOWERS = False", "follow = _absent.follow"]
@@ -212,7 +209,7 @@ def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
              "EQUIP" if variant[1] else "HBVM" if variant[1] is False else "HBVM and EQUIP"]
     if frefs != NO_FOLLOWERS:
         parts.append("test particles")
-    if _velocities(variant):
+    if variant[2]:
         parts.append("stage velocities")
     if len(refs) > 2:
         parts.append("tangent map")

@@ -150,7 +150,7 @@ def test_a_cold_compile_says_so_in_one_line(tmp_path, monkeypatch, caplog):
     path.write_text("")
     refs = [("systems.nbody", "nbody_forces"), ("systems.nbody", "nbody_potential")]
     with caplog.at_level(logging.INFO, logger="hbvm_md"):
-        sp._announce(name, path, refs, None, sp.NO_FOLLOWERS, (False, False))
+        sp._announce(name, path, refs, None, sp.NO_FOLLOWERS, (False, False, False))
     [line] = [r.getMessage() for r in caplog.records]
     assert line.startswith("hbvm-md: compiling HBVM's step for this scene, once: kernel "
                            "systems.nbody.nbody_forces, separable form, HBVM (")
@@ -165,7 +165,7 @@ def test_a_cold_compile_says_so_in_one_line(tmp_path, monkeypatch, caplog):
             break
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="hbvm_md"):
-        sp._announce(name, path, refs, None, sp.NO_FOLLOWERS, (False, False))
+        sp._announce(name, path, refs, None, sp.NO_FOLLOWERS, (False, False, False))
     assert caplog.records == []
 
 
