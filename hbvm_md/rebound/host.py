@@ -25,7 +25,7 @@ from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
 from hbvm_md.rebound.forces import ReboundScene, host_reasons, reboundx_forces
 from hbvm_md.rebound.glue import Host, Rebound
-from hbvm_md.rebound.masses import masses_only
+from hbvm_md.rebound.masses import masses_only, same_model
 from integrators import records as R
 
 NAME = "hbvm"
@@ -682,9 +682,9 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
     if not st[L.SL_CTX]:
         return False
     ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
-    old = doubles(int(ctx[L.A_HOST]), L.N_HOST)
-    now = (sim.G, float(np.uint64(sim.N_active).astype(np.int64)))
-    if old[0] != now[0] or old[1] != now[1] or bool(ctx[L.D_HOST]) != host:
+    if not same_model(ctx, int64s(ctypes.addressof(sim), int(ctx[L.R_HEAD]))):
+        return True
+    if bool(ctx[L.D_HOST]) != host:
         return True
     N = int(ctx[L.D_N])
     if N == sim.N and host:      # (a state of velocities does not see a mass changed)
@@ -693,9 +693,7 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
         sim.serialize_particle_data(m=m)
         if not np.array_equal(written[:, 6], m):
             return True
-    words = ctx[L.C_WORDS:L.C_VALUES]
-    sim_words = int64s(ctypes.addressof(sim), int(max(words)) + 1)
-    return not np.array_equal(sim_words[words], ctx[L.C_VALUES:L.C_VALUES + L.N_CFG])
+    return False
 
 
 def _check_host_path(sim, method, reasons) -> None:

@@ -36,6 +36,18 @@ _METHOD_SLOTS = ((L.SL_S, L.D_S), (L.SL_K, L.D_K), (L.SL_NODES, L.D_NODES),
                  (L.SL_METHOD, L.D_METHOD))
 
 
+def same_model(ctx: np.ndarray, simi: np.ndarray) -> bool:
+    """Does the simulation (simi: its first ctx[R_HEAD] words as int64) have the G, N_active
+    and the settings HBVM checks that the context block (ctx: its int64 header) was built
+    with?  The compiled step's RESYNC test of them (:func:`hbvm_md.rebound.glue.core_step`),
+    for the host's Python side (here, and ``host._model_changed``)."""
+    host = doubles(int(ctx[L.A_HOST]), L.N_HOST)
+    return (simi.view(np.float64)[ctx[L.R_G]] == host[0]
+            and float(simi[ctx[L.R_NACTIVE]]) == host[1]
+            and np.array_equal(simi[ctx[L.C_WORDS:L.C_VALUES]],
+                               ctx[L.C_VALUES:L.C_VALUES + L.N_CFG]))
+
+
 def masses_only(r: int, p: int) -> bool:
     """Take a change of masses only in place (module docstring): True when done, False
     (nothing changed) when the host must prepare the step afresh.  r: the simulation's
@@ -49,12 +61,8 @@ def masses_only(r: int, p: int) -> bool:
     # what the compiled step's RESYNC tests compare (glue.core_step, step_arrays)
     simi = int64s(r, int(ctx[L.R_HEAD]))
     N = int(ctx[L.D_N])
-    host = doubles(int(ctx[L.A_HOST]), L.N_HOST)
     if (simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N
-            or simi.view(np.float64)[ctx[L.R_G]] != host[0]
-            or float(simi[ctx[L.R_NACTIVE]]) != host[1]
-            or not np.array_equal(simi[ctx[L.C_WORDS:L.C_VALUES]],
-                                  ctx[L.C_VALUES:L.C_VALUES + L.N_CFG])):
+            or not same_model(ctx, simi)):
         return False
     m = int(ctx[L.D_M])
     stride = int(ctx[L.R_STRIDE])
