@@ -11,6 +11,11 @@ kind it will use:
 * ``"test-particles"``: the same with test particles (``N_active`` < N, or massless bodies);
 * ``"variational"``: the same with variational particles (``sim.add_variation()``, MEGNO);
 * ``"equip"``: REBOUND with ``sim.integrator.method = "equip"``;
+* ``"rebound-forces"``: REBOUND on its own accelerations (:mod:`hbvm_md.rebound.forces`: a
+  scene with REBOUNDx forces, ``sim.additional_forces``, softening, semi-active particles or
+  no gravity), forces of positions only;
+* ``"rebound-forces-velocities"``: the same for forces that read the velocities
+  (``sim.force_is_velocity_dependent``: REBOUNDx ``gr``, tides, drag);
 * ``"ase"``: :class:`hbvm_md.HBVMDynamics` (the compiled pieces its step calls).
 
 The caches are then filled for every later process that uses the same folders, the same
@@ -24,7 +29,17 @@ import time
 DEFAULT_SCENES = ("rebound", "ase")
 
 
-def _rebound(test_particles: bool = False, variational: bool = False, method: str = "hbvm"):
+def _drag(reb_sim):
+    """A weak drag on every particle: a force of the velocities (``"rebound-forces-velocities"``)."""
+    sim = reb_sim.contents
+    for p in sim.particles:
+        p.ax -= 1e-6 * p.vx
+        p.ay -= 1e-6 * p.vy
+        p.az -= 1e-6 * p.vz
+
+
+def _rebound(test_particles: bool = False, variational: bool = False, method: str = "hbvm",
+             host_forces: str | None = None):
     import importlib
 
     import rebound
@@ -38,6 +53,11 @@ def _rebound(test_particles: bool = False, variational: bool = False, method: st
         sim.N_active = 3
     if variational:
         sim.init_megno()
+    if host_forces == "positions":       # (softening: REBOUND's own accelerations, of q only)
+        sim.softening = 1e-4
+    elif host_forces == "velocities":
+        sim.additional_forces = _drag
+        sim.force_is_velocity_dependent = 1
     sim.integrator = "hbvm"
     if method != "hbvm":
         sim.integrator.method = method
@@ -62,6 +82,8 @@ SCENES = {
     "test-particles": lambda: _rebound(test_particles=True),
     "variational": lambda: _rebound(variational=True),
     "equip": lambda: _rebound(method="equip"),
+    "rebound-forces": lambda: _rebound(host_forces="positions"),
+    "rebound-forces-velocities": lambda: _rebound(host_forces="velocities"),
     "ase": _ase,
 }
 
@@ -74,7 +96,8 @@ def precompile(scenes=DEFAULT_SCENES) -> dict[str, float]:
     ----------
     scenes : iterable of str
         Any of ``"rebound"``, ``"test-particles"``, ``"variational"``, ``"equip"``,
-        ``"ase"``, or ``"all"`` (default: ``("rebound", "ase")``).
+        ``"rebound-forces"``, ``"rebound-forces-velocities"``, ``"ase"``, or ``"all"``
+        (default: ``("rebound", "ase")``).
 
     Examples
     --------

@@ -181,3 +181,33 @@ def test_hbvm_md_compile_compiles_the_rebound_step(capsys):
     assert main(["compile", "rebound"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("rebound: ") and "cached in" in out
+
+
+def test_precompile_covers_the_scenes_on_rebounds_own_forces(caplog):
+    """``hbvm-md compile rebound-forces rebound-forces-velocities`` compiles the variants that a
+    scene on REBOUND's accelerations uses (softening; a force of the velocities): the scenes
+    that follow compile nothing (no "compiling" line: a scene whose variant differed from the
+    precompiled one would build a module of another name and announce it)."""
+    import rebound
+
+    from hbvm_md import precompile
+    precompile(["rebound-forces", "rebound-forces-velocities"])
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="hbvm_md"):
+        for velocities in (False, True):
+            sim = rebound.Simulation()
+            sim.add(m=1.0)
+            sim.add(m=1e-3, a=1.0, e=0.1)
+            sim.add(m=1e-4, a=1.9, e=0.05)
+            if velocities:
+                def drag(reb_sim, sim=sim):
+                    for p in sim.particles:
+                        p.ax -= 1e-5 * p.vx
+                sim.additional_forces = drag
+                sim.force_is_velocity_dependent = 1
+            else:
+                sim.softening = 1e-3
+            sim.integrator = "hbvm"
+            sim.integrate(1.0)
+            assert sim.t == 1.0
+    assert [r.getMessage() for r in caplog.records if "compiling" in r.getMessage()] == []
