@@ -38,6 +38,8 @@ _followers = None    # (the followers hook: core.no_followers when none; their s
 _EQUIP = None        # the method: True EQUIP, False HBVM, None (a step for both): from its arrays
 _FULL = None         # the form: True full, False separable, None (both): from system.full
 _FOLLOWERS = True    # False: a system without followers (test particles)
+_NEWTON = True       # False: a host that never hands the step Newton matrices (REBOUND: the
+                     # fixed-point iteration only); the simplified-Newton branches are left out
 _STAGE_VELOCITIES = False  # True: the separable step hands the kernel the stages (q, v), X of
                      # shape (n, 2m), instead of the positions (n, m) (core.stage_velocities),
                      # for a kernel that reads velocities
@@ -108,6 +110,12 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                                "system")
     y, cy, gamma, eref, clock = state
     NV, NVinv, NM = newton
+    if _NEWTON:
+        pass
+    elif NM.shape[0] > 0:
+        raise RuntimeError("hbvm-md: internal error: the step was compiled without the "
+                           "simplified Newton iteration (integrators.specialise); its binding "
+                           "hands it Newton matrices")
     max_iter, tol, etol = opts
     work, cwork, counters = wk
     nsteps, sample_every, out_t, out_y, out_e = samples
@@ -268,7 +276,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     copy2(Xpb, Xb)
                     copy2(Fpb, Fb)
             if polish:
-                if newton:      # a last Newton update from the compensated residual: a plain
+                if _NEWTON and newton:      # a last Newton update from the compensated residual: a plain
                     # fixed-point polish would amplify the error by h L |X_s| (stiff problems)
                     project_compensated(W, W_lo, Fb, pg, R)
                     newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
@@ -322,7 +330,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     status = eq.NO_ENERGY_ROOT      # no alpha near the last conserves H
                     break
                 continue
-            if newton:
+            if _NEWTON and newton:
                 if narrowb:
                     project_narrow(W, Fb, pg)
                 else:
@@ -356,7 +364,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                 it = itf
         counters[C_ITER] += it
         counters[C_LASTIT] = it
-        if newton:
+        if _NEWTON and newton:
             counters[C_NEWTON] += 1
         if status != OK:
             return fail(counters, status, work_iter, work_nfev, work_newton)

@@ -22,8 +22,10 @@ once (``integrators/loop.py``) with the kernels as two module globals, and:
 Compile time.  A generated module is compiled once per scene *variant* and cached: the
 followers only for a system with test particles, the full or the separable form only as the
 binding uses it, EQUIP only for EQUIP, the tangent map only when a ``jvp`` is bound (REBOUND:
-variational particles).  The variant is declared by the generated module's globals ``_FULL``,
-``_EQUIP``, ``_FOLLOWERS`` (:mod:`integrators.loop`) and ``_TANGENTS`` (the REBOUND glue):
+variational particles), the simplified Newton iteration only for a host that can hand the step
+Newton matrices (REBOUND's glue declares ``GLUE_NEWTON = False``: it only iterates to a fixed
+point).  The variant is declared by the generated module's globals ``_FULL``, ``_EQUIP``,
+``_FOLLOWERS``, ``_NEWTON`` (:mod:`integrators.loop`) and ``_TANGENTS`` (the REBOUND glue):
 numba reads a global as a constant and prunes the branches it decides before typing them, so
 what a variant leaves out is not compiled; its names stay bound to the stand-ins of
 :mod:`integrators.absent`, guards never reached (the variant is part of the module's name).  numba
@@ -126,14 +128,16 @@ def cache_dir() -> Path:
 
 
 def _glue(glue):
-    """(path, functions, cfuncs, paths it depends on) of a host's glue module (see :func:`specialise`), or None."""
+    """(path, functions, cfuncs, paths it depends on, whether it hands the step Newton
+    matrices) of a host's glue module (see :func:`specialise`), or None."""
     if glue is None:
         return None
     module = importlib.import_module(glue)
     depends = tuple(Path(importlib.import_module(d).__file__)
                     for d in getattr(module, "GLUE_DEPENDS", ()))
     return (Path(module.__file__), tuple(module.GLUE_FUNCTIONS),
-            dict(getattr(module, "GLUE_CFUNCS", {})), depends)
+            dict(getattr(module, "GLUE_CFUNCS", {})), depends,
+            bool(getattr(module, "GLUE_NEWTON", True)))
 
 
 def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False)) -> str:
@@ -174,6 +178,8 @@ def _variant_lines(refs, glue, frefs, variant) -> str:
         lines.append(f"_EQUIP = {bool(equip)}")
     if equip is False:
         lines.append("eq = _absent")
+    if glue is not None and not glue[4]:      # a host that never hands the step Newton matrices
+        lines += ["_NEWTON = False", "newton_update = _absent.newton_update"]
     if glue is not None and len(refs) <= 2:
         lines += ["_TANGENTS = False"] + [f"{f} = _absent.{f}" for f in TANGENT_GLUE
                                           if hasattr(absent, f)]

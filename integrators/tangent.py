@@ -45,6 +45,8 @@ from integrators.pointers import view1
 from integrators.records import StepConstants
 
 _force_jvp = None    # bound by integrators.specialise
+_NEWTON = True       # as integrators.loop's (False in a step built without Newton: the
+                     # generated module binds it once for both texts)
 TANGENT_FAILED = 16  # run_variational's return for a step whose tangent map failed: + status
 if TYPE_CHECKING:
     # run_variational calls the loop's advance and energy_parts: integrators.specialise appends
@@ -155,7 +157,7 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
             stages(full, narrow, dy, zero, minv, dg, tab, sc, a, dX, R, False)
             evaluate_jvp(full, X, dX, params, dF, dG)
             tcount[1] += n
-            if newton:
+            if _NEWTON and newton:
                 if narrow:
                     project_narrow(W, dF, pg)
                 else:

@@ -48,6 +48,9 @@ from hbvm_md.rebound.particles import (delta2, particles_match, read_tangents, r
                                        restore_particles, settings_ok, write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays",)
+#: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
+#: built without the simplified Newton iteration (integrators.specialise, "Compile time")
+GLUE_NEWTON = False
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.cabi",
                 "hbvm_md.rebound.forces", "hbvm_md.rebound.particles")
