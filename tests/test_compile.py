@@ -122,6 +122,16 @@ def test_rebound_binds_the_tangent_map_only_with_variational_particles():
 
     assert bound(glue_steps(False)[False]) is absent.tangent_map
     assert bound(glue_steps(True)[True]) is not absent.tangent_map
+    # REBOUND's step only iterates to a fixed point: built without the simplified Newton update
+    # (the engine's steps keep it: solver="auto" may switch to Newton)
+    for step in glue_steps(True).values():
+        assert step.run.py_func.__globals__["newton_update"] is absent.newton_update
+        assert step.run.py_func.__globals__["_NEWTON"] is False
+    from systems import NBody
+    from integrators import HBVM
+    from integrators.engine import Binding
+    engine = Binding(HBVM(6, 6), NBody(np.array([1.0, 1e-3, 1e-3])), form="separable")
+    assert engine.step_code.run.py_func.__globals__["newton_update"] is not absent.newton_update
 
 
 def test_the_stand_ins_refuse_to_be_reached():
@@ -131,6 +141,10 @@ def test_the_stand_ins_refuse_to_be_reached():
                       np.zeros(1))
     with pytest.raises(RuntimeError, match="compiled without this part"):
         absent.start(np.zeros(6), np.zeros(3))
+    with pytest.raises(RuntimeError, match="compiled without this part"):
+        absent.newton_update(*([np.zeros((1, 1))] * 2), *([np.zeros((1, 1), complex)] * 2),
+                             np.zeros((0, 1, 1), complex), np.zeros((2, 1)),
+                             np.zeros((1, 1), complex))
     # no tangents: nothing to map, and OK
     assert absent.tangent_map(System(False, np.zeros(1), np.zeros(1), np.zeros(1)),
                               np.zeros(1), np.zeros(1), np.zeros((1, 1)), 0.1, np.zeros((1, 1)),
