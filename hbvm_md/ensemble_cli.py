@@ -67,7 +67,7 @@ def cmd_ensemble(args) -> int:
     """Run ``hbvm-md ensemble <subcommand>``."""
     from .cli import _fail, _say
     from .ensemble import run_ensemble
-    from .ensemble_tasks import (PLANET_MASS, plot_stability_map, stability_grid,
+    from .ensemble.tasks import (PLANET_MASS, plot_stability_map, stability_grid,
                                  stability_member, stability_table)
     if args.workers is not None and args.scheduler is not None:
         _fail("give --workers (a local cluster) or --scheduler (an existing one), not both")
