@@ -1,7 +1,7 @@
 """Benchmark (not a test): an ensemble on 2 dask workers against the same members run serially,
 in one process, and the per-member overhead of :func:`hbvm_md.ensemble.run_ensemble`.
 
-Members: :func:`hbvm_md.ensemble_tasks.solar_clone`, the outer solar system (HLW) perturbed at
+Members: :func:`hbvm_md.ensemble.tasks.solar_clone`, the outer solar system (HLW) perturbed at
 1e-13 by a seed, 1e7 days with HBVM(k, 6) at dt = 250 days (round-off energy error) through
 HBVMIntegrator, each with its shadow clone (two integrations per member).
 
@@ -37,7 +37,7 @@ def main() -> None:
     from distributed import Client, LocalCluster
 
     from hbvm_md.ensemble import run_ensemble
-    from hbvm_md.ensemble_tasks import _warm_rebound, solar_clone
+    from hbvm_md.ensemble.tasks import _warm_rebound, solar_clone
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--members", type=int, default=16)

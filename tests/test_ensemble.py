@@ -24,7 +24,7 @@ pytest.importorskip("pyarrow")
 from distributed import Client, LocalCluster  # noqa: E402
 
 from hbvm_md.ensemble import EnsembleStoreWarning, load_store, run_ensemble  # noqa: E402
-from hbvm_md.ensemble_tasks import md_replica, solar_clone, stability_member, stability_table  # noqa: E402
+from hbvm_md.ensemble.tasks import md_replica, solar_clone, stability_member, stability_table  # noqa: E402
 
 from ensemble_misbehaving import misbehave, sleepy  # noqa: E402
 

@@ -317,7 +317,7 @@ def test_a_store_knows_its_members_by_content(client, tmp_path, make, first, mak
 def test_set_params_have_one_identity_in_every_process():
     """Hash randomisation orders a set of strings differently in every process: the digest
     does not follow it (each process here has another PYTHONHASHSEED)."""
-    code = ("from hbvm_md.ensemble_identity import identity; "
+    code = ("from hbvm_md.ensemble.identity import identity; "
             "print(identity([{'alpha', 'beta', 'gamma', 'delta'}, frozenset({'x', 'y', 'z'})], 'p'))")
     digests = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                               env={**os.environ, "PYTHONHASHSEED": seed}).stdout for seed in "123"}

@@ -20,6 +20,9 @@ from ase.geometry import find_mic
 from integrators import NonFiniteError, StepError
 from integrators.holonomic import CONSTRAINT_RTOL, BondConstraints, HolonomicHBVM
 
+from .atoms_system import _AtomsSystem, calculator_cache
+from .constraints import AtomsConstraints
+
 #: ASE constraints built on rigid bonds that the constrained step does not take (yet)
 REFUSED = {"FixLinearTriatomic": "its central atom is a linear (vector) constraint on the two "
                                  "outer atoms, which the bond-only step does not model"}
@@ -125,7 +128,6 @@ def holonomic_step(dyn):
     """One step of ``dyn`` (an HBVMDynamics whose atoms have FixBondLengths); returns the forces
     at the new positions.  A failed step leaves positions, momenta and the calculator's cached
     results as they were, then raises (h and t in fs)."""
-    from .dynamics import _AtomsSystem, calculator_cache     # (dynamics imports this module)
     atoms = dyn.atoms
     fixed = fixed_indices(atoms)
     h = dyn._holonomic
@@ -142,7 +144,6 @@ def holonomic_step(dyn):
     t = dyn.nsteps * dyn.dt
     if fresh:
         dyn._check_atoms(atoms)
-        from .constraints import AtomsConstraints
         if h is not None:
             dyn._stage_total += h.system.stage_evaluations
         system = _AtomsSystem(atoms, AtomsConstraints(atoms, other_constraints(atoms)),

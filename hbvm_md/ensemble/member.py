@@ -15,7 +15,7 @@ SIGKILLed, whatever it is doing (a compiled loop holding the GIL, a C call, a sl
 next member gets a fresh child.  The child dies with its worker: on Linux it asks the kernel
 for SIGKILL when the thread that started it exits (``PR_SET_PDEATHSIG``; that thread is a
 dedicated one living as long as the worker process), elsewhere a watchdog thread checks its
-parent every second.  Run as ``python -m hbvm_md.ensemble_member READ_FD WRITE_FD PARENT_PID``.
+parent every second.  Run as ``python -m hbvm_md.ensemble.member READ_FD WRITE_FD PARENT_PID``.
 """
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ class MemberProcess:
                           f"inherited pipes); this worker runs on {sys.platform!r}: pass timeout=None")
         parent_r, child_w = os.pipe()
         child_r, parent_w = os.pipe()
-        cmd = [sys.executable, "-m", "hbvm_md.ensemble_member", str(child_r), str(child_w),
+        cmd = [sys.executable, "-m", "hbvm_md.ensemble.member", str(child_r), str(child_w),
                str(os.getpid())]
         try:
             # a session of its own: a Ctrl-C at the terminal goes to the client (which cancels),

@@ -65,7 +65,7 @@ def _clone_pair(nb, y_a: np.ndarray, y_b: np.ndarray, *, t_end: float, dt: float
     An integration error (a close encounter the step cannot resolve) ends the run too: the
     record says when and why, the member does not fail.
     """
-    from .rebound import HBVMIntegrator
+    from ..rebound import HBVMIntegrator
 
     _check_run(t_end, dt, n_samples)
     sims = [nb.to_rebound(y_a), nb.to_rebound(y_b)]
@@ -119,7 +119,7 @@ def _megno_run(nb, y: np.ndarray, *, t_end: float, dt: float, s: int, k: int | N
 
     ``watch`` and ``r_max`` as for :func:`_clone_pair`: an escape or a step HBVM refuses ends
     the run, and the record says when and why."""
-    from .rebound import HBVMIntegrator
+    from ..rebound import HBVMIntegrator
 
     _check_run(t_end, dt, n_samples)
     sim = nb.to_rebound(y)
@@ -425,7 +425,7 @@ def md_replica(seed: int, *, atoms=None, n_atoms: int = 13, steps: int = 200, dt
         seed and the HBVM row of :func:`hbvm_md.compare_md` (max_rel_dE, drift_slope, ...)
         without its wall time.
     """
-    from .reports.md_comparison import compare_md, default_cluster
+    from ..reports.md_comparison import compare_md, default_cluster
     if atoms is None:
         atoms, _ = default_cluster(n_atoms=n_atoms)
     cmp = compare_md(atoms, timesteps_fs=(dt_fs,), methods=(("HBVM", s) if k is None else ("HBVM", s, k),),

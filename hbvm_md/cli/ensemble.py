@@ -13,6 +13,8 @@ import functools
 import time
 from pathlib import Path
 
+from .common import DEFAULT_OUT, _fail, _positive_float, _positive_int, _say
+
 
 def _grid(text: str) -> tuple[int, int]:
     try:
@@ -26,7 +28,6 @@ def _grid(text: str) -> tuple[int, int]:
 
 def add_ensemble_parser(sub) -> None:
     """Add ``ensemble`` and its subcommands to the ``hbvm-md`` subparsers ``sub``."""
-    from .cli import DEFAULT_OUT, _positive_float, _positive_int
     ens = sub.add_parser("ensemble", help="many independent runs on a dask cluster (local or remote)",
                          description="Run an ensemble of simulations on dask.distributed: a local "
                          "cluster with one worker per core, or an existing one (--scheduler).")
@@ -65,10 +66,9 @@ def add_ensemble_parser(sub) -> None:
 
 def cmd_ensemble(args) -> int:
     """Run ``hbvm-md ensemble <subcommand>``."""
-    from .cli import _fail, _say
-    from .ensemble import run_ensemble
-    from .ensemble_tasks import (PLANET_MASS, plot_stability_map, stability_grid,
-                                 stability_member, stability_table)
+    from ..ensemble import run_ensemble
+    from ..ensemble.tasks import (PLANET_MASS, plot_stability_map, stability_grid,
+                                  stability_member, stability_table)
     if args.workers is not None and args.scheduler is not None:
         _fail("give --workers (a local cluster) or --scheduler (an existing one), not both")
     shape = args.grid or ((6, 4) if args.quick else (20, 20))

@@ -1,8 +1,4 @@
-"""Ensembles of independent runs on dask.distributed: one record per parameter.
-
->>> from hbvm_md.ensemble import run_ensemble
->>> from hbvm_md.ensemble_tasks import solar_clone
->>> records = run_ensemble(solar_clone, range(16), store="clones")     # doctest: +SKIP
+"""The run of an ensemble and its store (exported by :mod:`hbvm_md.ensemble`).
 
 :func:`run_ensemble` sends ``task(param)`` for every ``param`` to the workers of a dask cluster
 (a ``LocalCluster`` on this machine unless the caller passes a ``Client`` or a scheduler
@@ -19,7 +15,7 @@ status, error, wall time and the result pickled (cloudpickle), so that any pickl
 kept exactly: mixed types across members, big integers, nested dicts, arrays and objects.
 
 A member is known by content, not by ``repr``: each part carries the SHA-256 of the task and
-of its param in a canonical form (:mod:`hbvm_md.ensemble_identity`: arrays by their bytes,
+of its param in a canonical form (:mod:`hbvm_md.ensemble.identity`: arrays by their bytes,
 sets and dicts sorted, objects through the pickle protocol), so that ``partial(task,
 w=other_array)`` or an ``Atoms`` with other positions is refused on a rerun rather than handed
 the old records, and an object with the default ``repr`` or a set of strings (another text in
@@ -53,7 +49,7 @@ is refused rather than mixed in.
 Stopping members
 ----------------
 ``timeout=seconds`` runs each member in a child process of its worker thread that is killed
-when the member is late (see :mod:`hbvm_md.ensemble_member`); the member is recorded with
+when the member is late (see :mod:`hbvm_md.ensemble.member`); the member is recorded with
 ``status="timeout"``.  A member that raises ``SystemExit`` or ``KeyboardInterrupt`` is recorded
 as failed with that exception, and its worker lives on.  A worker that dies (SIGKILL, the
 out-of-memory killer) loses nothing: dask runs its member again on another worker, up to
@@ -78,7 +74,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .ensemble_identity import identity
+from .identity import identity
 
 __all__ = ["run_ensemble", "load_store", "EnsembleStoreWarning"]
 
@@ -86,8 +82,8 @@ _STORE_TABLE = "ensemble.parquet"
 
 
 # -- on the worker -------------------------------------------------------------------------
-# In the worker thread (no timeout): ensemble_member.call.  Under a timeout: a child process
-# per worker thread (ensemble_member.run_in_process), which can be killed.
+# In the worker thread (no timeout): member.call.  Under a timeout: a child process per worker
+# thread (member.run_in_process), which can be killed.
 
 
 class _Warmup(WorkerPlugin):
@@ -612,7 +608,7 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     warmup : callable, optional
         Called once on each worker before its first member (e.g. to load compiled numba code);
         default the task's ``warmup`` attribute, which the ready-made tasks of
-        :mod:`hbvm_md.ensemble_tasks` carry.
+        :mod:`hbvm_md.ensemble.tasks` carry.
     progress : bool, optional
         Show a progress bar (default: when stderr is a terminal).
     connect_timeout : float
@@ -642,7 +638,7 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     TypeError
         The task or a parameter does not pickle, or an argument has the wrong type; with a
         ``store``, a task or parameter that has no content the store can identify (a lambda,
-        a lock: :mod:`hbvm_md.ensemble_identity`), before any member runs.
+        a lock: :mod:`hbvm_md.ensemble.identity`), before any member runs.
     ValueError
         Empty ``params``; a store that holds another ensemble (another task, or a param of
         other content at a stored index, whatever their repr); a bad ``timeout``.
@@ -660,8 +656,8 @@ def run_ensemble(task: Callable[[Any], dict], params: Iterable, client=None, sto
     import cloudpickle
     from distributed import as_completed
 
-    from .ensemble_member import call, run_in_process
-    from .reports.progress import progress as progress_bar
+    from ..reports.progress import progress as progress_bar
+    from .member import call, run_in_process
 
     if not callable(task):
         raise TypeError(f"`task` must be a callable task(param) -> dict (got {type(task).__name__})")

@@ -1,11 +1,5 @@
-"""The ``hbvm-md`` command line: demo, bench, spectrum, hard-cases, ensemble, compile.
-
-``hbvm-md demo`` is the quick start: the outer solar system through REBOUND and a
-polynomial-pair cluster through ASE, each with HBVM and with the host's own integrators; it
-prints comparison tables (energy and angular momentum) and writes plots of both errors against
-time into an output folder.
-
-Bad arguments print one line to stderr and exit with status 2.
+"""The ``hbvm-md`` parser, its entry point :func:`main` and the subcommands demo, bench,
+spectrum, hard-cases and compile (ensemble: :mod:`hbvm_md.cli.ensemble`).
 """
 from __future__ import annotations
 
@@ -16,47 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_OUT = "hbvm-md-output"
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with a one-line error (no usage block) and exit status 2."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def _int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum`` (checked before any command runs)."""
-    what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        if v < minimum:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
-        return v
-    return parse
-
-
-_positive_int = _int_at_least(1)
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
+from .common import (DEFAULT_OUT, _fail, _int_at_least, _Parser, _positive_float, _positive_int,
+                     _say, _UsageError)
+from .ensemble import add_ensemble_parser, cmd_ensemble
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-    from .reports.names import scene_key
+    from .. import __version__
+    from ..reports.names import scene_key
     p = _Parser(prog="hbvm-md", description="Energy-conserving HBVM(k, s) integrators for ASE and "
                 "REBOUND: demos, work-precision benchmarks, spectra and hard cases.")
     p.add_argument("--version", action="version", version=f"hbvm-md {__version__}")
@@ -81,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="work-precision diagrams (error against wall time) per scene",
                        description="Sweep step sizes (tolerances for adaptive peers) per scene and "
                        "plot energy and solution error against wall time; writes CSV, PNG, markdown.")
-    from .reports.workprecision import SCENES
+    from ..reports.workprecision import SCENES
     b.add_argument("--out", default=f"{DEFAULT_OUT}/bench", help=f"output folder (default ./{DEFAULT_OUT}/bench)")
     b.add_argument("--scenes", nargs="+", type=scene_key, choices=list(SCENES), default=None, metavar="SCENE",
                    help=f"scenes to run (default all: {', '.join(SCENES)})")
@@ -99,15 +60,14 @@ def build_parser() -> argparse.ArgumentParser:
                        "encounter, chaotic Henon-Heiles, steps too large)",
                        description="Run each hard case and print, per method, whether it finished, "
                        "its energy error, solution error and wall time.")
-    from .reports.hard_cases import CASES
+    from ..reports.hard_cases import CASES
     h.add_argument("--case", nargs="+", type=scene_key, choices=list(CASES), default=None, metavar="CASE",
                    help=f"cases to run (default all: {', '.join(CASES)})")
     h.add_argument("--quick", action="store_true", help="small sizes (for CI)")
 
-    from .ensemble_cli import add_ensemble_parser
     add_ensemble_parser(sub)
 
-    from .compile_ahead import DEFAULT_SCENES, SCENES
+    from ..compile_ahead import DEFAULT_SCENES, SCENES
     c = sub.add_parser("compile", help="compile and cache HBVM's steps ahead (CI, containers, "
                        "dask workers)", description="Run a tiny scene of each kind so that numba "
                        "compiles and caches HBVM's step for it (HBVM_MD_CACHE_DIR and "
@@ -119,14 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _say(*a):
-    print(*a, flush=True)
-
-
 # -- demo ----------------------------------------------------------------------------------
 def cmd_demo(args) -> int:
-    from .reports.plots import energy_error_plot
-    from .reports.progress import progress
+    from ..reports.plots import energy_error_plot
+    from ..reports.progress import progress
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _say(f"hbvm-md demo: writing into {out.resolve()}")
@@ -136,7 +92,7 @@ def cmd_demo(args) -> int:
     # the outer solar system through REBOUND
     t0 = time.perf_counter()
     try:
-        from .reports.rebound_comparison import compare_rebound
+        from ..reports.rebound_comparison import compare_rebound
         cmp = compare_rebound("outer-solar-system", t_end=t_end, n_samples=200)
         _say(f"\n== Outer solar system (HLW), {t_end:g} days, through REBOUND "
              f"({time.perf_counter() - t0:.1f} s)\n")
@@ -152,7 +108,7 @@ def cmd_demo(args) -> int:
     n_atoms = args.atoms or (13 if args.quick else 38)
     md_steps = args.md_steps or (100 if args.quick else 2000)
     try:
-        from .reports.md_comparison import compare_md, default_cluster
+        from ..reports.md_comparison import compare_md, default_cluster
         atoms, calc = default_cluster(n_atoms=n_atoms)
         mdc = _call_compare_md(compare_md, atoms, calc, md_steps)
         _say(f"\n== Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, through ASE "
@@ -191,7 +147,7 @@ def _call_compare_md(compare_md, atoms, calc, steps):
 
 # -- bench ---------------------------------------------------------------------------------
 def cmd_bench(args) -> int:
-    from .reports.workprecision import bench
+    from ..reports.workprecision import bench
     out = Path(args.out)
     _say(f"hbvm-md bench: writing into {out.resolve()}")
     res = bench(out, scenes=args.scenes, quick=args.quick, log=_say)
@@ -276,8 +232,8 @@ def isospectral_check(method) -> tuple[np.ndarray, np.ndarray]:
 
 # -- hard cases ----------------------------------------------------------------------------
 def cmd_hard_cases(args) -> int:
-    from .reports.hard_cases import CASES
-    from .reports.progress import progress
+    from ..reports.hard_cases import CASES
+    from ..reports.progress import progress
     names = args.case or list(CASES)
     bar = progress(total=len(names), desc="hard cases")
     for n in names:
@@ -290,28 +246,14 @@ def cmd_hard_cases(args) -> int:
     return 0
 
 
-# -- ensemble (hbvm_md/ensemble_cli.py) ------------------------------------------------------
-def cmd_ensemble(args) -> int:
-    from .ensemble_cli import cmd_ensemble as run
-    return run(args)
-
-
 # -- compile (hbvm_md/compile_ahead.py) ------------------------------------------------------
 def cmd_compile(args) -> int:
     from integrators.specialise import cache_dir
-    from .compile_ahead import precompile
+    from ..compile_ahead import precompile
     for name, took in precompile(args.scenes).items():
         _say(f"{name}: {took:.1f} s")
     _say(f"cached in {cache_dir()} (steps) and numba's cache folder")
     return 0
-
-
-class _UsageError(Exception):
-    pass
-
-
-def _fail(message: str):
-    raise _UsageError(message)
 
 
 COMMANDS = {"demo": cmd_demo, "bench": cmd_bench, "spectrum": cmd_spectrum, "hard-cases": cmd_hard_cases,
