@@ -80,8 +80,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # -- demo ----------------------------------------------------------------------------------
-def cmd_demo(args) -> int:
+def _show(title: str, t0: float, result, path, plot_title: str, xlabel: str):
+    """Print one comparison of the demo (its title, the time since t0, its table) and plot its
+    energy (and angular momentum) errors into ``path``; returns the plot's path."""
     from ..reports.plots import energy_error_plot
+    _say(f"\n== {title} ({time.perf_counter() - t0:.1f} s)\n")
+    _say(result.table())
+    return energy_error_plot(result.series, path, plot_title, xlabel,
+                             angular_momentum=result.angular_momentum_series)
+
+
+def cmd_demo(args) -> int:
     from ..reports.progress import progress
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -94,12 +103,9 @@ def cmd_demo(args) -> int:
     try:
         from ..reports.rebound_comparison import compare_rebound
         cmp = compare_rebound("outer-solar-system", t_end=t_end, n_samples=200)
-        _say(f"\n== Outer solar system (HLW), {t_end:g} days, through REBOUND "
-             f"({time.perf_counter() - t0:.1f} s)\n")
-        _say(cmp.table())
-        written.append(energy_error_plot(cmp.series, out / "energy_outer_solar_system.png",
-                                         f"Outer solar system, {t_end:g} days", "t [days]",
-                                         angular_momentum=cmp.angular_momentum_series))
+        written.append(_show(f"Outer solar system (HLW), {t_end:g} days, through REBOUND", t0,
+                             cmp, out / "energy_outer_solar_system.png",
+                             f"Outer solar system, {t_end:g} days", "t [days]"))
     except ImportError as err:
         missing.append(f"REBOUND comparison not available ({err})")
     bar.update(1)
@@ -111,12 +117,9 @@ def cmd_demo(args) -> int:
         from ..reports.md_comparison import compare_md, default_cluster
         atoms, calc = default_cluster(n_atoms=n_atoms)
         mdc = _call_compare_md(compare_md, atoms, calc, md_steps)
-        _say(f"\n== Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, through ASE "
-             f"({time.perf_counter() - t0:.1f} s)\n")
-        _say(mdc.table())
-        written.append(energy_error_plot(mdc.series, out / "energy_md_cluster.png",
-                                         f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]",
-                                         angular_momentum=mdc.angular_momentum_series))
+        written.append(_show(f"Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, "
+                             "through ASE", t0, mdc, out / "energy_md_cluster.png",
+                             f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]"))
     except ImportError as err:
         missing.append(f"ASE comparison not available ({err})")
     bar.update(1)
