@@ -87,6 +87,9 @@ def follow(y, cy, minv, g, Xs, params, at, sc, tab, opts, R, fb):
     o_h = o_x + 4 * n * up + 2 * up
     o_lip, o_xmax, o_ymax, o_who, o_keep = (o_h + 5 * nmax, o_h + 6 * nmax, o_h + 7 * nmax,
                                             o_h + 8 * nmax, o_h + 9 * nmax)
+    if fb.shape[0] < o_keep + nmax:     # (the views below are not bounds-checked)
+        raise ValueError("internal error: the followers' work buffer is shorter than its "
+                         "layout here (core.follower_size)")
     itmax = 0
     for j0 in range(0, P, nmax):
         pc = min(nmax, P - j0)

@@ -167,6 +167,9 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         Xb, Fb = view(fb, fo, n, us), view(fb, fo + n * us, n, us)
         Xpb, Fpb = view(fb, fo + 2 * n * us, n, us), view(fb, fo + 3 * n * us, n, us)
         fo += 4 * n * us
+        if fb.shape[0] < fo:            # (views are not bounds-checked)
+            raise ValueError("internal error: the sources' block is longer than "
+                             "core.follower_size says")
         pb = view1(params, at + 4 + us + int(params[at]), int(params[at + 3]))
         for c in range(us):
             mb[c] = minv[int(params[at + 4 + c])]

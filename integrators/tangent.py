@@ -134,6 +134,9 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     newton = NM.shape[0] > 0
     ht, ht_lo, _, dq, dq_lo, a, pg, dg, X, dF, dG, dX, _, vt, cvt, R, Rt, Z = carve(
         tw, tcw, n, s, u, m, d)
+    if tw.shape[0] < tangent_sizes(n, s, u, m, d)[0]:    # (views are not bounds-checked)
+        raise ValueError("internal error: the tangent map's work buffer is shorter than "
+                         "tangent_sizes says")
     zero = view1(tw, work_sizes(n, s, u, m, d)[0], d)
     for j in range(d):
         zero[j] = 0.0
