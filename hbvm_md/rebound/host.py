@@ -256,6 +256,7 @@ def _install_runs(rebound) -> None:
         with _OneThread(addr):
             _PENDING.pop(addr, None)
             _recheck_forces(self, addr)
+            _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
             _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
 
@@ -266,6 +267,7 @@ def _install_runs(rebound) -> None:
         with _OneThread(addr):
             _PENDING.pop(addr, None)
             _recheck_forces(self, addr)
+            _forget_host_energy(addr)
             _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
@@ -297,6 +299,23 @@ def _recheck_forces(sim, addr: int) -> None:
             ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
             ctx[L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
     _FORCES.pop(addr, None)
+
+
+def _forget_host_energy(addr: int) -> None:
+    """On REBOUND's own accelerations the H the energy check guards holds the added forces'
+    potentials, whose parameters (REBOUNDx ``gr_potential``'s ``c``, ``J2``, ``Acentral``: in
+    ``params`` of a force or a particle) a user may change between runs without changing a word
+    the compiled step checks.  The reference energy carried from the last step would then
+    belong to the old H, and the first step of the run would be refused as unresolved (adaptive
+    steps shrank to a StepSizeError blaming an encounter).  So each run on this path starts its
+    reference afresh from its first step's start: the same number as the one carried when
+    nothing changed (the same state through the same function)."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    if st[L.SL_CTX] and int64s(int(st[L.SL_CTX]), L.N_HEADER)[L.D_HOST]:
+        sd[L.SL_EREF] = np.nan
 
 
 def _install_operators() -> None:
@@ -642,6 +661,8 @@ def _prepare(sim, p: int) -> None:
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha and slope
         st[L.SL_RESYNCS] += 1
+    if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
+        sd[L.SL_EREF] = np.nan
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
