@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+import sys
 import threading
 import warnings
 
@@ -150,6 +151,8 @@ def register() -> None:
     rebound.clibrebound._hbvm_md_registration = reg
     _install_runs(rebound)
     _install_operators()
+    if not getattr(sys.unraisablehook, "_hbvm_md", False):
+        sys.unraisablehook = _unraisable(sys.unraisablehook)
     _self_check(rebound)
 
 
@@ -253,24 +256,82 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_integrate(self, tmax, exact_finish_time)
-        with _OneThread(addr):
+        with _OneThread(addr), _Callbacks(addr) as cb:
             _PENDING.pop(addr, None)
             _recheck_forces(self, addr)
+            _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
-            _after_run(self, addr, c_integrate(addr, c_double(tmax)), messages_at)  # (as REBOUND)
+            status = c_integrate(addr, c_double(tmax))
+            _after_run(self, addr, status, messages_at, cb.raised)  # (as REBOUND)
 
     def steps(self, N_steps):
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_steps(self, N_steps)
-        with _OneThread(addr):
+        with _OneThread(addr), _Callbacks(addr) as cb:
             _PENDING.pop(addr, None)
             _recheck_forces(self, addr)
-            _after_run(self, addr, c_steps(addr, c_size_t(N_steps)), messages_at)
+            _forget_host_energy(addr)
+            status = c_steps(addr, c_size_t(N_steps))
+            _after_run(self, addr, status, messages_at, cb.raised)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+#: this thread's HBVM run (a _Callbacks), if any: where the unraisable hook records a raise
+_RUN = threading.local()
+
+
+class _Callbacks:
+    """A Python callback that raises inside REBOUND (``sim.additional_forces``, a heartbeat, a
+    REBOUNDx Python effect) is called through ctypes, which prints the exception and returns
+    to C as if nothing happened: IAS15 then goes on with the forces the function left, a
+    silent wrong answer.  During an HBVM run the first such exception is recorded here
+    (:func:`_unraisable`), and on REBOUND's own accelerations the particles' accelerations are
+    set to nan, so that the step whose forces raised fails (nothing committed) and the run
+    stops; :func:`_after_run` then raises the user's exception in place of the step's
+    NonFiniteError or StepSizeError.  Outside a step the nan accelerations are harmless (each
+    stage computes them afresh)."""
+
+    def __init__(self, addr: int):
+        self.addr, self.raised = addr, None
+
+    def __enter__(self):
+        self.outer = getattr(_RUN, "run", None)
+        _RUN.run = self
+        return self
+
+    def __exit__(self, *exc):
+        _RUN.run = self.outer
+
+
+def _unraisable(previous):
+    """``sys.unraisablehook``: an exception of a ctypes callback during this thread's HBVM run
+    is recorded (the first) and poisons the accelerations (:class:`_Callbacks`); any other goes
+    to ``previous``."""
+    def hook(u):
+        run = getattr(_RUN, "run", None)
+        if run is None or "ctypes callback" not in (u.err_msg or ""):
+            return previous(u)
+        if run.raised is None:
+            run.raised = u.exc_value if u.exc_value is not None else u.exc_type()
+        try:
+            p = ctypes.c_void_p.from_address(run.addr + _REG["state_at"]).value
+            st = _slots(p)[0] if p else None
+            if st is not None and st[L.SL_CTX] and int64s(int(st[L.SL_CTX]),
+                                                          L.N_HEADER)[L.D_HOST]:
+                sim = _rebound().Simulation.from_address(run.addr)
+                ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
+                stride = _REG["offsets"][L.R_STRIDE - L.R_T]
+                if ptr and sim.N:
+                    ax = _REG["ax"]
+                    doubles(ptr, sim.N * stride).reshape(sim.N, stride)[:, ax:ax + 3] = np.nan
+        except BaseException as exc:  # noqa: BLE001 - a hook must not raise
+            previous(type(u)((type(exc), exc, exc.__traceback__, None, None)))
+    hook._hbvm_md = True
+    return hook
 
 
 #: simulation address -> the REBOUNDx forces (name, address) its step was last prepared with
@@ -297,6 +358,23 @@ def _recheck_forces(sim, addr: int) -> None:
             ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
             ctx[L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
     _FORCES.pop(addr, None)
+
+
+def _forget_host_energy(addr: int) -> None:
+    """On REBOUND's own accelerations the H the energy check guards holds the added forces'
+    potentials, whose parameters (REBOUNDx ``gr_potential``'s ``c``, ``J2``, ``Acentral``: in
+    ``params`` of a force or a particle) a user may change between runs without changing a word
+    the compiled step checks.  The reference energy carried from the last step would then
+    belong to the old H, and the first step of the run would be refused as unresolved (adaptive
+    steps shrank to a StepSizeError blaming an encounter).  So each run on this path starts its
+    reference afresh from its first step's start: the same number as the one carried when
+    nothing changed (the same state through the same function)."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    if st[L.SL_CTX] and int64s(int(st[L.SL_CTX]), L.N_HEADER)[L.D_HOST]:
+        sd[L.SL_EREF] = np.nan
 
 
 def _install_operators() -> None:
@@ -332,13 +410,25 @@ def _install_operators() -> None:
     Extras.add_operator = add_operator
 
 
-def _after_run(sim, addr: int, status: int, messages_at: int) -> None:
+def _after_run(sim, addr: int, status: int, messages_at: int, raised=None) -> None:
     """What ``rebound.Simulation.integrate`` does with the C status, with a failed HBVM step's
-    exception in place of REBOUND's RuntimeError."""
+    exception in place of REBOUND's RuntimeError; a Python callback's exception that made the
+    step fail (``raised``, :class:`_Callbacks`) in place of that."""
     err = _PENDING.pop(addr, None)
     if err is not None:
         _drop_messages(sim, _message(err))
+        if raised is not None and isinstance(err, (NonFiniteError, StepSizeError)):
+            raise RuntimeError(
+                f"a Python callback of the simulation (sim.additional_forces or another) raised "
+                f"{type(raised).__name__}: {raised}; HBVM's step at t={sim.t!r} evaluated "
+                "REBOUND's accelerations through it and was not taken (the particles and sim.t "
+                "are as before that step)") from raised
         raise err
+    if raised is not None:      # (a callback outside the step, e.g. a heartbeat: as REBOUND,
+        warnings.warn(          # which prints it and goes on)
+            f"a Python callback of the simulation raised {type(raised).__name__}: {raised} "
+            "(REBOUND ignores such exceptions; the run went on)", RuntimeWarning,
+            stacklevel=_user_stacklevel())
     rebound = _rebound()
     if status == 1:
         sim.process_messages()
@@ -642,6 +732,8 @@ def _prepare(sim, p: int) -> None:
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha and slope
         st[L.SL_RESYNCS] += 1
+    if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
+        sd[L.SL_EREF] = np.nan
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
