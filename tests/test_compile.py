@@ -29,11 +29,14 @@ def _python(code: str, timeout=600) -> subprocess.CompletedProcess:
 
 def test_importing_hbvm_md_leaves_numbas_function_ids_alone():
     r = _python("""
+        import sys
         from numba.core.bytecode import FunctionIdentity
         ids = FunctionIdentity._unique_ids
         first = next(ids)
+        hook = sys.unraisablehook
         import hbvm_md, hbvm_md.rebound, hbvm_md.ase, integrators.specialise
         assert FunctionIdentity._unique_ids is ids
+        assert sys.unraisablehook is hook   # (the REBOUND host chains its hook at a run)
         print(next(ids) - first)
         """)
     assert r.returncode == 0, r.stderr

@@ -88,33 +88,36 @@ def test_python_force_that_raises_stops_the_run_unchanged(settings):
     assert np.array_equal(_xv(sim), before) and sim.t == t0
 
 
-@pytest.mark.xfail(strict=True, reason="a fixed step that does not resolve a softened close "
-                   "encounter conserves the softened H anyway, so the energy check (the only "
-                   "guard of a fixed step on REBOUND's own accelerations: the test-particle "
-                   "check is skipped there) passes it: the run returns 9e-5 from IAS15")
-def test_fixed_step_through_a_softened_encounter_is_refused_or_right():
+def test_fixed_step_through_a_softened_encounter_is_refused():
     """Three bodies with softening 0.05 passing within about the softening length at speeds
-    near 9 (a crossing time 0.005) on a fixed step of 0.01: HBVM conserves H to 9e-16 and
-    returns normally, its state 9.3e-5 (relative to the largest coordinate) from IAS15's,
-    which the guide's promise (a fixed step too large for a close encounter is refused with
-    UnresolvedStepError) does not cover.  Either a refusal or IAS15's answer (to 1e-8) is
-    right; the adaptive default agrees to 1.8e-14."""
-    ends = []
-    for integ in ("ias15", "hbvm"):
+    near 9 (a crossing time 0.005) on a fixed step of 0.01: HBVM conserves the softened H at
+    any step (9e-16), so the energy check cannot see the step, and the run returned normally
+    9.3e-5 (relative to the largest coordinate) from IAS15's state.  On REBOUND's own
+    accelerations a fixed step now checks every body's own error estimate as it checks a test
+    particle's: refused, nothing committed, the message naming the body; the same scene on
+    adaptive steps agrees with IAS15 to 1.8e-14, and a fixed step that resolves the encounter
+    (0.0002) passes the check and agrees to 1e-10."""
+    def scene():
         sim = rebound.Simulation()
         sim.add(m=1.0)
         sim.add(m=1.0, x=1.0, vy=0.05)
         sim.add(m=0.5, x=-1.0, vy=-0.2, vz=0.01)
         sim.softening = 0.05
         sim.move_to_com()
-        if integ == "ias15":
-            sim.integrator = "ias15"
-            sim.integrator.epsilon = 1e-11
-        else:
-            HBVMIntegrator(sim, s=6, k=8, dt=0.01)
-        try:
-            sim.integrate(10.0)
-        except hbvm_md.UnresolvedStepError:
-            return
-        ends.append(_xv(sim))
-    assert np.max(np.abs(ends[1] - ends[0])) / np.max(np.abs(ends[0])) < 1e-8
+        return sim
+
+    ref = scene()
+    ref.integrator = "ias15"
+    ref.integrator.epsilon = 1e-11
+    ref.integrate(1.0)
+    sim = scene()
+    HBVMIntegrator(sim, s=6, k=8, dt=0.01)
+    with pytest.raises(hbvm_md.UnresolvedStepError,
+                       match=r"does not resolve particle \d.*own error estimate .* exceeds 0\.01 "
+                             r"\(0\.01: on REBOUND's own accelerations the energy check cannot"):
+        sim.integrate(1.0)
+    assert sim.t < 1.0 and np.all(np.isfinite(_xv(sim)))      # (the refused step not taken)
+    fine = scene()
+    HBVMIntegrator(fine, s=6, k=8, dt=2e-4)
+    fine.integrate(1.0)
+    assert np.max(np.abs(_xv(fine) - _xv(ref))) / np.max(np.abs(_xv(ref))) < 1e-10
