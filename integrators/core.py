@@ -927,17 +927,17 @@ def step_error(gamma, w):
 
 
 @jit
-def test_particle_error(gamma, w, kin_w, floor, factor, sources=False):
+def test_particle_error(gamma, w, kin_w, floor, factor, source_floor=0.0):
     """A fixed step's check of its test particles, from its own coefficients (no evaluation).
 
     Each test particle's own estimate, :func:`step_error` over its three coordinates (its
     accelerations: a comet's encounter is invisible against the sources' maxima), against
     ``max(floor, factor * e)``, e the sources' :func:`step_error` (weights w) of the same step:
-    a test particle resolved far worse than the bodies it moves among.  ``sources``: each
-    gravitating body too, against ``floor`` alone (a step whose energy check cannot see an
-    unresolved encounter: a smooth potential, which HBVM conserves at any step, or no H at
-    all).  gamma: (s, 3N); w, kin_w: (3N,), kin_w 0 for the test particles.  Returns (the worst
-    offending particle's index, or -1, its estimate, the bound it exceeds)."""
+    a test particle resolved far worse than the bodies it moves among.  ``source_floor`` > 0:
+    each gravitating body too, against ``source_floor`` (for a step whose energy check cannot
+    see an unresolved encounter: a smooth potential, which HBVM conserves at any step, or no H
+    at all).  gamma: (s, 3N); w, kin_w: (3N,), kin_w 0 for the test particles.  Returns (the
+    worst offending particle's index, or -1, its estimate, the bound it exceeds)."""
     s, u = gamma.shape
     cw = monomial_weight(s - 1)
     top = 0.0
@@ -957,9 +957,9 @@ def test_particle_error(gamma, w, kin_w, floor, factor, sources=False):
     for i in range(u // 3):
         b = bound
         if kin_w[3 * i] != 0.0:
-            if not sources:
+            if source_floor <= 0.0:
                 continue
-            b = floor
+            b = source_floor
         t = 0.0
         lo = 0.0
         for c in range(3 * i, 3 * i + 3):

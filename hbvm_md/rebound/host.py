@@ -545,14 +545,15 @@ def _encounter_text(sim, enc: dict | None, h: float) -> str:
 def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> UnresolvedStepError:
     """A fixed step refused for its test particle, or on REBOUND's own accelerations for any
     body (the glue's check, layout.TEST_PARTICLE)."""
-    from hbvm_md.rebound.glue import TP_FACTOR, TP_FLOOR
+    from hbvm_md.rebound.glue import SOURCE_FLOOR, TP_FACTOR, TP_FLOOR
     i, err, s = int(sd[L.SL_CAUSE_STATUS]), float(sd[L.SL_CAUSE_ERR]), int(st[L.SL_S])
     ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
     m = int(ctx[L.D_M])
     gammat = doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
     minv, kin_w = doubles(int(ctx[L.A_MINV]), m), doubles(int(ctx[L.A_KINW]), m)
     host = bool(ctx[L.D_HOST])
-    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, host)
+    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR,
+                                      SOURCE_FLOOR if host else 0.0)
     source = kin_w[3 * i] != 0.0
     # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
     h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
@@ -567,8 +568,9 @@ def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> Unresol
             "accept such steps")
     exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, hint)
     where_t = f"HBVM step of size h={h:.6g} at t={t:.17g}"
-    rule = (f"{TP_FLOOR:g}: on REBOUND's own accelerations the energy check cannot see such a "
-            "step, as a softened potential is conserved at any step and a force without a "
+    rule = (f"{SOURCE_FLOOR:g}, the top term of its acceleration's polynomial over the step as "
+            "large as its mean: on REBOUND's own accelerations the energy check cannot see such "
+            "a step, as a softened potential is conserved at any step and a force without a "
             "potential is not checked" if source else
             f"the larger of {TP_FLOOR:g} and {TP_FACTOR:g} times the gravitating bodies' "
             "estimate")
