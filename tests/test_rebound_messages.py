@@ -54,7 +54,8 @@ def test_fixed_step_test_particle_check_switches_off_with_energy_tol_none():
 
 def test_encounter_failure_message_names_the_pair_distance_speed_and_the_way_out():
     """Two Jupiters meeting (the hard-cases scene) on a fixed step far too long for their
-    encounter: the failure names both planets, their distance and relative speed."""
+    encounter: the failure names both planets, their distance and relative speed (from the
+    energy check, or since 2026-11-26 earlier, from the planet's own error estimate)."""
     from hbvm_md.reports.hard_cases import encounter_scene
     sim = encounter_scene().to_rebound()
     sim.particles[1].name, sim.particles[2].name = "b", "c"
@@ -70,9 +71,28 @@ def test_encounter_failure_message_names_the_pair_distance_speed_and_the_way_out
     assert v == pytest.approx(np.linalg.norm([p1.vx - p2.vx, p1.vy - p2.vy, p1.vz - p2.vz]))
     assert d < 0.2, msg                    # an encounter (a = 1 and 1.15), not the star
     assert __import__("re").search(
-        r"the closest encounter at the step's start: particle [12] \('[bc]'\) and particle "
-        r"[12] \('[bc]'\), \S+ apart at relative speed \S+ \(d / v = \S+ steps\); leave out "
-        r"`dt` \(HBVMIntegrator\(sim\) takes adaptive steps", msg), msg
+        r"(the closest encounter at the step's start: particle [12] \('[bc]'\) and particle "
+        r"[12] \('[bc]'\), \S+ apart|does not resolve particle [12] \('[bc]'\): .* passes "
+        r"particle [12] \('[bc]'\) \S+ away) at relative speed \S+ \(d / v = \S+ steps\); "
+        r"leave out `dt` \(HBVMIntegrator\(sim\) takes adaptive steps", msg), msg
+
+
+def test_fixed_step_far_too_long_for_the_planets_is_refused():
+    """HLW's outer solar system at 2500-day steps (1.7 a Jupiter orbit) kept its energy and
+    ended 2.9e-4 AU from IAS15 after 2e4 days in silence: HBVM conserves the energy of smooth
+    motion at any step.  A gravitating body's own estimate above 1 now refuses the step (largest
+    estimate 57 there), nothing committed, naming the body; 1000-day steps (largest estimate
+    0.09, 4.3e-10 AU off) pass."""
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, s=8, k=9, dt=2500.0)
+    with pytest.raises(UnresolvedStepError, match=r"does not resolve particle \d.*exceeds 1 \(1, "
+                       r"the top term .*HBVM keeps the energy of smooth motion at any step"):
+        sim.integrate(2e4)
+    assert sim.t < 2e4
+    ok = outer_solar_system().to_rebound()
+    HBVMIntegrator(ok, s=8, k=9, dt=1000.0)
+    ok.integrate(2e4)
+    assert ok.t == 2e4
 
 
 def _outer_with(a_values, seed=1):

@@ -57,7 +57,7 @@ GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebou
 
 #: A fixed step (with the energy check on) refuses a test particle whose own error estimate
 #: (``core.test_particle_error``) exceeds max(TP_FLOOR, TP_FACTOR x the sources' estimate), and
-#: on REBOUND's own accelerations any body whose own estimate exceeds SOURCE_FLOOR.
+#: any gravitating body whose own estimate exceeds SOURCE_FLOOR.
 #: Measured (s = 6, k = 7, no check): the adaptive tests' comet (past the Sun, then Jupiter)
 #: ends 1e-11 AU from IAS15 at a largest estimate of 7e-3, 1e-7 AU off at 0.19, 0.1 AU off at
 #: 27; the outer solar system's sources at a step of 200 days reach 1.5e-4, test particles at
@@ -154,11 +154,12 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
                      Adaptive(epsilon, sd[SL_MIN_DT], res))
     st[SL_REJECTED] += int(res[2])
     if status == OK and not adaptive and sd[SL_ETOL] != 0.0:
-        # on REBOUND's own accelerations every body too (test_particle_error's ``sources``):
-        # there the energy check cannot see an unresolved encounter (a softened potential is
-        # conserved at any step; a force without H is not checked at all)
+        # every gravitating body too, against SOURCE_FLOOR: HBVM keeps the energy of smooth
+        # motion at any step (a softened potential, a long step over a planet's orbit), and a
+        # force without H has no energy to check, so the energy check alone cannot see a step
+        # that does not resolve the motion
         worst, err, _ = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR,
-                                            SOURCE_FLOOR if host_forces else 0.0)
+                                            SOURCE_FLOOR)
         if worst >= 0:
             counters[C_ITER], counters[C_NFEV], counters[C_NEWTON] = c_iter, c_nfev, c_newton
             counters[C_STEPS] -= 1

@@ -552,8 +552,7 @@ def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> Unresol
     gammat = doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
     minv, kin_w = doubles(int(ctx[L.A_MINV]), m), doubles(int(ctx[L.A_KINW]), m)
     host = bool(ctx[L.D_HOST])
-    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR,
-                                      SOURCE_FLOOR if host else 0.0)
+    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, SOURCE_FLOOR)
     source = kin_w[3 * i] != 0.0
     # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
     h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
@@ -568,10 +567,12 @@ def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> Unresol
             "accept such steps")
     exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, hint)
     where_t = f"HBVM step of size h={h:.6g} at t={t:.17g}"
+    why = ("on REBOUND's own accelerations the energy check cannot see such a step, as a "
+           "softened potential is conserved at any step and a force without a potential is not "
+           "checked" if host else "HBVM keeps the energy of smooth motion at any step, so the "
+           "energy check alone cannot see such a step")
     rule = (f"{SOURCE_FLOOR:g}, the top term of its acceleration's polynomial over the step as "
-            "large as its mean: on REBOUND's own accelerations the energy check cannot see such "
-            "a step, as a softened potential is conserved at any step and a force without a "
-            "potential is not checked" if source else
+            f"large as its mean: {why}" if source else
             f"the larger of {TP_FLOOR:g} and {TP_FACTOR:g} times the gravitating bodies' "
             "estimate")
     RuntimeError.__init__(exc, (
