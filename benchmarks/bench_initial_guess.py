@@ -42,28 +42,13 @@ from systems.nbody import nbody_forces
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def _legendre_at(x, s):
-    """P_j(x), j < s, the orthonormal shifted Legendre polynomials, at the points x (rows)."""
-    x = np.asarray(x, dtype=float)
-    out = np.empty((x.size, s))
-    z = 2.0 * x - 1.0
-    l0, l1 = np.ones_like(z), z
-    for j in range(s):
-        lj = l0 if j == 0 else l1 if j == 1 else None
-        if j >= 2:
-            l0, l1 = l1, ((2 * j - 1) * z * l1 - (j - 1) * l0) / j
-            lj = l1
-        out[:, j] = np.sqrt(2 * j + 1) * lj
-    return out
-
-
 def study(s: int, k: int, dt: float, steps: int, tol: float = 1e-14, max_iter: int = 60):
     method = HBVM(k, s)
     C2 = np.array(method.C2, dtype=float)        # (k, s): Q's coefficients of M^-1 gamma / h^2
     W = np.array(method.W, dtype=float)          # (s, k)
     tau = np.array(method.tau, dtype=float)      # (k,) nodes on [0, 1]
     E1 = np.array(method.extrapolation_matrix(1.0), dtype=float)
-    P = _legendre_at(tau, s)                     # (k, s): force values at the nodes = P gamma
+    P = np.array(method.P, dtype=float)          # (k, s): force values at the nodes = P gamma
     nb = outer_solar_system()
     force, _, params = nb.separable_kernels()
     y = nb.initial_state()

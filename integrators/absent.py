@@ -6,8 +6,9 @@ separable form only as the binding uses, EQUIP only for EQUIP, the tangent map o
 variational particles ask for it, the simplified Newton update only for a host that uses it.
 The step's code is the same for every variant.  The variant is declared by module globals of
 the generated step (``_FULL``, ``_EQUIP``, ``_FOLLOWERS``, ``_NEWTON``, ``_TANGENTS``) that
-numba reads as constants: the branches they decide are pruned before typing, so the parts a variant leaves out are not compiled at all (measured on REBOUND's three-body
-scene with empty caches: 12 % less compile time than compiling these stand-ins in their place).
+numba reads as constants: the branches they decide are pruned before typing, so the parts a
+variant leaves out are not compiled at all (measured on REBOUND's three-body scene with empty
+caches: 12 % less compile time than compiling these stand-ins in their place).
 The names a variant leaves out are still bound to the functions here, as guards: a stand-in is
 never reached, and if it ever were (a binding that does not match its system or method) it
 raises instead of computing something else.

@@ -110,7 +110,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                                "system")
     y, cy, gamma, eref, clock = state
     NV, NVinv, NM = newton
-    if _NEWTON:
+    if _NEWTON:          # (the constant first: numba prunes the branch it decides)
         pass
     elif NM.shape[0] > 0:
         raise RuntimeError("hbvm-md: internal error: the step was compiled without the "

@@ -93,13 +93,15 @@ def test_velocity_dependent_force_keeps_order_2s(s, steps):
     assert abs(slope - 2 * s) < 0.3, (errs, slope)
 
 
-def _drag_planets(integrator, flag=1, rate=1e-2, **hbvm):
+def _drag_planets(integrator, flag=1, rate=1e-2, start=-np.inf, **hbvm):
     """Two planets with REBOUND's Forces notebook's Python drag a = -rate v (velocity
-    dependent), ``force_is_velocity_dependent`` = flag; HBVM with settings ``hbvm`` through
-    HBVMIntegrator, else as ``sim.integrator = "hbvm"``."""
+    dependent) from t = ``start`` on, ``force_is_velocity_dependent`` = flag; HBVM with
+    settings ``hbvm`` through HBVMIntegrator, else as ``sim.integrator = "hbvm"``."""
     sim = _planets("ias15")
 
     def drag(reb_sim, sim=sim):
+        if sim.t < start:
+            return
         ps = sim.particles
         for i in (1, 2):
             ps[i].ax -= rate * ps[i].vx
@@ -493,18 +495,7 @@ def test_velocity_flag_set_between_runs_takes_the_stage_velocities():
     for HBVM alone (the stages see the step's initial velocities) the runs end 3.8e-2 apart."""
     sims = []
     for integ in ("ias15", "hbvm"):
-        sim = _planets(integ)
-
-        def drag(reb_sim, sim=sim):
-            if sim.t < 5.0:
-                return
-            ps = sim.particles
-            for i in (1, 2):
-                ps[i].ax -= 1e-2 * ps[i].vx
-                ps[i].ay -= 1e-2 * ps[i].vy
-                ps[i].az -= 1e-2 * ps[i].vz
-
-        sim.additional_forces = drag
+        sim = _drag_planets(integ, flag=0, start=5.0)
         sim.integrate(5.0)
         sim.force_is_velocity_dependent = 1
         sim.integrate(20.0)

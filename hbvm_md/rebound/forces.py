@@ -65,6 +65,7 @@ import numpy as np
 from numba import carray, types
 from numba.extending import intrinsic
 
+from integrators.core import weighted_kinetic
 from integrators.jit import jit
 from integrators.pointers import float64_pointer
 from hbvm_md.rebound.cabi import call_void
@@ -198,7 +199,8 @@ def rebound_potential(q, params):
 def scene_set_masses(params, masses):
     """A :class:`ReboundScene`'s parameters <- those of the same scene with the masses (N,),
     in place: the gravitating masses g (the potential's; REBOUND reads its own masses for the
-    accelerations; the kinetic weights are the step's, updated by the caller).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
+    accelerations; the kinetic weights are the step's, updated by the caller).  The caller
+    keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
     N = int(params[P_N])
     g0 = P_HEAD + 4 * int(params[P_NPOT])
     for i in range(N):
@@ -418,10 +420,9 @@ def scene_energy(sim) -> float:
     t = sim.t
     y = sc.state(xv[:, :3], xv[:, 3:], t)
     try:
-        kin = 0.0
-        for w, v in zip(sc.kinetic_weights, y[sc.dim:]):      # (summed in order)
-            kin += w * (v * v)
-        e = 0.5 * kin + float(rebound_potential(y[:sc.dim], sc.params))
+        # (the kinetic energy as the step's energy check takes it: loop.energy_parts)
+        e = (weighted_kinetic(y[sc.dim:], sc.kinetic_weights)
+             + float(rebound_potential(y[:sc.dim], sc.params)))
     finally:        # (REBOUNDx's potentials read the particles: the positions went through q)
         sim.set_serialized_particle_data(xyzvxvyvz=xv.reshape(-1))
         sim.t = t

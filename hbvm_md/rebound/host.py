@@ -278,6 +278,18 @@ def _install_runs(rebound) -> None:
     S.integrate, S.steps = integrate, steps
 
 
+def _prepared(addr: int):
+    """(st, sd, ctx) of the simulation at ``addr``: HBVM's state slots and its context header
+    (:mod:`hbvm_md.rebound.layout`), or None before its step was first prepared."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return None
+    st, sd = _slots(p)
+    if not st[L.SL_CTX]:
+        return None
+    return st, sd, int64s(int(st[L.SL_CTX]), L.N_HEADER)
+
+
 #: this thread's HBVM run (a _Callbacks), if any: where the unraisable hook records a raise
 _RUN = threading.local()
 
@@ -321,10 +333,8 @@ def _unraisable(previous):
         if run.raised is None:
             run.raised = u.exc_value if u.exc_value is not None else u.exc_type()
         try:
-            p = ctypes.c_void_p.from_address(run.addr + _REG["state_at"]).value
-            st = _slots(p)[0] if p else None
-            if st is not None and st[L.SL_CTX] and int64s(int(st[L.SL_CTX]),
-                                                          L.N_HEADER)[L.D_HOST]:
+            prepared = _prepared(run.addr)
+            if prepared is not None and prepared[2][L.D_HOST]:
                 sim = _rebound().Simulation.from_address(run.addr)
                 ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
                 stride = _REG["offsets"][L.R_STRIDE - L.R_T]
@@ -354,12 +364,9 @@ def _recheck_forces(sim, addr: int) -> None:
         return
     if tuple(reboundx_forces(sim) or ()) == seen:
         return
-    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
-    if p:
-        st, _ = _slots(p)
-        if st[L.SL_CTX]:
-            ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
-            ctx[L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
+    prepared = _prepared(addr)
+    if prepared is not None:
+        prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
     _FORCES.pop(addr, None)
 
 
@@ -372,12 +379,9 @@ def _forget_host_energy(addr: int) -> None:
     steps shrank to a StepSizeError blaming an encounter).  So each run on this path starts its
     reference afresh from its first step's start: the same number as the one carried when
     nothing changed (the same state through the same function)."""
-    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
-    if not p:
-        return
-    st, sd = _slots(p)
-    if st[L.SL_CTX] and int64s(int(st[L.SL_CTX]), L.N_HEADER)[L.D_HOST]:
-        sd[L.SL_EREF] = np.nan
+    prepared = _prepared(addr)
+    if prepared is not None and prepared[2][L.D_HOST]:
+        prepared[1][L.SL_EREF] = np.nan
 
 
 def _install_operators() -> None:
