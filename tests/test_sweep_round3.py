@@ -214,6 +214,48 @@ def test_a_rebound_simulation_integrated_from_two_threads_is_refused_by_name():
     assert sim.t == 1.0
 
 
+def test_a_run_nested_in_a_heartbeat_releases_both_simulations():
+    """A heartbeat of one HBVM simulation that integrates another (a run inside a run, in one
+    thread): both runs end normally, and afterwards each simulation can be integrated from
+    another thread (neither is left marked as running)."""
+    import threading
+
+    import rebound
+
+    def two_body():
+        s = rebound.Simulation()
+        s.add(m=1.0)
+        s.add(m=1e-3, a=1.0, e=0.1)
+        s.integrator = "hbvm"
+        s.dt = 0.01
+        return s
+
+    outer, inner = two_body(), two_body()
+    calls = []
+
+    def heartbeat(sim_pointer):
+        if len(calls) < 3:
+            calls.append(inner.t)
+            inner.integrate(inner.t + 0.05)
+
+    outer.heartbeat = heartbeat
+    outer.integrate(0.2)
+    assert len(calls) == 3 and inner.t == pytest.approx(0.15) and outer.t == 0.2
+    errors = []
+
+    def other():
+        try:
+            outer.integrate(0.3)
+            inner.integrate(0.3)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    t = threading.Thread(target=other)
+    t.start()
+    t.join()
+    assert errors == [] and outer.t == 0.3 and inner.t == 0.3
+
+
 # -- 2. ensemble stores (items 2, 3, 4, 7) -------------------------------------------------------
 distributed = pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
