@@ -5,7 +5,11 @@ Scenes (microseconds of process CPU a step, median of 3 runs in one process, aft
 HLW's outer solar system through REBOUND with HBVM(9, 8) at 500 days ("fixed") and at the
 adaptive defaults ("adaptive"); the same with 200 test particles at 100 days ("followers"); a
 125-atom soft-sphere crystal under HBVMDynamics (s = 2, 2 fs; "md": the engine's per-step
-Python path).  Each tree runs in its own process with its own compile cache, warmed by a first
+Python path).  Per ``sim.integrate`` call rather than per step: "call", a call that takes one
+step of "fixed" (an output every step, as bench_rebound's 1e5-day scene), "empty", a call that
+takes none (the host's per-call cost alone), and "empty-whfast", the same call with WHFast
+(REBOUND's own per-call cost, for scale; the table's last row is the ratio of the two, taken
+in each process, which the machine's drifting speed leaves alone).  Each tree runs in its own process with its own compile cache, warmed by a first
 round that is not reported; the rounds alternate the trees and the table gives each tree's
 fastest round (a shared machine slows single runs).
 
@@ -15,12 +19,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCENES = ("fixed", "adaptive", "followers", "md")
+SCENES = ("fixed", "adaptive", "followers", "md", "call", "empty", "empty-whfast")
 
 CHILD = r"""
 import resource, statistics, sys
@@ -53,6 +58,24 @@ for mode in ("fixed", "adaptive", "followers"):
         n0 = sim.steps_done; c0 = cpu()
         sim.integrate(2e6 if mode != "followers" else 5e4)
         ts.append((cpu() - c0) / (sim.steps_done - n0) * 1e6)
+    out.append(f"{mode} {statistics.median(ts):.3f}")
+for mode in ("call", "empty", "empty-whfast"):
+    ts = []
+    for rep in range(3):
+        sim = outer_solar_system().to_rebound()
+        if mode == "empty-whfast":
+            sim.integrator = "whfast"
+            sim.dt = 500.0
+        else:
+            HBVMIntegrator(sim, s=8, k=9, dt=500.0)
+        sim.integrate(1000.0)
+        t = sim.t
+        c0 = cpu()
+        for i in range(5000):
+            if mode == "call":
+                t += 500.0
+            sim.integrate(t)
+        ts.append((cpu() - c0) / 5000 * 1e6)
     out.append(f"{mode} {statistics.median(ts):.3f}")
 from ase.build import bulk
 from ase import units
@@ -95,6 +118,7 @@ def main(argv=None) -> int:
                                      if args.compare else [])
     caches = {label: tempfile.mkdtemp(prefix="hbvm-md-ab-") for label, _ in trees}
     best: dict = {}
+    ratios: dict = {}
     for r in range(args.rounds + 1):
         for label, tree in trees:
             res = run(tree, caches[label])
@@ -104,12 +128,18 @@ def main(argv=None) -> int:
                   flush=True)
             for k, v in res.items():
                 best[(label, k)] = min(best.get((label, k), v), v)
-    print(f"\nload average {os.getloadavg()[0]:.1f}; us of CPU a step, fastest round")
+            # the host's per-call cost against REBOUND's own in the same process (the machine's
+            # speed drifts between processes by up to 2x: the ratio does not)
+            ratios.setdefault(label, []).append(res["empty"] / res["empty-whfast"])
+    print(f"\nload average {os.getloadavg()[0]:.1f}; us of CPU a step (call, empty, "
+          "empty-whfast: a sim.integrate call), fastest round")
     print("| scene | " + " | ".join(label for label, _ in trees) + " |")
     print("|---|" + "---:|" * len(trees))
     for k in SCENES:
         print(f"| {k} | " + " | ".join(f"{best.get((label, k), float('nan')):.1f}"
                                        for label, _ in trees) + " |")
+    print("| empty / empty-whfast (median of the rounds' ratios) | "
+          + " | ".join(f"{statistics.median(ratios[label]):.2f}" for label, _ in trees) + " |")
     return 0
 
 
