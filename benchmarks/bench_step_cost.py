@@ -9,9 +9,10 @@ Python path).  Per ``sim.integrate`` call rather than per step: "call", a call t
 step of "fixed" (an output every step, as bench_rebound's 1e5-day scene), "empty", a call that
 takes none (the host's per-call cost alone), and "empty-whfast", the same call with WHFast
 (REBOUND's own per-call cost, for scale; the table's last row is the ratio of the two, taken
-in each process, which the machine's drifting speed leaves alone).  Each tree runs in its own process with its own compile cache, warmed by a first
-round that is not reported; the rounds alternate the trees and the table gives each tree's
-fastest round (a shared machine slows single runs).
+in each process, which the machine's drifting speed leaves alone).  Each tree runs in its own
+process with its own compile cache, warmed by a first round that is not reported; the rounds
+alternate the trees and the table gives each tree's fastest round (a shared machine slows
+single runs).
 
     python benchmarks/bench_step_cost.py [--compare DIR] [--rounds 3]
 """
