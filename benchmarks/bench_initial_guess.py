@@ -9,7 +9,7 @@ save iterations.  It runs HBVM(k, s)'s iteration on the coefficients,
     Q = q0 + h tau v0 + h^2 C2 M^-1 gamma,      gamma <- W F(Q),
 
 with the method's own arrays (:class:`integrators.HBVM`: C2 = I_s X_s at the k nodes, W = P_s^T
-Omega) and the project's N-body kernel, in double precision, from these guesses, counting the
+Omega) and the scene's own force kernel (the project's N-body kernel), in double precision, from these guesses, counting the
 sweeps until the coefficients are within 1e-14 of the fixed point (relative to their largest
 entry; the fixed point itself iterated until its increments stop shrinking):
 
@@ -37,7 +37,6 @@ import numpy as np
 from hbvm_md.reports.machine import machine
 from integrators import HBVM
 from systems import outer_solar_system
-from systems.nbody import nbody_forces
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -58,7 +57,7 @@ def study(s: int, k: int, dt: float, steps: int, tol: float = 1e-14, max_iter: i
     F = np.empty((k, m))
 
     def forces(Q):
-        nbody_forces(Q, params, F)
+        force(Q, params, F)
         return F.copy()
 
     def sweep(q0, v0, gamma):

@@ -1,6 +1,6 @@
 """Adversarial scenes on REBOUND's own accelerations (:mod:`hbvm_md.rebound.forces`), each the
-minimal reproduction of a defect found by probing HBVM against IAS15 from the same start: the
-fixed ones pass, the open ones are ``xfail(strict=True)``."""
+minimal reproduction of a defect found by probing HBVM against IAS15 from the same start, each
+fixed and tested here (an open one would be ``xfail(strict=True)``)."""
 import numpy as np
 import pytest
 

@@ -116,7 +116,8 @@ def cmd_demo(args) -> int:
     try:
         from ..reports.md_comparison import compare_md, default_cluster
         atoms, calc = default_cluster(n_atoms=n_atoms)
-        mdc = _call_compare_md(compare_md, atoms, calc, md_steps)
+        mdc = compare_md(atoms, calculator=calc, steps=md_steps,
+                         verbose=False)      # (the demo prints the table itself)
         written.append(_show(f"Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, "
                              "through ASE", t0, mdc, out / "energy_md_cluster.png",
                              f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]"))
@@ -130,22 +131,6 @@ def cmd_demo(args) -> int:
     for w in written:
         _say(f"  {w}")
     return 0 if written else 1
-
-
-def _call_compare_md(compare_md, atoms, calc, steps):
-    """compare_md with the step count, tolerating the signature variants of the MD module."""
-    import inspect
-    params = inspect.signature(compare_md).parameters
-    kwargs = {}
-    if "steps" in params:
-        kwargs["steps"] = steps
-    if "verbose" in params:
-        kwargs["verbose"] = False      # the demo prints the table itself
-    if "calculator" in params:
-        kwargs["calculator"] = calc
-        return compare_md(atoms, **kwargs)
-    atoms.calc = calc
-    return compare_md(atoms, **kwargs)
 
 
 # -- bench ---------------------------------------------------------------------------------
