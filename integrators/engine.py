@@ -19,7 +19,8 @@ import numpy as np
 
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, velocity_work, work_sizes)
-from .core import next_step, select_extrapolation
+from .core import DIVERGED as FAILED_STEP
+from .core import ERROR_BOUND, adapt_step, select_extrapolation
 from .core import step_error as error_estimate
 from .jit import entry_point
 from .errors import StepError, StepSizeError, step_error
@@ -249,6 +250,33 @@ def energy_check(method, system, energy_tol="auto", tol=None, round_off_k: bool 
         raise ValueError(f"`energy_tol` must be 'auto', a positive number or None (got "
                          f"energy_tol={energy_tol!r}); None switches the energy check off")
     return float(energy_tol)
+
+
+def error_check(error_bound="auto") -> float:
+    """The bound on each step's own error estimate (:func:`integrators.core.resolution_error`,
+    checked by :func:`integrators.loop.run`) for ``error_bound``: "auto" (the default of every
+    host), :data:`integrators.core.ERROR_BOUND`; a number in (0, inf): that bound; None: 0, no
+    check (a run that wants steps which do not resolve the motion: a stability study)."""
+    if error_bound is None:
+        return 0.0
+    if isinstance(error_bound, str) and error_bound == "auto":
+        return ERROR_BOUND
+    if (isinstance(error_bound, (bool, str)) or not isinstance(error_bound, (int, float, np.number))
+            or not (np.isfinite(error_bound) and error_bound > 0)):
+        raise ValueError(f"`error_bound` must be 'auto', a positive number or None (got "
+                         f"error_bound={error_bound!r}); None switches the step's own error "
+                         "check off")
+    return float(error_bound)
+
+
+def body_size(system) -> int:
+    """The coordinates of one body of a separable system (its ``body_dim``: 3 for N bodies and
+    atoms), for the step's error estimate body by body; 0 (the state as one block) for a
+    system that does not say."""
+    dim = getattr(system, "body_dim", None)
+    if isinstance(dim, (int, np.integer)) and not isinstance(dim, bool) and dim > 0:
+        return int(dim)
+    return 0
 
 
 def check_options(solver, form, tol, max_iter, t0) -> float:
@@ -675,6 +703,17 @@ class Stepper(Counted):
         step too large for the encounter it crosses, a state that is not a solution), and the
         method's own quadrature error passes (s = 1: above 0.1 and all of that energy).
 
+    error_bound : "auto", float or None (keyword-only)
+        Refuse a converged step whose own estimate of its relative local error exceeds this
+        (:class:`integrators.UnresolvedStepError` naming the body, its estimate and a step that
+        would pass; nothing committed): from the first Legendre term the step leaves out of a
+        body's velocity over the step against the velocity it keeps
+        (:func:`integrators.core.resolution_error`), taken from the step's own stage values
+        (k > s) or one evaluation at its end (k = s), independent of the energy, which an
+        energy-conserving step keeps whether or not it followed the solution.  "auto"
+        (default): :data:`integrators.core.ERROR_BOUND` (1e-3: three correct digits a step);
+        None: no check.
+
     Attributes
     ----------
     t, y : current time and state (copies; the state is kept as a double-double number).
@@ -692,14 +731,20 @@ class Stepper(Counted):
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-                 fast: bool | None = None, energy_tol: float | str | None = "auto"):
+                 fast: bool | None = None, energy_tol: float | str | None = "auto", *,
+                 error_bound: float | str | None = "auto"):
         check_method(method)
+        self._ebound = error_check(error_bound)
         t0 = check_options(solver, form, tol, max_iter, t0)
         energy_check(method, None, energy_tol, tol)        # checks the argument first
         system, self._y = check_state(system, y0)
         self.method, self.system = method, system
         self.binding = Binding(method, system, form, fast)
         self.form = self.binding
+        self._group = body_size(system)
+        # a host's own words in its errors (errors.step_error's ``hints``: "body": how a body is
+        # named, "atom {i}"; "resolution": its way out of an unresolved step)
+        self.hints = {}
         self._cy = np.zeros_like(self._y)
         self._clock = np.array([t0, 0.0])
         self._gamma = np.zeros((method.s, self.binding.u))
@@ -961,23 +1006,44 @@ class Stepper(Counted):
             try:
                 self.step(h)
             except StepError as err:
-                cause = f"{type(err).__name__}: {err}"
-                h_new = 0.25 * h
+                status, err_est, cause = FAILED_STEP, math.nan, f"{type(err).__name__}: {err}"
             else:
-                err_est = error_estimate(self._gamma, self.binding.minv)
-                if err_est <= epsilon:
-                    return h, next_step(h, err_est, epsilon, s)
-                self.restore_state(snap)
+                status, err_est = OK, error_estimate(self._gamma, self.binding.minv)
                 cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
-                h_new = next_step(h, err_est, epsilon, s)
+            # the one controller (core.adapt_step, as loop.attempt calls it)
+            accept, h_new, too_small = adapt_step(h, status, err_est, epsilon, s, self.t, min_dt)
+            if accept:
+                return h, h_new
+            if status == OK:
+                self.restore_state(snap)
             self.rejected += 1
             self.status = "running"
-            # (a step that no longer changes t, as loop.attempt: without it the steps into a
-            # collision shrink to h = 0 and the run ends in check_step's error, not this one)
-            if abs(h_new) < min_dt or self.t + h_new == self.t:
+            if too_small:
                 self.status = "failed"
                 raise StepSizeError(h, min_dt, self.t, cause)
             h = h_new
+
+    def step_toward(self, mark: float, h: float, epsilon: float,
+                    min_dt: float) -> tuple[float, float]:
+        """One adaptive step (:meth:`step_adaptive`) of at most h toward the time ``mark``,
+        shortened to land on it exactly (its clock set to ``mark``); returns (the step taken,
+        the step to try next: the controller's proposal, or h again after a landing, which
+        was shortened by the mark and not by the motion).  Raises
+        :class:`integrators.StepSizeError` when h no longer changes t (steps shrinking into a
+        singularity).  The one landing rule of :meth:`run_adaptive` and of a host that
+        advances by a fixed outer step made of adaptive inner ones (ASE's
+        ``HBVMDynamics(adaptive=True)``, as IAS15 with ``exact_finish_time``)."""
+        remaining = (mark - self._clock[0]) + self._clock[1]
+        last = abs(h) >= abs(remaining)
+        if not last and self.t + h == self.t:    # steps shrinking into a singularity
+            self.status = "failed"
+            raise StepSizeError(h, min_dt, self.t, f"the step proposed, h={h:.3g}, "
+                                f"no longer changes t={self.t!r}")
+        done, h_next = self.step_adaptive(remaining if last else h, epsilon, min_dt)
+        if last and done == remaining:
+            self._clock[:] = mark, 0.0          # exactly on the requested time
+            return done, h
+        return done, h_next
 
     @_one_thread
     def run_adaptive(self, h: float, t_end: float, epsilon: float, min_dt: float,
@@ -1006,18 +1072,8 @@ class Stepper(Counted):
             es.append(self.binding.energy(self._y))
             for mark in marks:
                 while (mark - self.t) * sign > 0:
-                    remaining = (mark - self._clock[0]) + self._clock[1]
-                    last = abs(h) >= abs(remaining)
-                    if not last and self.t + h == self.t:    # steps shrinking into a singularity
-                        self.status = "failed"
-                        raise StepSizeError(h, min_dt, self.t, f"the step proposed, h={h:.3g}, "
-                                            f"no longer changes t={self.t!r}")
-                    done, h_next = self.step_adaptive(remaining if last else h, epsilon, min_dt)
+                    done, h = self.step_toward(mark, h, epsilon, min_dt)
                     hs.append(done)
-                    if last and done == remaining:
-                        self._clock[:] = mark, 0.0          # exactly on the requested time
-                    else:                                   # (else keep h for what follows)
-                        h = h_next
                     n += 1
                     if n % sample_every == 0 or self.t == mark:
                         ts.append(self.t)
@@ -1044,7 +1100,8 @@ class Stepper(Counted):
 
     def _options(self, solver: str) -> Options:
         """The iteration's options for ``solver`` (:class:`integrators.records.Options`)."""
-        return Options(self._max_iter(solver), float(self.tol or 0.0), float(self._etol))
+        return Options(self._max_iter(solver), float(self.tol or 0.0), float(self._etol),
+                       self._ebound, self._group)
 
     def _state_record(self) -> State:
         """The state the step reads and commits (:class:`integrators.records.State`)."""
@@ -1082,7 +1139,8 @@ class Stepper(Counted):
     def _fail(self, status: int, h: float, solver: str) -> None:
         self.status = "failed"
         raise step_error(status, h, self.t, self.counters, solver, energy_tol=self._etol,
-                         method=type(self.method).__name__)
+                         method=type(self.method).__name__, error_bound=self._ebound,
+                         s=self.method.s, hints=self.hints)
 
     def _result(self, t, y, e, h, t_start, status, message) -> "IntegrationResult":
         self.status = "running" if status == "finished" else status
@@ -1174,10 +1232,11 @@ def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
     return float(epsilon), float(min_dt)
 
 
-def integrate(method, system, y0, h: float, steps: int | None = None, t0: float = 0.0,
+def integrate(method, system, y0, h: float, steps: int | None = None, *, t0: float = 0.0,
               solver: str = "auto", sample_every: int = 1, fast: bool | None = None,
               tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-              energy_tol: float | str | None = "auto", *, adaptive: bool = False,
+              energy_tol: float | str | None = "auto",
+              error_bound: float | str | None = "auto", adaptive: bool = False,
               t_end: float | None = None, epsilon: float | None = None,
               min_dt: float | None = None, sample_times=None, variational=None) -> IntegrationResult:
     """Integrate ``steps`` steps of size h with HBVM ``method`` from y0, or with
@@ -1250,7 +1309,8 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         epsilon, min_dt = check_adaptive(DEFAULT_EPSILON if epsilon is None else epsilon,
                                          min_dt, method.s)
         sample_every = check_count("sample_every", sample_every, 1)
-        st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+        st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol,
+                      error_bound=error_bound)
         return st.run_adaptive(h, t_end, epsilon, min_dt, sample_every, sample_times)
     for name, value, fix in (
             ("t_end", t_end, "give steps = round((t_end - t0) / h), or adaptive=True to end "
@@ -1268,5 +1328,6 @@ def integrate(method, system, y0, h: float, steps: int | None = None, t0: float 
         raise ValueError("`steps` is required without adaptive=True")
     steps = check_count("steps", steps, 0)
     sample_every = check_count("sample_every", sample_every, 1)
-    st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+    st = Stepper_(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol,
+                  error_bound=error_bound)
     return st.run(h, steps, sample_every)

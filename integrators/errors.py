@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 
-from .core import DIVERGED, NOT_FINITE, UNRESOLVED
+from .core import DIVERGED, NOT_FINITE, NOT_RESOLVED, UNRESOLVED
 from .equip_core import ALPHA_LIMIT, NO_ENERGY_ROOT
 
 
@@ -138,6 +138,34 @@ class UnresolvedStepError(StepError):
                          f"{what}; {self.hint}")
 
 
+def unresolved_by_estimate(h: float, estimate: float, bound: float, body: int, s: int,
+                           iterations: int, t: float | None, solver: str = "fixed_point",
+                           hints: dict | None = None) -> "UnresolvedStepError":
+    """The UnresolvedStepError of a step refused by its own error estimate (status
+    NOT_RESOLVED, :func:`integrators.core.resolution_error`): it names the body (``hints
+    ["body"]``, a format with ``{i}``: "atom {i}", "particle {i}"; "body {i}" by default), the
+    estimate, the bound and a step that would pass (:func:`integrators.core.suggested_step`);
+    ``hints["resolution"]``: a host's own way out, after the step size."""
+    from .core import suggested_step
+    hints = hints or {}
+    h_ok = suggested_step(abs(h), estimate, bound, s)
+    who = hints.get("body", "body {i}").format(i=body) if body >= 0 else "the state"
+    way = hints.get("resolution", "or adaptive steps (adaptive=True), which shrink through it")
+    hint = (f"use a smaller step (h={h_ok:.3g} or less here: the estimate falls like "
+            f"h^{s + 1} or faster), {way}; or {hints.get('switch_off', 'error_bound=None')} to accept "
+            "such steps")
+    exc = UnresolvedStepError(h, estimate, bound, iterations, t, hint, solver)
+    where = exc._where()
+    RuntimeError.__init__(exc, (
+        f"{where} does not resolve the motion of {who}: its own estimate of its local error, "
+        f"{estimate:.3e} of {who}'s motion over the step (from the first Legendre term the "
+        f"step leaves out of its velocity), exceeds error_bound={bound:.3g}, so the state it "
+        f"reached is not a solution (the energy cannot tell: HBVM keeps it whether or not the "
+        f"step followed the motion); {hint}"))
+    exc.estimate, exc.bound, exc.body, exc.suggested_h = estimate, bound, body, h_ok
+    return exc
+
+
 class ConstraintError(StepError):
     """A step with holonomic constraints (rigid bonds, :mod:`integrators.holonomic`) could not
     keep them: the bond lengths after the step (or after moving a start onto them) are off by
@@ -171,7 +199,7 @@ class StepSizeError(StepError):
 
 def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
                energy_tol: float | None = None, hints: dict | None = None,
-               method: str | None = None) -> StepError:
+               method: str | None = None, error_bound: float = 0.0, s: int = 1) -> StepError:
     """The exception for a failed step's status code (the one table of the project).
 
     ``counters`` is the step's counter array (layout in :mod:`integrators.core`); ``solver``
@@ -180,8 +208,15 @@ def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
     ASE's timestep).  ``energy_tol`` is the check the step ran (:func:`integrators.engine.
     energy_check`: negative for the energy-flow check of a method not exact for H).
     ``method``: the name the message gives the step ("HBVM", "EQUIP"; None: the error's own,
-    HBVM but for EQUIP's energy condition)."""
-    exc = _step_error(status, h, t, counters, solver, energy_tol, hints or {})
+    HBVM but for EQUIP's energy condition); ``error_bound`` and ``s``: the bound a step's own
+    error estimate exceeded (NOT_RESOLVED) and the method's s (for the step that would pass)."""
+    if status == NOT_RESOLVED:
+        from .core import C_ERR, C_LASTIT, C_WORST
+        exc = unresolved_by_estimate(h, float(counters[C_ERR]), error_bound,
+                                     int(counters[C_WORST]), s, int(counters[C_LASTIT]), t,
+                                     solver, hints)
+    else:
+        exc = _step_error(status, h, t, counters, solver, energy_tol, hints or {})
     if method is not None and method != exc.method:
         exc.method = method
         exc.args = (re.sub(r"^\w+ step", f"{method} step", str(exc), count=1),)

@@ -14,9 +14,10 @@ step: the documentation's design page "One step, written once" (``docs/design/st
 """
 import numpy as np
 
-from integrators.core import (C_CHANGE, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
-                              C_STEPS, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
-                              TOO_SMALL, UNRESOLVED, next_step, select_extrapolation,
+from integrators.core import (C_CHANGE, C_ERR, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
+                              C_STEPS, C_WORST, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
+                              resolution_error, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation,
                               all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
                               guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
@@ -116,7 +117,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         raise RuntimeError("hbvm-md: internal error: the step was compiled without the "
                            "simplified Newton iteration (integrators.specialise); its binding "
                            "hands it Newton matrices")
-    max_iter, tol, etol = opts
+    max_iter, tol, etol, ebound, group = opts
     work, cwork, counters = wk
     nsteps, sample_every, out_t, out_y, out_e = samples
     t, ct = clock[0], clock[1]
@@ -381,6 +382,39 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                 eq.commit_correction(yt, cyt, minv, h, g, es[0], ts[eq.TS_S0])
         if not all_finite(yt):
             return fail(counters, NOT_FINITE, work_iter, work_nfev, work_newton)
+        if ebound > 0.0:
+            # the step judged by its own error (core.resolution_error), before the energy
+            # check, which cannot see a step that keeps H but leaves the solution; the first
+            # omitted Legendre coefficient into Fpb[0] (the Lipschitz probe's scratch, free
+            # now): from the stage values when k > s, else from one evaluation at y1
+            om = Fpb[0]
+            nb = Xb.shape[0]
+            if nb > s:
+                omitted_coefficient(W, tau, Fb, om)
+            else:
+                ub = gb.shape[1]
+                for c in range(ub):
+                    col = c
+                    if _FOLLOWERS and at >= 0:
+                        col = int(params[at + 4 + c])
+                    Xpb[0, c] = yt[col] - cyt[col]
+                    if vel:
+                        Xpb[0, ub + c] = (yt[m + col] - cyt[m + col]) * minv[col]
+                if full:
+                    _force(Xpb[:1], pb, Fpb[:1])
+                    symplectic(Fpb[:1], Xpb[:1])
+                    endpoint_defect(gb, Xpb[0], om)
+                else:
+                    _force(Xpb[:1], pb, Fpb[:1])
+                    endpoint_defect(gb, Fpb[0], om)
+                counters[C_NFEV] += 1
+            err, worst = resolution_error(full, yb, mb, gb, om, h, group)
+            counters[C_ERR] = err
+            counters[C_WORST] = worst
+            if _FOLLOWERS and at >= 0 and worst >= 0 and group > 0:   # as the whole state
+                counters[C_WORST] = int(params[at + 4 + worst * group]) // group   # numbers it
+            if not err <= ebound:
+                return fail(counters, NOT_RESOLVED, work_iter, work_nfev, work_newton)
         if etol != 0.0:
             if not np.isfinite(eref[0]):
                 t0, v0 = energy_parts(full, y, kin_w, params)
@@ -436,9 +470,9 @@ def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts,
     :class:`integrators.records.Extrapolation`).
 
     adaptive.epsilon = 0: a fixed step; returns its status.  epsilon > 0: adaptive; a step whose
-    error estimate (``core.step_error`` with weights minv) exceeds epsilon, or whose iteration
-    or energy check fails, is tried again smaller (the controller ``core.next_step``, a quarter
-    after a failure), leaving no trace in the counters; TOO_SMALL when the step would fall
+    error estimate (``core.step_error`` with weights minv) exceeds epsilon, or whose iteration,
+    own error check or energy check fails, is tried again smaller (the one controller,
+    ``core.adapt_step``), leaving no trace in the counters; TOO_SMALL when the step would fall
     below adaptive.min_dt (or vanish at t_start).  adaptive.res: [h taken (or last tried), next
     h proposed, rejections (added), last rejection's error estimate (nan after a failed
     iteration), last failure's status]."""
@@ -465,20 +499,17 @@ def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts,
         res[1] = h
         if epsilon <= 0.0:
             return status
+        err = error_estimate(gammat, system.minv) if status == OK else np.nan
+        accept, h_new, too_small = adapt_step(h, status, err, epsilon, s, t_start, min_dt)
+        if accept:
+            res[1] = h_new
+            return OK
         if status == OK:
-            err = error_estimate(gammat, system.minv)
-            if err <= epsilon:
-                res[1] = next_step(h, err, epsilon, s)
-                return OK
             for i in range(counters.shape[0]):      # a rejected step leaves no trace
                 counters[i] = snap[i]
-            res[3] = err
-            h_new = next_step(h, err, epsilon, s)
-        else:
-            res[3] = np.nan
-            h_new = 0.25 * h
+        res[3] = err
         res[4] = status
         res[2] += 1.0
-        if abs(h_new) < min_dt or h_new == 0.0 or t_start + h_new == t_start:
+        if too_small:
             return TOO_SMALL
         h = h_new

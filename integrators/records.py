@@ -24,8 +24,10 @@ The step's signatures (:mod:`integrators.loop`, :mod:`integrators.tangent`,
   runs Python code, which a signal handler could interrupt);
 * :class:`Newton` -- the simplified-Newton matrices of :mod:`integrators.core` (``NM`` of shape
   (0, u, u): the fixed-point iteration);
-* :class:`Options` -- the iteration cap, its tolerance (0: to round-off) and the energy check's
-  tolerance (:func:`integrators.loop.run`);
+* :class:`Options` -- the iteration cap, its tolerance (0: to round-off), the energy check's
+  tolerance, the bound on the step's own error estimate (0: no check) and the coordinates of
+  one body (0: the state is one block) (:func:`integrators.loop.run`,
+  :func:`integrators.core.resolution_error`);
 * :class:`Work` -- the step's two work buffers (:func:`integrators.core.carve`) and its float
   counters (:data:`integrators.core.N_COUNTERS`, the committed steps' work);
 * :class:`Samples` -- how many steps :func:`integrators.loop.run` takes and where it writes
@@ -54,7 +56,7 @@ Method = namedtuple("Method", ["tn", "ts", "Wp", "Cp"])
 Tableau = namedtuple("Tableau", ["tau", "tau_lo", "X0", "X0_lo", "W", "W_lo", "C2", "C2_lo",
                                  "I", "I_lo"])
 Newton = namedtuple("Newton", ["NV", "NVinv", "NM"])
-Options = namedtuple("Options", ["max_iter", "tol", "etol"])
+Options = namedtuple("Options", ["max_iter", "tol", "etol", "ebound", "group"])
 Work = namedtuple("Work", ["work", "cwork", "counters"])
 Samples = namedtuple("Samples", ["nsteps", "every", "t", "y", "e"])
 Extrapolation = namedtuple("Extrapolation", ["E1", "t", "w", "buf", "zero"])

@@ -216,12 +216,14 @@ class VariationalStepper(Stepper):
 
     def __init__(self, method, system, y0, t0: float = 0.0, solver: str = "auto",
                  tol: float | None = None, max_iter: int | None = None, form: str = "auto",
-                 fast: bool | None = None, energy_tol: float | None = None, *, variational):
+                 fast: bool | None = None, energy_tol: float | None = None, *, variational,
+                 error_bound: float | str | None = "auto"):
         if not isinstance(method, HBVM):
             raise TypeError(f"tangent vectors need an HBVM(k, s) method (got {method!r}): the "
                             "tangent map is the derivative of the HBVM step, and EQUIP's step "
                             "adds a correction whose derivative it does not take")
-        super().__init__(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol)
+        super().__init__(method, system, y0, t0, solver, tol, max_iter, form, fast, energy_tol,
+                         error_bound=error_bound)
         b = self.binding
         d = self._y.size
         self._V = check_tangents(variational, d)

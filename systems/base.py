@@ -21,6 +21,11 @@ and optionally
 ``dim``
     Number of degrees of freedom m (a positive integer); states are y = (q, p) flat, shape
     (2m,).  Default ``len(y0) // 2``.
+``body_dim``
+    The coordinates of one body (3 for particles in space) when q is made of bodies, so that
+    the step's own error estimate (:func:`integrators.core.resolution_error`) judges each body
+    by its own motion (a fast pass of one light body is not hidden by the others); default:
+    the whole state is one block.
 ``stack_protocol``
     True declares that ``dim`` is set and ``energy`` and ``gradient`` both take stacks: the
     system is then used as it is, without the one-time check of :mod:`integrators.protocol`

@@ -390,6 +390,7 @@ class NBody(SeparableSystem):
         w = np.where(self.is_source, m, 1.0)
         self.masses = np.repeat(w, 3)
         self.dim = 3 * N
+        self.body_dim = 3       # a body's coordinates (the step's error estimate, body by body)
         self._params = np.concatenate([kernel_params(self.G, m, self.is_source),
                                        followers_block(self.G, m, self.is_source)])
         self.names = list(names) if names is not None else [f"body{i}" for i in range(N)]

@@ -115,10 +115,14 @@ def test_hbvm_integrate_takes_every_argument_of_integrate():
         a = M.integrate(KEP, Y0, 0.1, **kw)
         b = engine_integrate(M, KEP, Y0, 0.1, **kw)
         assert np.array_equal(a.t, b.t) and np.array_equal(a.y, b.y) and a.steps == b.steps
-    # positionally too, as far as the function takes positions
-    a = M.integrate(KEP, Y0, 0.1, 20, 0.0, "auto", 5)
-    b = engine_integrate(M, KEP, Y0, 0.1, 20, 0.0, "auto", 5)
+    # positionally as far as the function takes positions (h and steps; the options after them
+    # are keyword-only, issue 46), and the same refusal of a position past them
+    a = M.integrate(KEP, Y0, 0.1, 20, sample_every=5)
+    b = engine_integrate(M, KEP, Y0, 0.1, 20, sample_every=5)
     assert np.array_equal(a.y, b.y) and len(a.t) == 5
+    for call in (lambda: M.integrate(KEP, Y0, 0.1, 20, 0.0), lambda: engine_integrate(M, KEP, Y0, 0.1, 20, 0.0)):
+        with pytest.raises(TypeError, match="positional argument"):
+            call()
 
 
 # REBOUND host (issue 28, item 5): REBOUND's own NoParticles since issue 25's registered host.

@@ -73,9 +73,11 @@ def test_fpu_chain_as_atoms_follows_the_core_engine():
     fpu = FPU(3, 50.0)
     y0 = fpu.initial_state()
     h, steps = 0.01, 200
-    ref = integrate(HBVM(4, 2), fpu, y0, h, steps, fast=False)
+    # (h omega = 0.5 on the stiff springs: followed, not resolved to a thousandth a step, so
+    # the step's own error check is off on both sides)
+    ref = integrate(HBVM(4, 2), fpu, y0, h, steps, fast=False, error_bound=None)
     atoms = _fpu_chain(fpu, y0)
-    dyn = HBVMDynamics(atoms, h, s=2)
+    dyn = HBVMDynamics(atoms, h, s=2, error_bound=None)
     assert dyn.k == 4
     x0 = atoms.get_positions()[[0, -1]]
     dyn.run(steps)
@@ -394,7 +396,8 @@ def test_no_atoms_is_a_no_op_like_velocity_verlet():
 ])
 def test_convergence_error_shows_h_and_t_in_fs(solver, hint):
     atoms = _cluster_with_calc()
-    dyn = HBVMDynamics(atoms, 500 * units.fs, s=2, solver=solver)
+    # (the iteration's failure is the point here: the step's own error check is off)
+    dyn = HBVMDynamics(atoms, 500 * units.fs, s=2, solver=solver, error_bound=None)
     dyn.run(1)                                       # converges at 500 fs
     before = atoms.get_positions()
     dyn.dt = 2000 * units.fs

@@ -140,7 +140,7 @@ def test_rebound_binds_the_tangent_map_only_with_variational_particles():
 def test_the_stand_ins_refuse_to_be_reached():
     with pytest.raises(RuntimeError, match="compiled without this part"):
         absent.follow(*([np.zeros(1)] * 6), 0, StepConstants(0.1, *([np.zeros(1)] * 2), 0.0, 0.0),
-                      Tableau(*([np.zeros(1)] * 10)), Options(1, 0.0, 0.0), np.zeros(1),
+                      Tableau(*([np.zeros(1)] * 10)), Options(1, 0.0, 0.0, 0.0, 0), np.zeros(1),
                       np.zeros(1))
     with pytest.raises(RuntimeError, match="compiled without this part"):
         absent.start(np.zeros(6), np.zeros(3))

@@ -30,7 +30,7 @@ def _one_call(method, system, y0, h, steps, sample_every):
     out_t, out_y, out_e = np.full(n, np.nan), np.empty((n, y0.size)), np.full(n, np.nan)
     b.step_code.run(b.system_record, st._state_record(), h, st._extrapolation(h, None),
                     b.method_record, b.no_newton,
-                    Options(st._max_iter("fixed_point"), 0.0, float(st._etol)),
+                    st._options("fixed_point"),
                     b.work_record(st.counters), Samples(steps, sample_every, out_t, out_y, out_e))
     return out_t, out_y, out_e, st.counters.copy()
 

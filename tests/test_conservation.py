@@ -39,7 +39,10 @@ def _scatter(res) -> float:
     return float(np.std(err - np.polyval(np.polyfit(t, err, 1), t)))
 
 
-# (system, nu, h): large steps at which fixed point still converges (h omega = 0.5 for FPU)
+# (system, nu, h): large steps at which fixed point still converges (h omega = 0.5 for FPU);
+# the invariants hold at any step, so the step's own error check (which refuses steps of
+# s = 1 that miss more than a thousandth of their motion) is off in these tests: NO_CHECK
+NO_CHECK = dict(error_bound=None)
 CASES = {"henon_heiles": (HenonHeiles(), 3, 0.5), "fpu": (FPU(3, 50.0), 4, 0.01)}
 
 
@@ -50,14 +53,14 @@ def test_polynomial_hamiltonian_conserved_exactly(name, s):
     y0 = system.initial_state()
     exact = HBVM.for_polynomial_degree(nu, s)
     assert exact.k == max(s, -(-nu * s // 2))
-    res = integrate(exact, system, y0, h, STEPS, sample_every=10, fast=True)
-    gauss = integrate(HBVM(s, s), system, y0, h, STEPS, sample_every=10, fast=True)
+    res = integrate(exact, system, y0, h, STEPS, sample_every=10, fast=True, **NO_CHECK)
+    gauss = integrate(HBVM(s, s), system, y0, h, STEPS, sample_every=10, fast=True, **NO_CHECK)
     assert res.path == gauss.path == "compiled-separable" and res.steps == STEPS
     assert res.max_energy_error <= 1e-13, res.max_energy_error
     assert _drift_over_run(res) <= 1e-13
     assert gauss.max_energy_error >= 1e3 * res.max_energy_error, (gauss.max_energy_error, res.max_energy_error)
     # the numpy path takes the same steps (checked on the first 50)
-    slow = integrate(exact, system, y0, h, 50, sample_every=10, fast=False)
+    slow = integrate(exact, system, y0, h, 50, sample_every=10, fast=False, **NO_CHECK)
     assert np.max(np.abs(slow.y - res.y[:6])) <= 1e-12
 
 
@@ -96,7 +99,8 @@ def test_gauss_conserves_angular_momentum():
     y0 = kep.initial_state()
     h = 2 * np.pi / 100
     for s in (1, 2, 3):
-        gauss = integrate(HBVM(s, s), kep, y0, h, 10_000, sample_every=10, fast=True)
+        gauss = integrate(HBVM(s, s), kep, y0, h, 10_000, sample_every=10, fast=True,
+                          **NO_CHECK)
         L = kep.angular_momentum(gauss.y)
         assert np.max(np.abs(L - L[0])) / abs(L[0]) <= 1e-13, s
     hb = integrate(HBVM(4, 2), kep, y0, h, 10_000, sample_every=10, fast=True)

@@ -47,8 +47,13 @@ CASES = [
 @pytest.mark.parametrize("where,system,y0,method,h,steps,recorded", CASES,
                          ids=[c[0].split(" (")[0] for c in CASES])
 def test_a_benchmark_setting_is_not_refused(where, system, y0, method, h, steps, recorded):
+    """The energy check passes each recorded setting, with the step's own error check as its
+    source runs it: the work-precision diagram measures its coarse points' errors against a
+    reference and switches that check off (Gauss(2) at P/25, h = 0.8 and h omega = 2 miss
+    more than a thousandth of their motion a step, issue 46); the others run the defaults."""
     y0 = system.initial_state() if y0 is None else y0
-    res = integrate(method, system, y0, h, steps, sample_every=max(1, steps // 200))
+    kw = dict(error_bound=None) if where.startswith("work-precision") else {}
+    res = integrate(method, system, y0, h, steps, sample_every=max(1, steps // 200), **kw)
     assert res.status == "finished" and res.steps == steps
     # the recorded run (its energy error sampled a little more or less often)
     assert recorded / 1.5 < res.max_energy_error < 1.5 * recorded

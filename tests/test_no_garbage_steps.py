@@ -102,15 +102,19 @@ def test_the_default_check_passes_a_method_s_own_energy_error():
     kep = Kepler(0.6)
     y0 = kep.initial_state()
     for k, s, n in ((2, 2, 50), (1, 1, 50)):
-        res = integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, 5 * n)
+        # (the energy check alone: such coarse steps can miss more than a thousandth of their
+        # motion at pericentre, which the step's own error check, issue 46, refuses)
+        res = integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, 5 * n, error_bound=None)
         assert res.steps == 5 * n and 1e-6 < res.max_energy_error < 0.5, (k, s, res.max_energy_error)
         with pytest.raises(UnresolvedStepError, match="energy_tol=1.0e-10: the step does not"):
-            integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, 5 * n, energy_tol=1e-10)
+            integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, 5 * n, energy_tol=1e-10,
+                      error_bound=None)
     # the midpoint rule on Henon-Heiles at h = 0.5 crosses the potential's minimum with a
     # quadrature error (6e-3 of |T| + |V| at t = 455.5) above the energy its one stage moves:
     # its own error, not garbage, and it passes
     hh = HenonHeiles(y0=[0.0, 0.1, 0.5, 0.1])
-    res = integrate(HBVM(1, 1), hh, hh.initial_state(), 0.5, 1000, sample_every=10)
+    res = integrate(HBVM(1, 1), hh, hh.initial_state(), 0.5, 1000, sample_every=10,
+                    error_bound=None)
     assert res.steps == 1000 and res.max_energy_error > 1e-3
 
 
@@ -169,4 +173,6 @@ def test_stiff_polynomials_at_huge_steps_are_right_or_raise():
         if k == 2 * s:
             e0 = system.energy(y0)
             assert abs(system.energy(y1) - e0) <= 1e-12 * abs(e0), case
-    assert right >= 20 and raised >= 100, (right, raised)
+    # (the step's own error check, issue 46, refuses more of these far-too-long steps: 16 of
+    # the 576 runs finish, each a solution)
+    assert right >= 10 and raised >= 100, (right, raised)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from hbvm_md.reports.hard_cases import kepler_exact
-from integrators import HBVM, integrate
+from integrators import HBVM, StepError, integrate
 from systems import HenonHeiles, Kepler
 from systems.poincare import PoincareTransformed, distance_power
 
@@ -63,7 +63,11 @@ def test_poincare_kepler_e09_conserves_H_with_fewer_steps_than_fixed_stepping():
     # fixed steps: the fewest steps per period (on a doubling ladder) reaching the same error
     needed = np.inf
     for n in (100, 200, 400, 800, 1600, 3200):
-        rf = integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, n * periods, sample_every=n * periods)
+        try:
+            rf = integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, n * periods,
+                           sample_every=n * periods)
+        except StepError:           # refused: its steps miss the pericentre (issue 46)
+            continue
         if np.max(np.abs(rf.y[-1] - kepler_exact(e, rf.t[-1]))) <= err_pt:
             needed = n
             break

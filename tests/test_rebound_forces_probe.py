@@ -90,14 +90,11 @@ def test_python_force_that_raises_stops_the_run_unchanged(settings):
 
 def test_fixed_step_through_a_softened_encounter_is_refused():
     """Three bodies with softening 0.05 passing within about the softening length at speeds
-    near 9 (a crossing time 0.005) on a fixed step of 0.01: HBVM conserves the softened H at
-    any step (9e-16), so the energy check cannot see the step, and the run returned normally
-    9.3e-5 (relative to the largest coordinate) from IAS15's state.  On REBOUND's own
-    accelerations a fixed step now checks every body's own error estimate (against 1, the top
-    term of its acceleration's polynomial as large as its mean: hbvm_md.rebound.glue.
-    SOURCE_FLOOR): refused, nothing committed, the message naming the body; the same scene on
-    adaptive steps agrees with IAS15 to 1.8e-14, and a fixed step of 0.003, which resolves the
-    encounter (largest estimate 0.19; 4e-13 from IAS15 without the check), passes it."""
+    near 9 (a crossing time 0.005): HBVM conserves the softened H at any step (9e-16), so the
+    energy check cannot see a step that does not resolve the pass.  Each step's own error
+    estimate (issue 46) can: a fixed step of 0.05 (ten crossing times) is refused, nothing
+    committed, the message naming the particle; 0.01 (largest
+    estimate below the bound) ends 1e-6 from IAS15, as its estimate says, and 0.003 4e-13."""
     def scene():
         sim = rebound.Simulation()
         sim.add(m=1.0)
@@ -112,12 +109,16 @@ def test_fixed_step_through_a_softened_encounter_is_refused():
     ref.integrator.epsilon = 1e-11
     ref.integrate(1.0)
     sim = scene()
-    HBVMIntegrator(sim, s=6, k=8, dt=0.01)
+    HBVMIntegrator(sim, s=6, k=8, dt=0.05)
     with pytest.raises(hbvm_md.UnresolvedStepError,
-                       match=r"does not resolve particle \d.*own error estimate .* exceeds 1 "
-                             r"\(1, the top term .* the energy check cannot see"):
+                       match=r"does not resolve the motion of particle \d.*its own estimate of "
+                             r"its local error"):
         sim.integrate(1.0)
     assert sim.t < 1.0 and np.all(np.isfinite(_xv(sim)))      # (the refused step not taken)
+    mid = scene()
+    HBVMIntegrator(mid, s=6, k=8, dt=0.01)
+    mid.integrate(1.0)
+    assert np.max(np.abs(_xv(mid) - _xv(ref))) / np.max(np.abs(_xv(ref))) < 1e-5
     fine = scene()
     HBVMIntegrator(fine, s=6, k=8, dt=0.003)
     fine.integrate(1.0)

@@ -49,7 +49,8 @@ def test_quartic_reproduction_is_exact_with_the_default_solver():
     unconverged steps here (energy error 1e-9, no error raised)."""
     sys_ = Polynomial1D([0, 0, 0, 0, 0, 0, 0.5, 0, 0])
     for solver in ("auto", "fixed_point", "newton"):
-        res = integrate(HBVM(4, 2), sys_, [1.0, 0.5], 0.7, 200, solver=solver)
+        # (exactness at a large step: the step's own error check off)
+        res = integrate(HBVM(4, 2), sys_, [1.0, 0.5], 0.7, 200, solver=solver, error_bound=None)
         assert res.steps == 200 and res.max_energy_error <= 1e-13, (solver, res.max_energy_error)
 
 
@@ -64,7 +65,7 @@ def test_random_nonseparable_polynomials_are_exact_or_raise():
         y0 = rng.uniform(-0.6, 0.6, size=2)
         h = rng.uniform(0.1, 0.9)
         try:
-            res = integrate(HBVM(2 * s, s), sys_, y0, h, 100, sample_every=5)
+            res = integrate(HBVM(2 * s, s), sys_, y0, h, 100, sample_every=5, error_bound=None)
         except StepError:
             failed += 1
             continue

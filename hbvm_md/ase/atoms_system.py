@@ -41,6 +41,7 @@ class _AtomsSystem(SeparableSystem):
         self.calc = atoms.calc
         self.n_atoms = len(atoms)
         self.dim = 3 * self.n_atoms
+        self.body_dim = 3       # an atom's coordinates (the step's error estimate, atom by atom)
         self.masses = np.repeat(np.asarray(atoms.get_masses(), dtype=float), 3)
         self.constraints = constraints
         self.batched = batched

@@ -18,6 +18,7 @@ from ase import units
 from ase.md.md import MolecularDynamics
 
 from integrators import EQUIP, HBVM, ConvergenceError, Stepper, UnresolvedStepError
+from integrators.engine import DEFAULT_EPSILON, check_adaptive, error_check
 from integrators.engine import check_step
 
 from .atoms_system import _AtomsSystem, _AtomsSystemWithHessian, calculator_cache
@@ -111,6 +112,25 @@ class HBVMDynamics(MolecularDynamics):
         HBVM(k, s) conserves H exactly (a polynomial calculator and k from its degree) and
         for EQUIP, otherwise 1e-12 (:meth:`iteration_tol`: the stage forces' own round-off;
         a third fewer force evaluations a step on EMT copper at 5 fs, the same energy error).
+    error_bound : "auto", float or None
+        Each step is judged by its own estimate of its local error, atom by atom (the first
+        Legendre term it leaves out of the atom's velocity, :func:`integrators.core.
+        resolution_error`), independent of the energy (which HBVM keeps whether or not the
+        step followed the motion): a step above the bound is refused with
+        :class:`integrators.UnresolvedStepError` naming the atom and a timestep that would
+        pass, the atoms unchanged.  "auto": :data:`integrators.core.ERROR_BOUND` (1e-3 of the
+        atom's motion over the step); None: no check.
+    adaptive : bool
+        False (default): every step is one HBVM step of ``timestep``.  True: every
+        :meth:`step` still advances exactly ``timestep`` (observers, loggers and trajectories
+        keep ASE's meaning), made of as many inner steps as the error needs, chosen by the
+        engine's one controller (:func:`integrators.core.adapt_step`) and the last shortened
+        to land on the timestep (as IAS15 with ``exact_finish_time``); a hot moment pays small
+        inner steps and the rest of the run does not.  ``inner_steps`` and
+        ``inner_rejections`` count them (also in :meth:`todict`).
+    epsilon : float, optional
+        The precision of adaptive inner steps, with the meaning of the engine's (and IAS15's)
+        ``epsilon`` (:func:`integrators.integrate`); default ``DEFAULT_EPSILON`` (1e-3).
     trajectory, logfile, loginterval, **kwargs
         As for :class:`ase.md.md.MolecularDynamics`.
 
@@ -141,7 +161,9 @@ class HBVMDynamics(MolecularDynamics):
 
     def __init__(self, atoms, timestep: float, s: int = 2, k: int | None = None,
                  solver: str = "auto", nodes: str = "gauss", trajectory=None, logfile=None,
-                 loginterval: int = 1, method: str = "hbvm", tol="auto", **kwargs):
+                 loginterval: int = 1, method: str = "hbvm", tol="auto",
+                 error_bound="auto", adaptive: bool = False, epsilon: float | None = None,
+                 **kwargs):
         thermo = [key for key in _ENSEMBLE_KWARGS if key in kwargs]
         if thermo:
             raise TypeError(f"HBVMDynamics is NVE (it conserves the energy) and takes no "
@@ -189,6 +211,19 @@ class HBVMDynamics(MolecularDynamics):
                   self.method, k, why, s, self.method.order, solver)
         self.solver = solver
         self.tol = tol
+        self.error_bound = error_bound
+        error_check(error_bound)            # checks the argument (ValueError naming it)
+        if not isinstance(adaptive, (bool, np.bool_)):
+            raise ValueError(f"`adaptive` must be True or False (got adaptive={adaptive!r})")
+        self.adaptive = bool(adaptive)
+        if epsilon is not None and not self.adaptive:
+            raise ValueError("`epsilon` is the precision of adaptive steps: pass adaptive=True "
+                             f"with it (got epsilon={epsilon!r} with fixed steps)")
+        self.epsilon, _ = (check_adaptive(DEFAULT_EPSILON if epsilon is None else epsilon,
+                                          None, s) if self.adaptive else (None, None))
+        self.inner_steps = 0        # adaptive: the inner steps taken and rejected so far
+        self.inner_rejections = 0
+        self._h_inner = None        # adaptive: the inner step the controller proposes next
         self._stepper = None
         self._system = None
         self._holonomic = None      # the constrained step when the atoms have rigid bonds
@@ -270,7 +305,11 @@ class HBVMDynamics(MolecularDynamics):
         d = super().todict()
         d.update({"method": repr(self.method), "k": self.k, "s": self.s,
                   "nodes": self.method.nodes, "solver": self.solver,
-                  "tol": self.tol if isinstance(self.tol, str) else self.iteration_tol()})
+                  "tol": self.tol if isinstance(self.tol, str) else self.iteration_tol(),
+                  "adaptive": self.adaptive})
+        if self.adaptive:
+            d.update({"epsilon": self.epsilon, "inner_steps": self.inner_steps,
+                      "inner_rejections": self.inner_rejections})
         return d
 
     # -- state ---------------------------------------------------------------------------------
@@ -335,6 +374,9 @@ class HBVMDynamics(MolecularDynamics):
         text = re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1)
         # the method's own name (EQUIP's steps are not HBVM's), the timestep in ASE's words
         text = re.sub(r"^HBVM step", f"{type(self.method).__name__} step", text)
+        if getattr(new, "suggested_h", None) is not None:     # the step that would pass, in fs
+            text = text.replace(f"(h={new.suggested_h:.3g} or less",
+                                f"(timestep={new.suggested_h / units.fs:.3g} fs or less")
         new.args = (text.replace("use a smaller step", "use a smaller timestep"),)
         return new
 
@@ -365,8 +407,31 @@ class HBVMDynamics(MolecularDynamics):
             self._system = sys_
             self._stepper = Stepper(self.method, sys_, np.concatenate([q, p.ravel()]),
                                     solver=self.solver, form="separable",
-                                    tol=self.iteration_tol(sys_))
+                                    tol=self.iteration_tol(sys_), error_bound=self.error_bound)
+            self._stepper.hints = {"body": "atom {i}",
+                                   "resolution": "or a larger s (a higher order resolves more "
+                                                 "of the motion in one step)"}
         return self._stepper
+
+    def _advance(self, st: Stepper) -> np.ndarray:
+        """The engine's state one ``timestep`` later: one fixed step, or (``adaptive``) as
+        many inner steps as the error needs, the last one landing exactly on the timestep
+        (:meth:`integrators.Stepper.step_toward`, the engine's one controller), as IAS15 with
+        ``exact_finish_time``: observers, loggers and trajectories keep ASE's meaning.  The
+        counters change only when the whole timestep succeeded (a failure restores the engine
+        as before it)."""
+        if not self.adaptive:
+            return st.step(self.dt)
+        mark = st.t + self.dt
+        h = self._h_inner or self.dt
+        steps, rejected = 0, st.rejected
+        while st.t < mark:
+            _, h = st.step_toward(mark, h, self.epsilon, 0.0)
+            steps += 1
+        self._h_inner = h
+        self.inner_steps += steps
+        self.inner_rejections += st.rejected - rejected
+        return st.y
 
     def step(self, forces=None):
         """Advance one step; returns the forces (N, 3) at the new positions.
@@ -392,7 +457,7 @@ class HBVMDynamics(MolecularDynamics):
         switches = st.solver_switches
         per_step = self.stage_evaluations / max(self.nsteps, 1)
         try:
-            y = st.step(self.dt)
+            y = self._advance(st)
             n = len(atoms)
             atoms.set_positions(y[: 3 * n].reshape(n, 3), apply_constraint=False)
             atoms.set_momenta(y[3 * n:].reshape(n, 3), apply_constraint=False)

@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import carray
 
-from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, N_COUNTERS, OK, TINY_RATIO,
+from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, ERROR_BOUND, N_COUNTERS, OK,
+                              TINY_RATIO,
                               copy1, copy2, select_extrapolation, test_particle_error)
 from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
@@ -136,6 +137,9 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     adaptive = st[SL_ADAPTIVE] != 0
     epsilon = sd[SL_EPSILON] if adaptive else 0.0
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
+    # the step's own error estimate (integrators.core.resolution_error, every body of three
+    # coordinates), on with the energy check (energy_tol=None switches both off)
+    ebound = ERROR_BOUND if sd[SL_ETOL] != 0.0 else 0.0
     N = view.shape[0]
     nv = V.shape[0]
     m = y.shape[0] // 2
@@ -150,16 +154,14 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     c_iter, c_nfev, c_newton = counters[C_ITER], counters[C_NFEV], counters[C_NEWTON]
     clock0, clock1 = clock[0], clock[1]
     status = attempt(system, state, trial, h, sd[SL_H_PREV], t_start, ext, method, newton,
-                     Options(st[SL_MAX_ITER], sd[SL_TOL], etol), wk,
+                     Options(st[SL_MAX_ITER], sd[SL_TOL], etol, ebound, 3), wk,
                      Adaptive(epsilon, sd[SL_MIN_DT], res))
     st[SL_REJECTED] += int(res[2])
     if status == OK and not adaptive and sd[SL_ETOL] != 0.0:
-        # every gravitating body too, against SOURCE_FLOOR: HBVM keeps the energy of smooth
-        # motion at any step (a softened potential, a long step over a planet's orbit), and a
-        # force without H has no energy to check, so the energy check alone cannot see a step
-        # that does not resolve the motion
-        worst, err, _ = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR,
-                                            SOURCE_FLOOR)
+        # the test particles against the bodies they move among (the gravitating bodies, and
+        # the test particles on REBOUND's own accelerations, are judged by the step's own
+        # estimate, integrators.core.resolution_error, inside the step)
+        worst, err, _ = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, 0.0)
         if worst >= 0:
             counters[C_ITER], counters[C_NFEV], counters[C_NEWTON] = c_iter, c_nfev, c_newton
             counters[C_STEPS] -= 1

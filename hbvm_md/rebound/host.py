@@ -16,7 +16,8 @@ from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
-from integrators.core import C_LASTIT, N_COUNTERS, NOT_FINITE, OK, TOO_SMALL, test_particle_error
+from integrators.core import (C_LASTIT, C_WORST, ERROR_BOUND, N_COUNTERS, NOT_FINITE, NOT_RESOLVED,
+                              OK, TOO_SMALL, test_particle_error)
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
 from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
@@ -634,8 +635,17 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                                 hints={k: "a smaller step" for k in _HINTS}, method=name)))
         exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
     else:
+        hints = {k: near + v for k, v in _HINTS.items()}
+        if status == NOT_RESOLVED and sim is not None:
+            body = int(counters[C_WORST])
+            if 0 <= body < sim.N:
+                hints["body"] = _name(sim, body).replace("{", "{{").replace("}", "}}")
+            hints["resolution"] = (near + "or leave out `dt` (HBVMIntegrator(sim) takes "
+                                   "adaptive steps, which shrink through encounters)")
+            hints["switch_off"] = "energy_tol=None"
         exc = step_error(status, h, t, counters, "fixed_point", energy_tol=etol,
-                         hints={k: near + v for k, v in _HINTS.items()}, method=name)
+                         hints=hints, method=name, error_bound=ERROR_BOUND,
+                         s=int(st[L.SL_S]))
     exc.encounter = enc
     return exc
 
