@@ -159,7 +159,8 @@ def kepler_scalars(x0, y0, z0, vx, vy, vz, mu):
 def reduce_period(beta, mu, dt):
     """(dt - k P, k P): |dt - k P| <= P / 2 on an ellipse (beta > 0), k = 0 otherwise; the
     difference rounded once."""
-    if beta <= 0.0:
+    # |dt| > P / 2 = pi mu / beta^1.5, asked without a square root (most flows are short)
+    if beta <= 0.0 or not dt * dt * (beta * beta * beta) > (math.pi * mu) ** 2:
         return dt, 0.0
     period = TWO_PI * mu / (beta * math.sqrt(beta))
     if not abs(dt) > 0.5 * period:
@@ -170,15 +171,12 @@ def reduce_period(beta, mu, dt):
 
 
 @jit
-def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
-    """Solve Kepler's equation in universal variables for X.
-
-    ``dt`` is already reduced (:func:`reduce_period`).  Returns X, G1, G2, G3 (at X), r and the
-    number of iterations (negative when the iteration did not converge)."""
-    if dt == 0.0:
-        return 0.0, 0.0, 0.0, 0.0, r0, 0
-    # the conic: e^2 = 1 - h^2 beta / mu^2, pericentre q = h^2 / (mu (1 + e)), the largest
-    # speed vmax = mu (1 + e) / h (at the pericentre)
+def anomaly_bracket(r0, eta0, beta, v2, mu, dt):
+    """An interval that holds the root X of Kepler's equation: X = integral of dt / r, and r
+    lies between the pericentre and apocentre distances q, Q and within vmax |dt| of r0 (the
+    conic: e^2 = 1 - h^2 beta / mu^2, q = h^2 / (mu (1 + e)), vmax = mu (1 + e) / h, the speed
+    at the pericentre); on an ellipse also |X| <= 2 pi / sqrt(beta) (one period, for dt
+    reduced to half a period).  The radii are widened by WIDEN against their rounding."""
     h2 = max(r0 * r0 * v2 - eta0 * eta0, 0.0)
     e = math.sqrt(max(1.0 - h2 * beta / (mu * mu), 0.0))
     adt = abs(dt)
@@ -189,25 +187,41 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
         if reach > rmin:
             rmin = reach
     rmin *= 1.0 - WIDEN
-    rmax = r0 + math.sqrt(v2 + 2.0 * mu * max(1.0 / q - 1.0 / r0, 0.0)) * adt if q > 0.0 \
-        else math.inf
+    rmax = math.inf
+    if q > 0.0:
+        rmax = r0 + math.sqrt(v2 + 2.0 * mu * max(1.0 / q - 1.0 / r0, 0.0)) * adt
     if beta > 0.0:
         rmax = min(rmax, (1.0 + e) * mu / beta)
     rmax *= 1.0 + WIDEN
     xlo = adt / rmax
     xhi = adt / rmin if rmin > 0.0 else math.inf
     if beta > 0.0:
-        # within one period X grows by 2 pi / sqrt(beta): a finite bracket even when h = 0
         xhi = min(xhi, TWO_PI / math.sqrt(beta) * (1.0 + WIDEN))
     if dt < 0.0:
-        xlo, xhi = -xhi, -xlo
-    # start: the series of X(t) to dt^3 while it converges well; else, on an ellipse, the mean
+        return -xhi, -xlo
+    return xlo, xhi
+
+
+@jit
+def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
+    """Solve Kepler's equation in universal variables for X.
+
+    ``dt`` is already reduced (:func:`reduce_period`).  Returns X, G1, G2, G3 (at X), r and the
+    number of iterations (negative when the iteration did not converge)."""
+    if dt == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, r0, 0
+    adt = abs(dt)
+    # start: the series of X(t) to dt^3 while it converges well (|v0 dt| <= r0 / 2, the
+    # common case of a planetary step: there the analytic bracket is only computed if a step
+    # ever leaves the one the iterates' signs of F make); else, on an ellipse, the mean
     # motion (Delta E = n dt); on a hyperbola, Delta H from e sinh(H0 + Delta H) ~ 2 n |dt|
     # (its growing exponential alone, Delta H = log(1 + 2 n |dt| / (e exp(+-H0))))
     r0i = 1.0 / r0
     u = dt * r0i
     X = u * (1.0 - 0.5 * u * r0i * (eta0 - u * (eta0 * eta0 * r0i - zeta0 / 3.0)))
-    if adt * math.sqrt(v2) * r0i > 0.5:
+    analytic = dt * dt * v2 > 0.25 * r0 * r0
+    if analytic:
+        xlo, xhi = anomaly_bracket(r0, eta0, beta, v2, mu, dt)
         if beta > 0.0:
             X = beta * dt / mu
         elif beta < 0.0:
@@ -215,6 +229,8 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
             w = (zeta0 + math.copysign(eta0 * sb, dt)) / mu
             if w > 0.0:
                 X = math.copysign(math.log1p(2.0 * sb * sb * sb / mu * adt / w), dt) / sb
+    else:
+        xlo, xhi = -math.inf, math.inf
     if not (xlo < X < xhi):
         X = 0.5 * (xlo + xhi) if math.isfinite(xhi - xlo) else (xlo if dt > 0.0 else xhi)
     step = math.inf
@@ -252,6 +268,11 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
         # 1.1 / sqrt(-beta) each)
         far = F * dt > 0.0   # beyond the root, where a hyperbola's F grows exponentially
         if not (xlo < Xn < xhi) or (far and was_far and abs(dX) > 0.5 * step):
+            if not analytic:
+                lo, hi = anomaly_bracket(r0, eta0, beta, v2, mu, dt)
+                if max(xlo, lo) < min(xhi, hi):     # (else the signs of F know better)
+                    xlo, xhi = max(xlo, lo), min(xhi, hi)
+                analytic = True
             if math.isfinite(xhi - xlo):
                 # the geometric mean when the bracket spans orders of magnitude (a hyperbola's
                 # dt / q: the arithmetic mean would overflow cosh)
@@ -270,6 +291,14 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
 
 
 @jit
+def gauss_fg(mu, r0, r, dt, G1, G2, G3):
+    """Gauss's f - 1, g, fdot and gdot - 1 (the small parts written from G2 and G3 directly,
+    as WHFast does: no 1 is added and subtracted)."""
+    mr0 = -mu / r0
+    return mr0 * G2, dt - mu * G3, mr0 * G1 / r, -mu / r * G2
+
+
+@jit
 def kepler_step(x0, y0, z0, vx, vy, vz, mu, dt):
     """The flow of one body over dt: (x, y, z, vx, vy, vz, iterations); iterations < 0 when the
     universal anomaly did not converge (the state returned is then NaN)."""
@@ -279,10 +308,7 @@ def kepler_step(x0, y0, z0, vx, vy, vz, mu, dt):
     if it < 0 or not r > 0.0:
         nan = math.nan
         return nan, nan, nan, nan, nan, nan, -abs(it) - 1
-    fm1 = -mu * G2 / r0
-    g = dtr - mu * G3
-    fd = -mu * G1 / (r0 * r)
-    gdm1 = -mu * G2 / r
+    fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
     return (x0 + (fm1 * x0 + g * vx), y0 + (fm1 * y0 + g * vy), z0 + (fm1 * z0 + g * vz),
             vx + (fd * x0 + gdm1 * vx), vy + (fd * y0 + gdm1 * vy), vz + (fd * z0 + gdm1 * vz),
             it)
@@ -350,10 +376,7 @@ def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
     G0 = c0
     G4 = X2 * X2 * c4
     G5 = X2 * X2 * X * c5
-    fm1 = -mu * G2 / r0
-    g = dtr - mu * G3
-    fd = -mu * G1 / (r0 * r)
-    gdm1 = -mu * G2 / r
+    fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
     for i in range(3):
         x1[i] = x0[i] + (fm1 * x0[i] + g * v0[i])
         v1[i] = v0[i] + (fd * x0[i] + gdm1 * v0[i])
