@@ -491,7 +491,7 @@ def reference_flow(x0, v0, mu, dt, dps: int = 40):
 
     The double inputs are taken exactly; the eccentric (or hyperbolic) anomaly solves
     Kepler's equation E - e sin E = M (e sinh H - H = M) by Newton's method kept inside the
-    bracket |E - M| <= e (0 <= H / sign(M) <= asinh(|M| / (e - 1))).  Returns (x, v), each a
+    bracket ``|E - M| <= e`` (``0 <= H / sign(M) <= asinh(|M| / (e - 1))``).  Returns (x, v), each a
     list of three ``mpmath.mpf``; not defined for an exactly parabolic state (1/a = 0)."""
     import mpmath as mp
     with mp.workdps(dps + 10):
