@@ -20,8 +20,11 @@ Two parts, one process:
   the kick adds zero), N_active = 1; wall time of ``sim.steps(R)`` / (R N): the Kepler drifts
   plus WHFast's per-step bookkeeping (Jacobi transformations, the zero kick), which is what a
   WHFast step of this scene costs beyond its forces.  Medians over interleaved rounds.
+* **Random states**: ``--fuzz`` two-body problems drawn over six decades of r, mu, speed and
+  dt (``random_states``), each flowed once: failures, iterations, the energy and angular
+  momentum errors, and the worst of them against mpmath.
 
-Run:  python benchmarks/bench_kepler_flow.py [--n 1000] [--rounds 5] [--phases 24]
+Run:  python benchmarks/bench_kepler_flow.py [--n 1000] [--rounds 5] [--phases 24] [--fuzz 200000]
 Writes ``benchmarks/results/kepler_flow.md`` and prints it.
 """
 from __future__ import annotations
@@ -116,6 +119,65 @@ def accuracy(phases: int):
     return rows
 
 
+def random_states(n: int, seed: int = 1):
+    """n random two-body problems: r log-uniform in [1e-3, 1e3], mu in [1e-2, 1e2], speed
+    1e-2 .. 1e2 times the circular speed in a random direction (ellipses of every e, nearly
+    radial orbits, hyperbolas to e ~ 1e4), a tenth set near-parabolic (|v| within 1e-15 ..
+    1e-3 of the escape speed), dt of either sign, log-uniform 1e-8 .. 1e6 times r / |v|."""
+    rng = np.random.default_rng(seed)
+    r = 10 ** rng.uniform(-3, 3, n)
+    mu = 10 ** rng.uniform(-2, 2, n)
+    speed = 10 ** rng.uniform(-2, 2, n) * np.sqrt(mu / r)
+
+    def directions():
+        d = rng.normal(size=(n, 3))
+        return d / np.linalg.norm(d, axis=1)[:, None]
+    x = directions() * r[:, None]
+    v = directions() * speed[:, None]
+    k = rng.random(n) < 0.1
+    near = np.sqrt(2 * mu[k] / r[k]) / speed[k] * (
+        1 + rng.choice([-1, 1], k.sum()) * 10 ** rng.uniform(-15, -3, k.sum()))
+    v[k] *= near[:, None]
+    dt = rng.choice([-1, 1], n) * 10 ** rng.uniform(-8, 6, n) * r / np.linalg.norm(v, axis=1)
+    return x, v, mu, dt
+
+
+def fuzz(n: int, worst: int = 8):
+    """Every random state flowed once (``kepler_step``, compiled): failures, iterations, the
+    energy and angular momentum errors in ulps of the sizes of their terms, and the errors
+    against mpmath of the states with the largest invariant errors."""
+    from integrators.kepler_flow import kepler_step
+    x, v, mu, dt = random_states(n)
+    out = np.array([kepler_step(*x[i], *v[i], mu[i], dt[i]) for i in range(n)])
+    it = out[:, 6]
+    ok = it >= 0
+    x1, v1 = out[:, :3], out[:, 3:6]
+    r0, r1 = np.linalg.norm(x, axis=1), np.linalg.norm(x1, axis=1)
+    w0, w1 = 0.5 * np.sum(v * v, axis=1), 0.5 * np.sum(v1 * v1, axis=1)
+    de = np.abs((w1 - mu / r1) - (w0 - mu / r0)) / (EPS * (w0 + w1 + mu / r0 + mu / r1))
+    dl = np.linalg.norm(np.cross(x1, v1) - np.cross(x, v), axis=1) / (
+        EPS * (r0 * np.linalg.norm(v, axis=1) + r1 * np.linalg.norm(v1, axis=1)))
+    rows = []
+    for i in np.argsort(np.where(ok, np.maximum(de, dl), 0.0))[-worst:][::-1]:
+        xr, _ = reference_flow(x[i], v[i], mu[i], dt[i])
+        size = float(mp.sqrt(sum(b * b for b in xr)))
+        _, vv, phi = kepler_flow_stm(x[i][None], v[i][None], mu[i], dt[i])
+        y0 = np.abs(np.concatenate([x[i], v[i]]))
+        cond = max(math.sqrt(np.sum((phi[0, :3] * y0) ** 2) + np.sum(vv[0] ** 2) * dt[i] ** 2),
+                   size)
+        err = float(mp.sqrt(sum((mp.mpf(float(a)) - b) ** 2 for a, b in zip(x1[i], xr))))
+        energy = w0[i] - mu[i] / r0[i]
+        ecc = math.sqrt(max(0.0, 1 + 2 * energy * float(np.sum(np.cross(x[i], v[i]) ** 2))
+                            / mu[i] ** 2))
+        rows.append((ecc, r1[i] / r0[i], dt[i] * np.linalg.norm(v[i]) / r0[i], de[i], dl[i],
+                     err / (EPS * size), err / (EPS * cond)))
+    return dict(n=n, failed=int(np.sum(~ok)), nonfinite=int(np.sum(~np.all(np.isfinite(out[:, :6]),
+                                                                             axis=1) & ok)),
+                it_mean=float(it[ok].mean()), it_max=int(it[ok].max()),
+                de=np.percentile(de[ok], [50, 99, 99.9, 100]),
+                dl=np.percentile(dl[ok], [50, 99, 99.9, 100]), worst=rows)
+
+
 def scene(n: int, rng):
     a = np.exp(rng.uniform(math.log(0.4), math.log(30.0), n))
     e = rng.uniform(0.0, 0.3, n)
@@ -157,7 +219,7 @@ def cost(n: int, rounds: int, steps: int):
     return float(np.median(ours)), float(np.median(theirs)), dt
 
 
-def report(rows, n, rounds, steps, phases, ours_ns, theirs_ns, command):
+def report(rows, n, rounds, steps, phases, ours_ns, theirs_ns, command, fz):
     import numba
     import rebound
     lines = [
@@ -206,7 +268,27 @@ def report(rows, n, rounds, steps, phases, ours_ns, theirs_ns, command):
         f"| ours (`kepler_flow_into`) | {ours_ns:.0f} | {ours_ns / theirs_ns:.2f} |",
         f"| WHFast step, pure Kepler scene | {theirs_ns:.0f} | 1.00 |",
         "",
-    ]
+        "## Random states",
+        "",
+        f"{fz['n']} random two-body problems (`random_states`: r in [1e-3, 1e3], mu in "
+        "[1e-2, 1e2], speeds 1e-2 .. 1e2 times circular in random directions, a tenth within "
+        "1e-15 .. 1e-3 of the escape speed, dt of either sign 1e-8 .. 1e6 times r / |v|), each "
+        f"flowed once: {fz['failed']} did not converge, {fz['nonfinite']} returned a non-finite "
+        f"state; iterations {fz['it_mean']:.2f} on average, at most {fz['it_max']}.  Energy and "
+        "angular momentum errors in ulps of the sizes of their terms:",
+        "",
+        "| | median | 99 % | 99.9 % | max |",
+        "|---|---|---|---|---|",
+        "| energy | " + " | ".join(f"{q:.3g}" for q in fz["de"]) + " |",
+        "| angular momentum | " + " | ".join(f"{q:.3g}" for q in fz["dl"]) + " |",
+        "",
+        "The states with the largest invariant errors, against mpmath:",
+        "",
+        "| e | r1 / r0 | dt \\|v0\\| / r0 | energy (ulps) | L (ulps) | x: ulps of \\|x\\| "
+        "| err / cond |",
+        "|---|---|---|---|---|---|---|",
+    ] + [f"| {a:.4g} | {b:.3g} | {c:.3g} | {d:.3g} | {e:.3g} | {f:.3g} | {g:.3g} |"
+         for a, b, c, d, e, f, g in fz["worst"]] + [""]
     return "\n".join(lines)
 
 
@@ -217,16 +299,18 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--steps", type=int, default=2000, help="flows per body and round")
     ap.add_argument("--phases", type=int, default=24)
+    ap.add_argument("--fuzz", type=int, default=200000, help="random states flowed once")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "kepler_flow.md"))
     args = ap.parse_args()
     command = "python benchmarks/bench_kepler_flow.py" + "".join(
-        f" --{k} {getattr(args, k)}" for k in ("n", "rounds", "steps", "phases")
+        f" --{k} {getattr(args, k)}" for k in ("n", "rounds", "steps", "phases", "fuzz")
         if getattr(args, k) != ap.get_default(k))
     kepler_flow(np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]), 1.0, 0.1)   # compile
     ours_ns, theirs_ns, _ = cost(args.n, args.rounds, args.steps)
     rows = accuracy(args.phases)
+    fz = fuzz(args.fuzz)
     text = report(rows, args.n, args.rounds, args.steps, args.phases, ours_ns, theirs_ns,
-                  command)
+                  command, fz)
     if args.out:
         os.makedirs(os.path.dirname(args.out), exist_ok=True)
         with open(args.out, "w") as f:
