@@ -28,6 +28,9 @@ REBOUND's ``src/integrator_whfast.c``, Rein and Tamayo, MNRAS 452, 376, 2015):
   because an elliptic orbit's dt is first reduced modulo its period, so that z <= (2 pi)^2);
 * dt - k P (P the period) formed with an exact product (:func:`integrators.core.two_product`):
   the state after dt is the state after dt - k P exactly, and the reduction rounds once;
+* far along a hyperbola, F written with exp(+-sX) and coefficients zeta0 +- eta0 s, the small
+  one from their product mu^2 + h^2 s^2 (on an orbit flown along an asymptote eta0 G2 and
+  zeta0 G3 cancel by up to 3e3 otherwise);
 * X from Laguerre's method (n = 5, Conway 1986: converges from any start on Kepler's
   equation), safeguarded by a bracket that every iterate narrows (r lies between the
   pericentre and the apocentre distances, and within vmax |dt| of r0) and bisection when a
@@ -146,13 +149,18 @@ def stumpff5(z):
 
 @jit
 def kepler_scalars(x0, y0, z0, vx, vy, vz, mu):
-    """r0, eta0 = x0 . v0, beta = 2 mu / r0 - v0^2, zeta0 = mu - beta r0, and v0^2."""
+    """r0, eta0 = x0 . v0, beta = 2 mu / r0 - v0^2, zeta0 = mu - beta r0, v0^2 and
+    h^2 = |x0 x v0|^2 (from the cross product: r0^2 v0^2 - eta0^2 cancels on a nearly radial
+    orbit)."""
     r0 = math.sqrt(x0 * x0 + y0 * y0 + z0 * z0)
     v2 = vx * vx + vy * vy + vz * vz
     eta0 = x0 * vx + y0 * vy + z0 * vz
     beta = 2.0 * mu / r0 - v2
     zeta0 = mu - beta * r0
-    return r0, eta0, beta, zeta0, v2
+    hx = y0 * vz - z0 * vy
+    hy = z0 * vx - x0 * vz
+    hz = x0 * vy - y0 * vx
+    return r0, eta0, beta, zeta0, v2, hx * hx + hy * hy + hz * hz
 
 
 @jit
@@ -171,13 +179,12 @@ def reduce_period(beta, mu, dt):
 
 
 @jit
-def anomaly_bracket(r0, eta0, beta, v2, mu, dt):
+def anomaly_bracket(r0, beta, v2, h2, mu, dt):
     """An interval that holds the root X of Kepler's equation: X = integral of dt / r, and r
     lies between the pericentre and apocentre distances q, Q and within vmax |dt| of r0 (the
     conic: e^2 = 1 - h^2 beta / mu^2, q = h^2 / (mu (1 + e)), vmax = mu (1 + e) / h, the speed
     at the pericentre); on an ellipse also |X| <= 2 pi / sqrt(beta) (one period, for dt
     reduced to half a period).  The radii are widened by WIDEN against their rounding."""
-    h2 = max(r0 * r0 * v2 - eta0 * eta0, 0.0)
     e = math.sqrt(max(1.0 - h2 * beta / (mu * mu), 0.0))
     adt = abs(dt)
     q = h2 / (mu * (1.0 + e))
@@ -203,7 +210,7 @@ def anomaly_bracket(r0, eta0, beta, v2, mu, dt):
 
 
 @jit
-def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
+def universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dt):
     """Solve Kepler's equation in universal variables for X.
 
     ``dt`` is already reduced (:func:`reduce_period`).  Returns X, G1, G2, G3 (at X), r and the
@@ -211,6 +218,20 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
     if dt == 0.0:
         return 0.0, 0.0, 0.0, 0.0, r0, 0
     adt = abs(dt)
+    # far along a hyperbola (|beta X^2| > Z_SERIES) F is written with the exponentials,
+    # eta0 s cosh(sX) + zeta0 sinh(sX) = (A exp(sX) - B exp(-sX)) / 2, s = sqrt(-beta),
+    # A = zeta0 + eta0 s, B = zeta0 - eta0 s (e exp(-+H0) times mu): one of A, B is a
+    # difference that vanishes on an orbit flown along an asymptote, and eta0 G2 + zeta0 G3
+    # cancels by as much (3e3 measured).  A B = mu^2 + h^2 s^2 gives it without cancellation.
+    sb = ca = cb = 0.0
+    if beta < 0.0:
+        sb = math.sqrt(-beta)
+        if eta0 >= 0.0:
+            ca = zeta0 + eta0 * sb
+            cb = (mu * mu - h2 * beta) / ca
+        else:
+            cb = zeta0 - eta0 * sb
+            ca = (mu * mu - h2 * beta) / cb
     # start: the series of X(t) to dt^3 while it converges well (|v0 dt| <= r0 / 2, the
     # common case of a planetary step: there the analytic bracket is only computed if a step
     # ever leaves the one the iterates' signs of F make); else, on an ellipse, the mean
@@ -221,12 +242,11 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
     X = u * (1.0 - 0.5 * u * r0i * (eta0 - u * (eta0 * eta0 * r0i - zeta0 / 3.0)))
     analytic = dt * dt * v2 > 0.25 * r0 * r0
     if analytic:
-        xlo, xhi = anomaly_bracket(r0, eta0, beta, v2, mu, dt)
+        xlo, xhi = anomaly_bracket(r0, beta, v2, h2, mu, dt)
         if beta > 0.0:
             X = beta * dt / mu
         elif beta < 0.0:
-            sb = math.sqrt(-beta)
-            w = (zeta0 + math.copysign(eta0 * sb, dt)) / mu
+            w = (ca if dt > 0.0 else cb) / mu
             if w > 0.0:
                 X = math.copysign(math.log1p(2.0 * sb * sb * sb / mu * adt / w), dt) / sb
     else:
@@ -236,20 +256,30 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
     step = math.inf
     was_far = False
     for it in range(1, MAX_ITERATIONS + 1):
-        c0, c1, c2, c3 = stumpff(beta * X * X)
+        z = beta * X * X
+        c0, c1, c2, c3 = stumpff(z)
         X2 = X * X
         G1 = X * c1
         G2 = X2 * c2
         G3 = X2 * X * c3
-        F = r0 * X + eta0 * G2 + zeta0 * G3 - dt
-        Fp = r0 + eta0 * G1 + zeta0 * G2
+        if z < -Z_SERIES:
+            ep = math.exp(sb * X)
+            ha = 0.5 * ca * ep
+            hb = 0.5 * cb / ep
+            s2 = sb * sb
+            F = r0 * X + ((ha - hb) - eta0 * sb - zeta0 * sb * X) / (s2 * sb) - dt
+            Fp = r0 + ((ha + hb) - zeta0) / s2
+            Fpp = (ha - hb) / sb
+        else:
+            F = r0 * X + eta0 * G2 + zeta0 * G3 - dt
+            Fp = r0 + eta0 * G1 + zeta0 * G2
+            Fpp = eta0 * c0 + zeta0 * G1
         if F == 0.0:
             return X, G1, G2, G3, Fp, it
         if F > 0.0 or (not math.isfinite(F) and X > 0.0):
             xhi = X          # (cosh overflowed: far beyond the root of a hyperbola)
         else:
             xlo = X
-        Fpp = eta0 * c0 + zeta0 * G1
         # Laguerre, n = 5 (F' = r > 0: the sign that avoids cancellation is +)
         dX = -5.0 * F / (Fp + math.sqrt(abs(16.0 * Fp * Fp - 20.0 * F * Fpp)))
         if abs(dX) <= CONVERGED * abs(X):
@@ -269,7 +299,7 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dt):
         far = F * dt > 0.0   # beyond the root, where a hyperbola's F grows exponentially
         if not (xlo < Xn < xhi) or (far and was_far and abs(dX) > 0.5 * step):
             if not analytic:
-                lo, hi = anomaly_bracket(r0, eta0, beta, v2, mu, dt)
+                lo, hi = anomaly_bracket(r0, beta, v2, h2, mu, dt)
                 if max(xlo, lo) < min(xhi, hi):     # (else the signs of F know better)
                     xlo, xhi = max(xlo, lo), min(xhi, hi)
                 analytic = True
@@ -302,9 +332,9 @@ def gauss_fg(mu, r0, r, dt, G1, G2, G3):
 def kepler_step(x0, y0, z0, vx, vy, vz, mu, dt):
     """The flow of one body over dt: (x, y, z, vx, vy, vz, iterations); iterations < 0 when the
     universal anomaly did not converge (the state returned is then NaN)."""
-    r0, eta0, beta, zeta0, v2 = kepler_scalars(x0, y0, z0, vx, vy, vz, mu)
+    r0, eta0, beta, zeta0, v2, h2 = kepler_scalars(x0, y0, z0, vx, vy, vz, mu)
     dtr, kp = reduce_period(beta, mu, dt)
-    X, G1, G2, G3, r, it = universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dtr)
+    X, G1, G2, G3, r, it = universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dtr)
     if it < 0 or not r > 0.0:
         nan = math.nan
         return nan, nan, nan, nan, nan, nan, -abs(it) - 1
@@ -362,9 +392,9 @@ def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
     r dX = -(X dr0 + G2 deta0 + G3 dzeta0 + (eta0 dG2/dbeta + zeta0 dG3/dbeta) dbeta),
     dG_n = G_{n-1} dX + dG_n/dbeta dbeta, dG_n/dbeta = (n G_{n+2} - X G_{n+1}) / 2); the same
     linearisation as WHFast's variational particles (Rein and Tamayo 2016), as a matrix."""
-    r0, eta0, beta, zeta0, v2 = kepler_scalars(x0[0], x0[1], x0[2], v0[0], v0[1], v0[2], mu)
+    r0, eta0, beta, zeta0, v2, h2 = kepler_scalars(x0[0], x0[1], x0[2], v0[0], v0[1], v0[2], mu)
     dtr, kp = reduce_period(beta, mu, dt)
-    X, G1, G2, G3, r, it = universal_anomaly(r0, eta0, beta, zeta0, v2, mu, dtr)
+    X, G1, G2, G3, r, it = universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dtr)
     if it < 0 or not r > 0.0:
         for i in range(3):
             x1[i] = math.nan

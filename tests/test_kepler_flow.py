@@ -69,13 +69,13 @@ def cases(e):
 def test_flow_matches_extended_precision(e):
     """Every eccentricity, phases around the orbit, dt from 1e-3 to 12.34 periods, both signs
     (hyperbolas: a = -1, 1/n = 1, dt from 0.01 to 20).  Measured (max over these cases): error /
-    (eps cond) <= 5.5 on ellipses, <= 27 on hyperbolas (e = 1.0001, a pericentre passage at
-    q = 1e-4); median ulps of |x| <= 3."""
+    (eps cond) <= 6.1 on ellipses, <= 2.6 on hyperbolas (27 on e = 1.0001 before Kepler's
+    equation was written with exp(+-sX) far along a hyperbola); median ulps of |x| <= 2.9."""
     ulps, ratio = np.array([errors(*orbit(e, M), dt,
                                    kepler_flow(*(a[None] for a in orbit(e, M)), 1.0, dt)[0][0])
                             for M, dt in cases(e)]).T
     assert np.median(ulps) <= 4.0
-    assert ratio.max() <= (16.0 if e < 1 else 64.0)
+    assert ratio.max() <= 16.0
 
 
 @pytest.mark.parametrize("v0", [(0.0, 1.0, 0.0), (0.5, 0.5, 0.5), (-1.0, 0.25, 0.5)])
@@ -127,7 +127,7 @@ def _batch(es, phases):
 
 
 def test_forward_then_backward_returns_to_the_start():
-    """Every conic, 6 phases, dt = 0.01, 0.9, 5: |x2 - x0| / (eps cond(dt)) is at most 96
+    """Every conic, 6 phases, dt = 0.01, 0.9, 5: |x2 - x0| / (eps cond(dt)) is at most 55
     (measured; the forward error is amplified again by the backward flow)."""
     x0, v0 = _batch(ELLIPTIC + HYPERBOLIC, np.linspace(-2.5, 2.5, 6))
     for dt in (0.01, 0.9, 5.0):
@@ -137,11 +137,11 @@ def test_forward_then_backward_returns_to_the_start():
         y0 = np.abs(np.concatenate([x0, v0], axis=1))
         cond = np.sqrt(np.sum((phi[:, :3] * y0[:, None, :]) ** 2, axis=(1, 2)))
         cond = np.maximum(cond, np.linalg.norm(x0, axis=1))
-        assert np.max(np.linalg.norm(x2 - x0, axis=1) / (EPS * cond)) <= 192.0
+        assert np.max(np.linalg.norm(x2 - x0, axis=1) / (EPS * cond)) <= 128.0
 
 
 def test_composition_is_the_flow_of_the_sum():
-    """flow(dt2) flow(dt1) against flow(dt1 + dt2): at most 45 eps cond (measured)."""
+    """flow(dt2) flow(dt1) against flow(dt1 + dt2): at most 30 eps cond (measured)."""
     x0, v0 = _batch(ELLIPTIC + HYPERBOLIC, np.linspace(-2.5, 2.5, 6))
     for dt1, dt2 in ((0.3, 0.45), (2.0, -0.7), (4.0, 3.5)):
         xa, va = kepler_flow(*kepler_flow(x0, v0, 1.0, dt1), 1.0, dt2)
@@ -171,7 +171,7 @@ def test_energy_and_angular_momentum_are_kept():
     """9 phases, dt from 1e-3 to 30.  e <= 0.9 and the hyperbolas e = 3, 10: energy and angular
     momentum within 6 ulps of the sizes of their terms (measured).  e = 0.99 and 1.5 are looser
     (measured: 261 and 151 ulps where a flow of dt = -3 ends near the pericentre of e = 0.99,
-    see the xfail below; 25 and 36 ulps over dt = 30 on e = 1.5, where f, g, fdot, gdot grow
+    see the xfail below; 37 and 53 ulps over dt = 30 on e = 1.5, where f, g, fdot, gdot grow
     like cosh and their Wronskian f gdot - g fdot = 1 cancels)."""
     for dt in (1e-3, 0.4, -3.0, 30.0):
         de, dl = _invariant_errors((0.0, 0.1, 0.5, 0.9, 3.0, 10.0), np.linspace(-3.0, 3.0, 9), dt)
@@ -182,7 +182,7 @@ def test_energy_and_angular_momentum_are_kept():
 
 @pytest.mark.xfail(strict=True, reason="known limit: x = f x0 + g v0 is formed in double, so a "
                    "flow that ends at a deep pericentre (r1 = 1e-4 |x0|) carries an absolute "
-                   "error of eps |x0|, 1e4 ulps of r1: the energy there is 1.4e5 ulps off "
+                   "error of eps |x0|, 1e4 ulps of r1: the energy there is 1.6e4 ulps off "
                    "(e = 1.0001) and 3e3 ulps for L (e = 0.9999); needs X, f and g in "
                    "double-double")
 def test_energy_is_kept_on_arrival_at_a_deep_pericentre():
