@@ -34,8 +34,9 @@ REBOUND's ``src/integrator_whfast.c``, Rein and Tamayo, MNRAS 452, 376, 2015):
 * X from Laguerre's method (n = 5, Conway 1986: converges from any start on Kepler's
   equation), safeguarded by a bracket that every iterate narrows (r lies between the
   pericentre and the apocentre distances, and within vmax |dt| of r0) and bisection when a
-  step leaves it; the G_n of the last, tiny correction are carried by their Taylor series
-  (dG_n / dX = G_{n-1}) instead of one more series evaluation.
+  step leaves it; a step is the last when it is tiny or its own error estimate
+  (4 ((F''/F')^2 + |F'''/F'|) |dX|^3) is below eps |X| / 16, and the G_n are then carried to
+  X + dX by their Taylor series (dG_n / dX = G_{n-1}) instead of one more series evaluation.
 
 Everything is compiled with :func:`integrators.jit.jit` and runs as plain Python under
 ``NUMBA_DISABLE_JIT=1``.  Measured errors: ``benchmarks/results/kepler_flow.md``.
@@ -53,6 +54,8 @@ EPS = 2.0 ** -52
 TWO_PI = 2.0 * math.pi
 MAX_ITERATIONS = 60       # Laguerre steps plus bisections; about 3-6 are used (bisection: 53)
 CONVERGED = 1e-8          # |dX| / |X| below which the step's own correction is the last one
+TAYLOR = 1e-10            # (dX / X)^2 max(1, |z|) below which the Taylor step is exact to eps
+LAST = EPS / 16.0         # the error estimate of a last Laguerre step, relative to |X|
 WIDEN = 1e-6              # the bracket's radii are widened by this fraction (their rounding)
 Z_SERIES = 4.0           # |z| beyond which the Stumpff functions come from sin, cos or exp
 OK = -1                   # kepler_flow_into: no body failed
@@ -239,7 +242,7 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dt):
     # (its growing exponential alone, Delta H = log(1 + 2 n |dt| / (e exp(+-H0))))
     r0i = 1.0 / r0
     u = dt * r0i
-    X = u * (1.0 - 0.5 * u * r0i * (eta0 - u * (eta0 * eta0 * r0i - zeta0 / 3.0)))
+    X = u * (1.0 - 0.5 * u * r0i * (eta0 - u * (eta0 * eta0 * r0i - zeta0 * (1.0 / 3.0))))
     analytic = dt * dt * v2 > 0.25 * r0 * r0
     if analytic:
         xlo, xhi = anomaly_bracket(r0, beta, v2, h2, mu, dt)
@@ -270,10 +273,12 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dt):
             F = r0 * X + ((ha - hb) - eta0 * sb - zeta0 * sb * X) / (s2 * sb) - dt
             Fp = r0 + ((ha + hb) - zeta0) / s2
             Fpp = (ha - hb) / sb
+            Fppp = ha + hb
         else:
             F = r0 * X + eta0 * G2 + zeta0 * G3 - dt
             Fp = r0 + eta0 * G1 + zeta0 * G2
             Fpp = eta0 * c0 + zeta0 * G1
+            Fppp = zeta0 * c0 - beta * eta0 * G1
         if F == 0.0:
             return X, G1, G2, G3, Fp, it
         if F > 0.0 or (not math.isfinite(F) and X > 0.0):
@@ -282,14 +287,22 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dt):
             xlo = X
         # Laguerre, n = 5 (F' = r > 0: the sign that avoids cancellation is +)
         dX = -5.0 * F / (Fp + math.sqrt(abs(16.0 * Fp * Fp - 20.0 * F * Fpp)))
-        if abs(dX) <= CONVERGED * abs(X):
-            # carry G_n to X + dX by their Taylor series (dG_n/dX = G_{n-1}, G0' = -beta G1):
-            # the neglected terms are O(dX^3) relative to O(X^3), below eps
+        # the last step: a correction that is tiny, or whose own error is below round-off
+        # (Laguerre's error after a step dX is about C dX^3, C of the order of
+        # (F''/F')^2 + |F'''/F'| as for Halley's method; taken 4 times), while the Taylor
+        # series below stays exact to its third order (dX^4 |z| / X^4 <= 1e-20)
+        ax = abs(X)
+        if abs(dX) <= CONVERGED * ax or (
+                dX * dX * max(1.0, abs(z)) <= TAYLOR * ax * ax
+                and 4.0 * (Fpp * Fpp + abs(Fppp) * Fp) * abs(dX) ** 3 <= LAST * ax * Fp * Fp):
+            # carry G_n to X + dX by their Taylor series to dX^3 (dG_n/dX = G_{n-1},
+            # dG0/dX = -beta G1) instead of one more series evaluation
             G0 = c0
             d2 = 0.5 * dX * dX
-            G3 = G3 + G2 * dX + G1 * d2 + G0 * d2 * dX / 3.0
-            G2 = G2 + G1 * dX + G0 * d2
-            G1 = G1 + G0 * dX - beta * G1 * d2
+            d3 = d2 * dX / 3.0
+            G1, G2, G3 = (G1 + G0 * dX - beta * (G1 * d2 + G0 * d3),
+                          G2 + G1 * dX + G0 * d2 - beta * G1 * d3,
+                          G3 + G2 * dX + G1 * d2 + G0 * d3)
             Fp = r0 + eta0 * G1 + zeta0 * G2
             return X + dX, G1, G2, G3, Fp, it
         Xn = X + dX
@@ -325,7 +338,8 @@ def gauss_fg(mu, r0, r, dt, G1, G2, G3):
     """Gauss's f - 1, g, fdot and gdot - 1 (the small parts written from G2 and G3 directly,
     as WHFast does: no 1 is added and subtracted)."""
     mr0 = -mu / r0
-    return mr0 * G2, dt - mu * G3, mr0 * G1 / r, -mu / r * G2
+    ri = 1.0 / r
+    return mr0 * G2, dt - mu * G3, mr0 * G1 * ri, -mu * ri * G2
 
 
 @jit
