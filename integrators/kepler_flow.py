@@ -38,6 +38,11 @@ REBOUND's ``src/integrator_whfast.c``, Rein and Tamayo, MNRAS 452, 376, 2015):
   (4 ((F''/F')^2 + |F'''/F'|) |dX|^3) is below eps |X| / 16, and the G_n are then carried to
   X + dX by their Taylor series (dG_n / dX = G_{n-1}) instead of one more series evaluation.
 
+* where x0 + (f - 1) x0 + g v0 would cancel (a flow that ends deep inside r0 or far outside
+  it, or far along an asymptote), the new state is built in the conic's own frame
+  (:func:`conic_state`: the Laplace-Runge-Lenz direction and the eccentric or hyperbolic
+  anomaly), which keeps the energy and angular momentum to round-off there.
+
 Everything is compiled with :func:`integrators.jit.jit` and runs as plain Python under
 ``NUMBA_DISABLE_JIT=1``.  Measured errors: ``benchmarks/results/kepler_flow.md``.
 """
@@ -56,6 +61,7 @@ MAX_ITERATIONS = 60       # Laguerre steps plus bisections; about 3-6 are used (
 CONVERGED = 1e-8          # |dX| / |X| below which the step's own correction is the last one
 TAYLOR = 1e-10            # (dX / X)^2 max(1, |z|) below which the Taylor step is exact to eps
 LAST = EPS / 16.0         # the error estimate of a last Laguerre step, relative to |X|
+ARRIVAL = 8.0             # |f| r0 + |g| |v0| > ARRIVAL r: the new state from the conic's frame
 WIDEN = 1e-6              # the bracket's radii are widened by this fraction (their rounding)
 Z_SERIES = 4.0           # |z| beyond which the Stumpff functions come from sin, cos or exp
 OK = -1                   # kepler_flow_into: no body failed
@@ -343,6 +349,92 @@ def gauss_fg(mu, r0, r, dt, G1, G2, G3):
 
 
 @jit
+def conic_state(x0, y0, z0, vx, vy, vz, mu, r0, eta0, beta, zeta0, h2, X):
+    """The state at universal anomaly X from the conic's own frame: for a flow that ends deep
+    inside r0 (a pericentre passage), where x0 + (f - 1) x0 + g v0 would cancel to an absolute
+    error of eps r0.  The pericentre direction P = A / |A| (A = v0 x L / mu - x0 / r0, the
+    Laplace-Runge-Lenz vector), Q = L x P / h, and the eccentric (hyperbolic) anomaly
+    E1 = E0 + sqrt(beta) X (H1 = H0 + sqrt(-beta) X):
+
+        x1 = a (cos E1 - e) P + a sqrt(1 - e^2) sin E1 Q,
+        v1 = sqrt(mu a) / r1 (-sin E1 P + sqrt(1 - e^2) cos E1 Q),   r1 = a (1 - e cos E1),
+
+    with 1 - e = h^2 beta / (mu^2 (1 + e)), sqrt(1 - e^2) = h sqrt(beta) / mu and
+    1 - cos E1 = 2 sin^2(E1 / 2): r1 and |v1| keep their relative accuracy, and the state lies
+    on the conic of the rounded invariants (its energy is -mu / 2a to round-off).  On a
+    hyperbola cosh and sinh, H0 = log(A / B) / 2 from A, B = zeta0 +- eta0 sqrt(-beta)."""
+    lx = y0 * vz - z0 * vy
+    ly = z0 * vx - x0 * vz
+    lz = x0 * vy - y0 * vx
+    h = math.sqrt(h2)
+    ax = (vy * lz - vz * ly) / mu - x0 / r0
+    ay = (vz * lx - vx * lz) / mu - y0 / r0
+    az = (vx * ly - vy * lx) / mu - z0 / r0
+    na = 1.0 / math.sqrt(ax * ax + ay * ay + az * az)
+    px, py, pz = ax * na, ay * na, az * na
+    qx, qy, qz = (ly * pz - lz * py) / h, (lz * px - lx * pz) / h, (lx * py - ly * px) / h
+    e = math.sqrt(1.0 - h2 * beta / (mu * mu))
+    if beta > 0.0:
+        sb = math.sqrt(beta)
+        a = mu / beta
+        E1 = math.atan2(eta0 * sb, zeta0) + sb * X
+        sn = math.sin(E1)
+        sh = math.sin(0.5 * E1)
+        hs = 2.0 * sh * sh                          # 1 - cos E1
+        ome = h2 * beta / (mu * mu) / (1.0 + e)     # 1 - e
+        rt = h * sb / mu                            # sqrt(1 - e^2)
+        r1 = a * (ome + e * hs)
+        cp = a * (ome - hs)
+        cq = a * rt * sn
+        k = math.sqrt(mu * a) / r1
+        wp = -k * sn
+        wq = k * rt * (1.0 - hs)
+    else:
+        sb = math.sqrt(-beta)
+        a = -mu / beta
+        if eta0 >= 0.0:
+            ca = zeta0 + eta0 * sb
+            cb = (mu * mu - h2 * beta) / ca
+        else:
+            cb = zeta0 - eta0 * sb
+            ca = (mu * mu - h2 * beta) / cb
+        H1 = 0.5 * math.log(ca / cb) + sb * X
+        sn = math.sinh(H1)
+        sh = math.sinh(0.5 * H1)
+        hs = 2.0 * sh * sh                          # cosh H1 - 1
+        em1 = -h2 * beta / (mu * mu) / (e + 1.0)    # e - 1
+        rt = h * sb / mu                            # sqrt(e^2 - 1)
+        r1 = a * (em1 + e * hs)
+        cp = a * (em1 - hs)
+        cq = a * rt * sn
+        k = math.sqrt(mu * a) / r1
+        wp = -k * sn
+        wq = k * rt * (1.0 + hs)
+    return (cp * px + cq * qx, cp * py + cq * qy, cp * pz + cq * qz,
+            wp * px + wq * qx, wp * py + wq * qy, wp * pz + wq * qz)
+
+
+@jit
+def new_state(x0, y0, z0, vx, vy, vz, mu, r0, eta0, beta, zeta0, v2, h2, X, G1, G2, G3, r,
+              dt):
+    """x0 + (f - 1) x0 + g v0 and v0 + fdot x0 + (gdot - 1) v0, or :func:`conic_state` where
+    that would lose digits, on an orbit that is not a parabola: a flow that ends deep inside r0
+    (r < r0 / ARRIVAL: f = 1 + (f - 1) and g = dt - mu G3 are small differences there) or far
+    outside it (r > ARRIVAL r0: v1 = fdot x0 + gdot v0 is then much slower than v0 and
+    cancels), or one whose f x0 + g v0 cancels (|f| r0 + |g| |v0| > ARRIVAL r) or whose
+    Wronskian f gdot - g fdot = 1 does (|f gdot| > ARRIVAL: the angular momentum x1 x v1 is
+    (f gdot - g fdot) L0), far out along a hyperbola."""
+    fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dt, G1, G2, G3)
+    f = 1.0 + fm1
+    if (r * ARRIVAL < r0 or r > ARRIVAL * r0
+            or (f * f * r0 * r0 + g * g * v2) * 2.0 > (ARRIVAL * r) ** 2
+            or abs(f * (1.0 + gdm1)) > ARRIVAL) and beta != 0.0 and h2 > 0.0:
+        return conic_state(x0, y0, z0, vx, vy, vz, mu, r0, eta0, beta, zeta0, h2, X)
+    return (x0 + (fm1 * x0 + g * vx), y0 + (fm1 * y0 + g * vy), z0 + (fm1 * z0 + g * vz),
+            vx + (fd * x0 + gdm1 * vx), vy + (fd * y0 + gdm1 * vy), vz + (fd * z0 + gdm1 * vz))
+
+
+@jit
 def kepler_step(x0, y0, z0, vx, vy, vz, mu, dt):
     """The flow of one body over dt: (x, y, z, vx, vy, vz, iterations); iterations < 0 when the
     universal anomaly did not converge (the state returned is then NaN)."""
@@ -352,10 +444,9 @@ def kepler_step(x0, y0, z0, vx, vy, vz, mu, dt):
     if it < 0 or not r > 0.0:
         nan = math.nan
         return nan, nan, nan, nan, nan, nan, -abs(it) - 1
-    fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
-    return (x0 + (fm1 * x0 + g * vx), y0 + (fm1 * y0 + g * vy), z0 + (fm1 * z0 + g * vz),
-            vx + (fd * x0 + gdm1 * vx), vy + (fd * y0 + gdm1 * vy), vz + (fd * z0 + gdm1 * vz),
-            it)
+    a, b, c, d, e, f = new_state(x0, y0, z0, vx, vy, vz, mu, r0, eta0, beta, zeta0, v2, h2,
+                                 X, G1, G2, G3, r, dtr)
+    return a, b, c, d, e, f, it
 
 
 @jit
@@ -421,9 +512,9 @@ def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
     G4 = X2 * X2 * c4
     G5 = X2 * X2 * X * c5
     fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
-    for i in range(3):
-        x1[i] = x0[i] + (fm1 * x0[i] + g * v0[i])
-        v1[i] = v0[i] + (fd * x0[i] + gdm1 * v0[i])
+    (x1[0], x1[1], x1[2], v1[0], v1[1], v1[2]) = new_state(
+        x0[0], x0[1], x0[2], v0[0], v0[1], v0[2], mu, r0, eta0, beta, zeta0, v2, h2, X, G1, G2,
+        G3, r, dtr)
     G1b = 0.5 * (G3 - X * G2)
     G2b = 0.5 * (2.0 * G4 - X * G3)
     G3b = 0.5 * (3.0 * G5 - X * G4)

@@ -160,8 +160,8 @@ def _batch(es, phases):
 
 
 def test_forward_then_backward_returns_to_the_start():
-    """Every conic, 6 phases, dt = 0.01, 0.9, 5: |x2 - x0| / (eps cond(dt)) is at most 55
-    (measured; the forward error is amplified again by the backward flow)."""
+    """Every conic, 6 phases, dt = 0.01, 0.9, 5: |x2 - x0| / (eps cond(dt)) is at most 4.3
+    (measured; 96 before the states that cancel were built in the conic's frame)."""
     x0, v0 = _batch(ELLIPTIC + HYPERBOLIC, np.linspace(-2.5, 2.5, 6))
     for dt in (0.01, 0.9, 5.0):
         x1, v1 = kepler_flow(x0, v0, 1.0, dt)
@@ -170,11 +170,11 @@ def test_forward_then_backward_returns_to_the_start():
         y0 = np.abs(np.concatenate([x0, v0], axis=1))
         cond = np.sqrt(np.sum((phi[:, :3] * y0[:, None, :]) ** 2, axis=(1, 2)))
         cond = np.maximum(cond, np.linalg.norm(x0, axis=1))
-        assert np.max(np.linalg.norm(x2 - x0, axis=1) / (EPS * cond)) <= 128.0
+        assert np.max(np.linalg.norm(x2 - x0, axis=1) / (EPS * cond)) <= 32.0
 
 
 def test_composition_is_the_flow_of_the_sum():
-    """flow(dt2) flow(dt1) against flow(dt1 + dt2): at most 30 eps cond (measured)."""
+    """flow(dt2) flow(dt1) against flow(dt1 + dt2): at most 12 eps cond (measured)."""
     x0, v0 = _batch(ELLIPTIC + HYPERBOLIC, np.linspace(-2.5, 2.5, 6))
     for dt1, dt2 in ((0.3, 0.45), (2.0, -0.7), (4.0, 3.5)):
         xa, va = kepler_flow(*kepler_flow(x0, v0, 1.0, dt1), 1.0, dt2)
@@ -184,7 +184,7 @@ def test_composition_is_the_flow_of_the_sum():
         cond = np.sqrt(np.sum((phi[:, :3] * y0[:, None, :]) ** 2, axis=(1, 2))
                        + np.sum(vb ** 2, axis=1) * (dt1 + dt2) ** 2)
         cond = np.maximum(cond, np.linalg.norm(xb, axis=1))
-        assert np.max(np.linalg.norm(xa - xb, axis=1) / (EPS * cond)) <= 96.0
+        assert np.max(np.linalg.norm(xa - xb, axis=1) / (EPS * cond)) <= 48.0
 
 
 def _invariant_errors(es, phases, dt):
@@ -201,24 +201,22 @@ def _invariant_errors(es, phases, dt):
 
 
 def test_energy_and_angular_momentum_are_kept():
-    """9 phases, dt from 1e-3 to 30.  e <= 0.9 and the hyperbolas e = 3, 10: energy and angular
-    momentum within 6 ulps of the sizes of their terms (measured).  e = 0.99 and 1.5 are looser
-    (measured: 261 and 151 ulps where a flow of dt = -3 ends near the pericentre of e = 0.99,
-    see the xfail below; 37 and 53 ulps over dt = 30 on e = 1.5, where f, g, fdot, gdot grow
-    like cosh and their Wronskian f gdot - g fdot = 1 cancels)."""
+    """Every conic but e >= 0.999, 9 phases, dt from 1e-3 to 30: energy and angular momentum
+    within 10 ulps of the sizes of their terms (measured: 9.7 and 8.6 on e = 1.5, dt = -3; 261
+    and 151 on e = 0.99 before the flows that end deep inside r0 or far outside it were built in
+    the conic's frame, 37 and 53 on e = 1.5 over dt = 30 before those whose Wronskian cancels
+    were)."""
     for dt in (1e-3, 0.4, -3.0, 30.0):
-        de, dl = _invariant_errors((0.0, 0.1, 0.5, 0.9, 3.0, 10.0), np.linspace(-3.0, 3.0, 9), dt)
-        assert de.max() <= 12.0 and dl.max() <= 12.0
-        de, dl = _invariant_errors((0.99, 1.5), np.linspace(-3.0, 3.0, 9), dt)
-        assert de.max() <= 512.0 and dl.max() <= 512.0
+        de, dl = _invariant_errors((0.0, 0.1, 0.5, 0.9, 0.99, 1.5, 3.0, 10.0),
+                                   np.linspace(-3.0, 3.0, 9), dt)
+        assert de.max() <= 24.0 and dl.max() <= 24.0
 
 
-@pytest.mark.xfail(strict=True, reason="known limit: x = f x0 + g v0 is formed in double, so a "
-                   "flow that ends at a deep pericentre (r1 = 1e-4 |x0|) carries an absolute "
-                   "error of eps |x0|, 1e4 ulps of r1: the energy there is 1.6e4 ulps off "
-                   "(e = 1.0001) and 3e3 ulps for L (e = 0.9999); needs X, f and g in "
-                   "double-double")
 def test_energy_is_kept_on_arrival_at_a_deep_pericentre():
+    """A flow that ends at r1 = 1e-4 |x0|: formed as x0 + (f - 1) x0 + g v0 it carried an
+    absolute error of eps |x0|, 1e4 ulps of r1, and its energy was 1.6e4 ulps off (e = 1.0001;
+    3e3 ulps for L at e = 0.9999).  Built in the conic's frame (``conic_state``), measured: 1.6
+    and 0.07 ulps."""
     de, dl = _invariant_errors((0.9999, 1.0001), (3.0,), -3.0)
     assert de.max() <= 16.0 and dl.max() <= 16.0
 
