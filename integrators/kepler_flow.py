@@ -373,7 +373,7 @@ def conic_state(x0, y0, z0, vx, vy, vz, mu, r0, eta0, beta, zeta0, h2, X):
     na = 1.0 / math.sqrt(ax * ax + ay * ay + az * az)
     px, py, pz = ax * na, ay * na, az * na
     qx, qy, qz = (ly * pz - lz * py) / h, (lz * px - lx * pz) / h, (lx * py - ly * px) / h
-    e = math.sqrt(1.0 - h2 * beta / (mu * mu))
+    e = math.sqrt(max(1.0 - h2 * beta / (mu * mu), 0.0))
     if beta > 0.0:
         sb = math.sqrt(beta)
         a = mu / beta
