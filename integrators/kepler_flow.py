@@ -35,7 +35,7 @@ REBOUND's ``src/integrator_whfast.c``, Rein and Tamayo, MNRAS 452, 376, 2015):
   equation), safeguarded by a bracket that every iterate narrows (r lies between the
   pericentre and the apocentre distances, and within vmax |dt| of r0) and bisection when a
   step leaves it; a step is the last when it is tiny or its own error estimate
-  (4 ((F''/F')^2 + |F'''/F'|) |dX|^3) is below eps |X| / 16, and the G_n are then carried to
+  (4 ((F''/F')^2 + |F'''/F'|) |dX|^3) is below 1e-8 eps |X|, and the G_n are then carried to
   X + dX by their Taylor series (dG_n / dX = G_{n-1}) instead of one more series evaluation.
 
 * where x0 + (f - 1) x0 + g v0 would cancel (a flow that ends deep inside r0 or far outside
@@ -60,7 +60,7 @@ TWO_PI = 2.0 * math.pi
 MAX_ITERATIONS = 60       # Laguerre steps plus bisections; about 3-6 are used (bisection: 53)
 CONVERGED = 1e-8          # |dX| / |X| below which the step's own correction is the last one
 TAYLOR = 1e-10            # (dX / X)^2 max(1, |z|) below which the Taylor step is exact to eps
-LAST = EPS / 16.0         # the error estimate of a last Laguerre step, relative to |X|
+LAST = EPS * 1e-8         # the error estimate of a last Laguerre step, relative to |X|
 ARRIVAL = 8.0             # |f| r0 + |g| |v0| > ARRIVAL r: the new state from the conic's frame
 WIDEN = 1e-6              # the bracket's radii are widened by this fraction (their rounding)
 Z_SERIES = 4.0           # |z| beyond which the Stumpff functions come from sin, cos or exp

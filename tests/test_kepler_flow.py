@@ -224,10 +224,10 @@ def test_energy_is_kept_on_arrival_at_a_deep_pericentre():
 def test_ten_thousand_flows_grow_like_round_off():
     """1e4 successive flows of P / 37.3 (e = 0.5 and 0.9, 48 phases each) against one
     extended-precision flow over the whole time.  Round-off makes the energy a random walk
-    (its RMS grows like N^0.5, 10^0.5 a decade) and the phase error grow like N^1.5 (10^1.5 a
-    decade: Brouwer's law); a bias would give 10 and 100.  Measured from N = 1e3 to 1e4: energy
-    x4.2 and x3.8, position x46 and x41; RMS position error at N = 1e4: 1.3e5 and 1.4e6 ulps
-    of a."""
+    (its RMS grows like N^0.5, x10 over two decades) and the phase error grow like N^1.5
+    (x1e3: Brouwer's law); a bias would give x100 and x1e4.  Measured from N = 1e2 to 1e4:
+    energy x12 and x13, position x1.2e3 and x2.5e3; RMS position error at N = 1e4: 1.1e5 and
+    2.7e6 ulps of a."""
     dt = 2 * math.pi / 37.3
     for e in (0.5, 0.9):
         x0, v0 = _batch((e,), np.linspace(-3.0, 3.0, 48))
@@ -236,7 +236,7 @@ def test_ten_thousand_flows_grow_like_round_off():
         pos, energy = [], []
         for n in range(1, 10001):
             kepler_flow_into(x, v, np.ones(len(x)), dt, x, v)
-            if n in (1000, 10000):
+            if n in (100, 10000):
                 err = []
                 for i in range(len(x)):
                     xr, _ = reference_flow(x0[i], v0[i], 1.0, n * dt, dps=30)
@@ -245,9 +245,29 @@ def test_ten_thousand_flows_grow_like_round_off():
                 pos.append(np.sqrt(np.mean(np.square(err))))
                 E = 0.5 * np.sum(v ** 2, axis=1) - 1.0 / np.linalg.norm(x, axis=1)
                 energy.append(np.sqrt(np.mean((E - E0) ** 2)))
-        assert energy[1] <= 10 ** 0.8 * energy[0]
-        assert pos[1] <= 10 ** 1.85 * pos[0]
+        assert energy[1] <= 10 ** 1.4 * energy[0]
+        assert pos[1] <= 10 ** 3.6 * pos[0]
         assert pos[1] <= 1e7 * EPS
+
+
+@pytest.mark.parametrize("per", [37.3, 41.7])
+def test_the_energy_walks_without_bias(per):
+    """e = 0.9, 200 phases, 1e4 flows of P / per: the energy error's RMS grows from N = 1e3 to
+    1e4 as a random walk's (10^0.5 = 3.16).  Measured: x3.53 and x3.05; x4.58 and x5.09 when a
+    Laguerre step was taken as the last as soon as its error estimate fell below eps |X| / 16
+    (X itself stayed within 0.8 of the rounding of Kepler's equation: the bias is in the
+    state, and LAST = 1e-8 eps removes it)."""
+    dt = 2 * math.pi / per
+    x0, v0 = _batch((0.9,), np.linspace(-3.0, 3.0, 200))
+    E0 = 0.5 * np.sum(v0 ** 2, axis=1) - 1.0 / np.linalg.norm(x0, axis=1)
+    x, v = x0.copy(), v0.copy()
+    rms = []
+    for n in range(1, 10001):
+        kepler_flow_into(x, v, np.ones(len(x)), dt, x, v)
+        if n in (1000, 10000):
+            E = 0.5 * np.sum(v ** 2, axis=1) - 1.0 / np.linalg.norm(x, axis=1)
+            rms.append(np.sqrt(np.mean((E - E0) ** 2)))
+    assert rms[1] <= 10 ** 0.6 * rms[0]
 
 
 def test_in_place_and_one_at_a_time_agree_bit_for_bit():
