@@ -172,6 +172,10 @@ def _check_comparison(ns, out):
     assert "| VelocityVerlet | 2 |" in out and "| HBVM(4, 2) | 2 |" in out, out
 
 
+def _check_kepler_flow(ns, out):
+    assert ns["status"] == -1 and ns["phi"].shape == (2, 6, 6)
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -183,6 +187,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     'sim.units = ("day", "AU", "Msun")': ((), None, _check_readme_rebound),
     'Icosahedron("Cu", noshells=2)': ((("dyn.run(100)", "dyn.run(30)"),), None, _check_readme_ase),
     '# was: "ias15"': ((), None, _check_notebook_pattern),
+    "kepler_flow_into(x, v, mu, 0.3, x, v)": ((), None, _check_kepler_flow),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),
 }
