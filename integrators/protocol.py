@@ -92,24 +92,23 @@ _OWN = ("systems.", "integrators.", "hbvm_md.")
 
 
 def _check_no_writes(system, y0: np.ndarray) -> None:
-    """ValueError when a function of a user's system writes into the array it is given.
+    """ValueError when the energy of a user's system writes into the array it is given.
 
-    The engine hands ``energy``, ``potential``, ``gradient`` and ``forces`` views of its own
-    state and stages (no copy a call: the hot loop), so a function that works in place
-    (``q *= s``, ``y[0] = ...``) moves the run itself, silently.  Each is called once here
-    on a copy of y0 (one state; a stack of two rows for ``gradient`` and ``forces``) and the
-    copy compared bit for bit afterwards."""
+    The engine hands ``energy`` and ``potential`` its own state (no copy a call), so a
+    function that works in place (``q *= s``, ``y[0] = ...``) moves the run itself, silently.
+    One of them is called once here on a copy of y0 and the copy compared bit for bit
+    afterwards (one call more of the user's function a run).""" 
     if type(system).__module__.startswith(_OWN) or y0.ndim != 1 or y0.size == 0:
         return
     dim = getattr(system, "dim", None)
     if not (isinstance(dim, (int, np.integer)) and not isinstance(dim, bool)
             and 0 < dim and 2 * dim == y0.size):
         dim = y0.size // 2 if y0.size % 2 == 0 else None
-    calls = []
+    # one call: a separable system's potential (its energy calls it), else its energy
     if dim and callable(getattr(system, "forces", None)) and hasattr(system, "masses"):
-        q0 = y0[:dim]           # first: a separable system's energy calls its potential
-        calls += [("potential", q0), ("forces", np.stack([q0, q0]))]
-    calls += [("energy", y0), ("gradient", np.stack([y0, y0]))]
+        calls = [("potential", y0[:dim])]
+    else:
+        calls = [("energy", y0)]
     for method, arg in calls:
         fn = getattr(system, method, None)
         if not callable(fn):
