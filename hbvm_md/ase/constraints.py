@@ -18,9 +18,10 @@
     terms of H (:class:`EnergyTerms`), evaluated at every stage and part of the conserved total
     (``atoms.get_potential_energy()`` includes them, as for ASE's own integrators).
 ``"holonomic"`` (``FixBondLength(s)``, ``FixLinearTriatomic``)
-    Nonlinear constraints of the positions, which need Lagrange multipliers inside the step;
-    ``FixBondLength(s)`` runs in the constrained step of :mod:`hbvm_md.ase.holonomic`; here
-    (:func:`refuse`) the holonomic ones are refused, naming the class as the user wrote it.
+    Nonlinear constraints of the positions, which need Lagrange multipliers inside the step:
+    they run in the constrained step of :mod:`hbvm_md.ase.holonomic`, which takes them out of
+    the list before this module sees it; here (:func:`refuse`) one left in is refused, naming
+    the class as the user wrote it.
 ``"unsupported"``
     Anything else: refused naming the class (a silent drop would run a different system).
 """
