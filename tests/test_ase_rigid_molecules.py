@@ -125,5 +125,24 @@ def test_dependent_bonds_are_named_and_removing_one_runs():
 def test_a_fixed_atom_inside_a_linear_molecule_is_refused():
     dimer = acetonitrile_dimer()
     dimer.set_constraint([dimer.constraints[0], FixAtoms([1])])
-    with pytest.raises(ValueError, match=r"FixAtoms holds atom 1 of a FixLinearTriatomic"):
+    with pytest.raises(ValueError, match=r"FixAtoms holds atom 1 of a FixLinearTriatomic.*"
+                                         r"remove that atom from FixAtoms"):
         HBVMDynamics(dimer, 1 * units.fs).run(1)
+    dimer.set_constraint([dimer.constraints[0], FixAtoms([])])     # the way out
+    HBVMDynamics(dimer, 1 * units.fs).run(1)
+
+
+def test_a_bond_into_a_linear_molecule_and_fixcom_with_fixatoms_are_refused():
+    dimer = acetonitrile_dimer()
+    linear = dimer.constraints[0]
+    dimer.set_constraint([linear, FixBondLengths([(2, 3)])])
+    with pytest.raises(ValueError, match=r"bond \(2, 3\) joins an atom of a FixLinearTriatomic "
+                                         r"molecule.*remove that bond"):
+        HBVMDynamics(dimer, 1 * units.fs)
+    water = water_dimer()
+    bonds = water.constraints[0]
+    water.set_constraint([bonds, FixCom(), FixAtoms([0])])
+    with pytest.raises(ValueError, match=r"FixCom or FixAtoms, not both.*remove one of them"):
+        HBVMDynamics(water, 1 * units.fs)
+    water.set_constraint([bonds, FixAtoms([0])])                 # the way out
+    HBVMDynamics(water, 1 * units.fs).run(1)

@@ -110,8 +110,8 @@ def check_supported(atoms) -> None:
         if held:
             raise UnsupportedConstraintError(
                 f"FixAtoms holds atom {min(held)} of a FixLinearTriatomic molecule, which the "
-                "step moves as a whole; fix all of the molecule's atoms' neighbours instead, "
-                "or remove the FixAtoms on it")
+                "step moves as a whole (as two pseudo-atoms) and cannot pin by one atom; "
+                "remove that atom from FixAtoms, or use VelocityVerlet for this scene")
 
 
 def _triples(atoms):
