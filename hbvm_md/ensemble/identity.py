@@ -43,6 +43,7 @@ import inspect
 import pickle
 import sys
 import types
+import weakref
 from typing import Any
 
 import numpy as np
@@ -93,7 +94,7 @@ def code_identity(task) -> str | None:
         task = task.func
     if not isinstance(task, types.FunctionType):
         return None
-    return _code_digest(task, set())
+    return _function_digest(task)
 
 
 class _Unstable(Exception):
@@ -117,8 +118,21 @@ def _ref(obj) -> tuple:
         raise _Unstable(f"it holds {qualname} of module {module}, which that module does not "
                         "hold under that name; define it at module level")
     if isinstance(obj, types.FunctionType):
-        return ("ref", module, qualname, _code_digest(obj, set()))
+        return ("ref", module, qualname, _function_digest(obj))
     return ("ref", module, qualname)
+
+
+_DIGESTS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _function_digest(fn: types.FunctionType) -> str:
+    """:func:`_code_digest` once per function object (a param list that names one function
+    ten thousand times reads its source once; an edited and reloaded function is a new
+    object)."""
+    d = _DIGESTS.get(fn)
+    if d is None:
+        d = _DIGESTS[fn] = _code_digest(fn, set())
+    return d
 
 
 def _code_text(code: types.CodeType) -> tuple:
