@@ -45,7 +45,10 @@ myst_heading_anchors = 3
 # it); napoleon reads the numpydoc sections of the docstrings.
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
-autodoc_default_options = {"members": True, "show-inheritance": False}
+# (no "show-inheritance" key: Sphinx shows the bases whenever the key is present, False
+# included, and HBVMIntegrator's page then named the engine's internal Counted; the classes
+# whose base a reader needs ask for it: HBVMDynamics is an ASE MolecularDynamics)
+autodoc_default_options = {"members": True}
 napoleon_google_docstring = False
 napoleon_numpy_docstring = True
 napoleon_use_rtype = False

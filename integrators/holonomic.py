@@ -80,6 +80,7 @@ import numbers
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import connected_components
 
 from .core import ROUNDOFF_ULPS, STATE_ULPS
 from .errors import ConstraintError, ConvergenceError, NonFiniteError
@@ -324,6 +325,36 @@ class HolonomicHBVM:
         b = float(np.sum(minv * w * pt)) / t_rel
         e = removed / t_rel / (0.5 * b + np.sqrt(0.25 * b * b + removed / t_rel))
         return pt + e * w, removed
+
+    def dependent_bonds(self, q, offsets=None, rtol: float = 1e-8):
+        """(bond indices, rank) of the first molecule whose bonds are not independent at q
+        (the rows of G M^-1/2 on its atoms have rank below their number: the multipliers are
+        then undetermined and S = G M^-1 G^T singular), or None.  Bonds that share no atom do
+        not couple, so each molecule (connected set of bonds) is checked by itself."""
+        con = self.constraints
+        P = len(con)
+        if P < 2:
+            return None
+        r = con.vectors(np.asarray(q, dtype=float), offsets)
+        B = abs(con.incidence)
+        n, label = connected_components(B.T @ B, directed=False)
+        w = np.sqrt(self.minv)
+        for comp in range(n):
+            bonds = np.flatnonzero(label == comp)
+            if bonds.size < 2:
+                continue
+            atoms = np.unique(con.pairs[bonds])
+            col = {int(a): k for k, a in enumerate(atoms)}
+            G = np.zeros((bonds.size, atoms.size, r.shape[1]))
+            for row, b in enumerate(bonds):
+                i, j = con.pairs[b]
+                G[row, col[int(i)]] += w[i] * r[b]
+                G[row, col[int(j)]] -= w[j] * r[b]
+            sv = np.linalg.svd(G.reshape(bonds.size, -1), compute_uv=False)
+            rank = int(np.sum(sv > rtol * sv[0])) if sv[0] > 0 else 0
+            if rank < bonds.size:
+                return bonds, rank
+        return None
 
     def project_positions(self, q, offsets=None, max_iterations: int = 50):
         """q moved onto g(q) = 0 along M^-1 G(q)^T (the direction of the constraint forces;

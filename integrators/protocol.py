@@ -50,7 +50,10 @@ def adapt_system(system, y0):
         No ``dim`` and y0 of odd length; ``energy`` not a number per state; ``gradient`` that
         does not return one finite gradient per row of a stack.
     """
-    if isinstance(system, _Adapted) or getattr(system, "stack_protocol", False) is True:
+    if isinstance(system, _Adapted):
+        return system
+    _check_no_writes(system, np.asarray(y0, dtype=float))
+    if getattr(system, "stack_protocol", False) is True:
         return system
     if not (callable(getattr(system, "energy", None)) and callable(getattr(system, "gradient", None))):
         raise TypeError(f"`system` must offer `energy(y)` and `gradient(y)` (and may give `dim`) "
@@ -63,6 +66,14 @@ def adapt_system(system, y0):
                              f"length, when the system has no `dim` (got shape {y0.shape}); give "
                              f"{type(system).__name__} a `dim` or pass y0 = concatenate([q, p])")
         dim = y0.size // 2
+    if isinstance(dim, bool) or not isinstance(dim, (int, np.integer)) or dim < 1:
+        # (before the probes: a system of no degree of freedom has no state to probe with)
+        given = hasattr(system, "dim")
+        raise ValueError(f"`dim` of {type(system).__name__} must be a positive integer, the "
+                         f"number of degrees of freedom (got dim={dim!r}"
+                         f"{'' if given else ', from y0 of shape ' + str(y0.shape)}); set it to "
+                         "len(q), half the length of the state (q, p), and pass a y0 of that many "
+                         "positions and momenta")
     if y0.shape != (2 * dim,):
         return system        # check_state names the shape mismatch
     Y = _probe_states(y0)
@@ -73,6 +84,47 @@ def adapt_system(system, y0):
     if batched and hasattr(system, "dim"):
         return system
     return _Adapted(system, int(dim), bool(batched))
+
+
+#: modules whose systems are this project's own (tested not to write into their arguments;
+#: the ASE adapter's calls are calculator calls, counted, and not made twice)
+_OWN = ("systems.", "integrators.", "hbvm_md.")
+
+
+def _check_no_writes(system, y0: np.ndarray) -> None:
+    """ValueError when the energy of a user's system writes into the array it is given.
+
+    The engine hands ``energy`` and ``potential`` its own state (no copy a call), so a
+    function that works in place (``q *= s``, ``y[0] = ...``) moves the run itself, silently.
+    One of them is called once here on a copy of y0 and the copy compared bit for bit
+    afterwards (one call more of the user's function a run).""" 
+    if type(system).__module__.startswith(_OWN) or y0.ndim != 1 or y0.size == 0:
+        return
+    dim = getattr(system, "dim", None)
+    if not (isinstance(dim, (int, np.integer)) and not isinstance(dim, bool)
+            and 0 < dim and 2 * dim == y0.size):
+        dim = y0.size // 2 if y0.size % 2 == 0 else None
+    # one call: a separable system's potential (its energy calls it), else its energy
+    if dim and callable(getattr(system, "forces", None)) and hasattr(system, "masses"):
+        calls = [("potential", y0[:dim])]
+    else:
+        calls = [("energy", y0)]
+    for method, arg in calls:
+        fn = getattr(system, method, None)
+        if not callable(fn):
+            continue
+        given = np.array(arg)
+        try:
+            fn(given)
+        except Exception:  # noqa: BLE001 - its own errors are named by the checks that follow
+            continue
+        if not np.array_equal(given, arg, equal_nan=True):
+            raise ValueError(
+                f"`{method}` of {type(system).__name__} writes into the array it is given (the "
+                f"{'state' if method in ('energy', 'gradient') else 'positions'} changed during "
+                "the call): the engine passes its own state and stages, so the run would move "
+                "with it. Compute on a copy (`q = np.array(q)`) or without in-place operations "
+                "(`q = q * s`, not `q *= s`)")
 
 
 def _probe_states(y0: np.ndarray) -> np.ndarray:

@@ -88,10 +88,9 @@ def test_constraints_are_sorted_into_kinds():
     assert classify(FixedMode(np.ones((2, 3)))) == "unsupported"
 
 
-# (FixBondLength(s) run in the constrained step since the rigid bonds landed:
-# tests/test_ase_holonomic.py, where a linear constraint beside them is refused by name)
+# (FixBondLength(s) and FixLinearTriatomic run in the constrained step: tests/test_ase_holonomic.py
+# and tests/test_ase_rigid_molecules.py, where a linear constraint beside them is refused by name)
 @pytest.mark.parametrize("constraint, named", [
-    (FixLinearTriatomic([(0, 1, 2)]), r"holonomic constraint FixLinearTriatomic yet"),
     (FixedMode(np.ones((4, 3))), r"does not support the constraint FixedMode; supported: FixAtoms"),
 ])
 def test_what_cannot_run_is_refused_by_its_own_name(constraint, named):

@@ -64,21 +64,21 @@ def test_polynomial_hamiltonian_conserved_exactly(name, s):
     assert np.max(np.abs(slow.y - res.y[:6])) <= 1e-12
 
 
-@pytest.mark.xfail(strict=True, reason="known weakness: the full form (y' = J grad H, the form of "
-                   "REBOUND's own accelerations in hbvm_md.rebound) drifts linearly on a cubic H "
-                   "that its quadrature integrates exactly, the separable form does not; rate per "
-                   "step (median of 5 perturbed starts, 4000 steps, all of one sign), HBVM(12, 6) "
-                   "h = 0.5: 5.3e-18 (7.8e-18 before the stages kept I_lo gamma on average), "
-                   "h = 0.25: 1.3e-18; HBVM(5, 3) h = 0.5: 1.5e-18.  Located (exact arithmetic on "
-                   "each step): the iterations leave out the coefficients' low parts and the "
-                   "polish adds them (W_lo F: the same sign every step) after the stages were "
-                   "evaluated, so the stages lie off the final path by h I_s times that; the full "
-                   "form's stages depend on gamma at order h (the separable form's at h^2), hence "
-                   "a drift of order h^2 a step (4.7e-18 of the 7.8e-18).  Iterating the full "
-                   "form with the low parts and the compensated projection removes it (5.3e-19, "
-                   "the rest the stop rule's truncation, same sign) but made the step 27 % dearer "
-                   "(Kepler's Poincare transform, HBVM(6, 3)); tests/test_rebound_forces.py::"
-                   "test_full_form_h_does_not_drift_with_many_nodes is the same defect")
+# Known weakness: the full form (y' = J grad H, the form of REBOUND's own accelerations in
+# hbvm_md.rebound) drifts linearly on a cubic H that its quadrature integrates exactly, the
+# separable form does not; rate per step (median of 5 perturbed starts, 4000 steps, all of one
+# sign), HBVM(12, 6) h = 0.5: 5.3e-18 (7.8e-18 before the stages kept I_lo gamma on average),
+# h = 0.25: 1.3e-18; HBVM(5, 3) h = 0.5: 1.5e-18.  Located (exact arithmetic on each step): the
+# iterations leave out the coefficients' low parts and the polish adds them (W_lo F: the same
+# sign every step) after the stages were evaluated, so the stages lie off the final path by
+# h I_s times that; the full form's stages depend on gamma at order h (the separable form's at
+# h^2), hence a drift of order h^2 a step (4.7e-18 of the 7.8e-18).  Iterating the full form
+# with the low parts and the compensated projection removes it (5.3e-19, the rest the stop
+# rule's truncation, same sign) but made the step 27 % dearer (Kepler's Poincare transform,
+# HBVM(6, 3)); tests/test_rebound_forces.py::test_full_form_h_does_not_drift_with_many_nodes
+# is the same defect.
+@pytest.mark.xfail(strict=True, reason="known weakness: the full form drifts linearly (order "
+                   "h^2 a step) on a polynomial H it integrates exactly; see the comment above")
 def test_full_form_conserves_a_polynomial_hamiltonian_without_drift():
     """Hénon-Heiles (degree 3) in the full form with HBVM(12, 6), exact for it (k >= 3 s / 2):
     no linear drift beyond the round-off scatter, as the separable form keeps

@@ -247,16 +247,17 @@ STOPS = [
      {}, KeyboardInterrupt, "interrupted", ALL, 0),
     ("Ctrl-C in gradient", lambda: ScipyModel({"gradient": (40, _raises(KeyboardInterrupt))}),
      {}, KeyboardInterrupt, "interrupted", ALL, 0),
-    # with the energy check off, the 9th potential/energy call is a sample's: the last
-    # committed step keeps no sample
-    ("SystemExit in potential", lambda: SepModel({"potential": (9, _raises(SystemExit, 3))}),
+    # with the energy check off, the engine's 9th potential/energy call is a sample's: the
+    # last committed step keeps no sample (the 10th call counted here: the first is
+    # integrators.protocol's check that the function does not write into its argument)
+    ("SystemExit in potential", lambda: SepModel({"potential": (10, _raises(SystemExit, 3))}),
      dict(energy_tol=None), SystemExit, "interrupted", ALL, 1),
-    ("user error in energy", lambda: HamModel({"energy": (9, _raises(ArithmeticError, "no"))}),
+    ("user error in energy", lambda: HamModel({"energy": (10, _raises(ArithmeticError, "no"))}),
      dict(energy_tol=None), ArithmeticError, "failed", ALL, 1),
     # with the default energy check, it is the check's inside a step: that step is not committed
-    ("SystemExit in checked potential", lambda: SepModel({"potential": (9, _raises(SystemExit, 3))}),
+    ("SystemExit in checked potential", lambda: SepModel({"potential": (10, _raises(SystemExit, 3))}),
      {}, SystemExit, "interrupted", ALL, 0),
-    ("user error in checked energy", lambda: HamModel({"energy": (9, _raises(ArithmeticError, "no"))}),
+    ("user error in checked energy", lambda: HamModel({"energy": (10, _raises(ArithmeticError, "no"))}),
      {}, ArithmeticError, "failed", ALL, 0),
     ("nan in forces", lambda: SepModel({"forces": (40, _nan)}), {}, NonFiniteError, "failed",
      ("fixed", "newton"), 0),

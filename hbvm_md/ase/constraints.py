@@ -18,9 +18,10 @@
     terms of H (:class:`EnergyTerms`), evaluated at every stage and part of the conserved total
     (``atoms.get_potential_energy()`` includes them, as for ASE's own integrators).
 ``"holonomic"`` (``FixBondLength(s)``, ``FixLinearTriatomic``)
-    Nonlinear constraints of the positions, which need Lagrange multipliers inside the step;
-    ``FixBondLength(s)`` runs in the constrained step of :mod:`hbvm_md.ase.holonomic`; here
-    (:func:`refuse`) the holonomic ones are refused, naming the class as the user wrote it.
+    Nonlinear constraints of the positions, which need Lagrange multipliers inside the step:
+    they run in the constrained step of :mod:`hbvm_md.ase.holonomic`, which takes them out of
+    the list before this module sees it; here (:func:`refuse`) one left in is refused, naming
+    the class as the user wrote it.
 ``"unsupported"``
     Anything else: refused naming the class (a silent drop would run a different system).
 """
@@ -33,6 +34,12 @@ from ase.geometry import find_mic
 
 LINEAR, ENERGY, HOLONOMIC, UNSUPPORTED = "linear", "energy", "holonomic", "unsupported"
 
+
+class UnsupportedConstraintError(NotImplementedError, ValueError):
+    """A constraint HBVMDynamics does not run.  A NotImplementedError, as ASE's own dynamics
+    raise for a constraint they cannot honour (``FixSymmetry`` in MD: ASE's ``test_fail_md``),
+    and a ValueError (bad input), as this package raised before."""
+
 #: the kind of each class the step knows (exact classes: a subclass may change what it does)
 KINDS = {FixAtoms: LINEAR, FixCom: LINEAR, FixSubsetCom: LINEAR, FixedPlane: LINEAR,
          FixedLine: LINEAR, FixCartesian: LINEAR, Hookean: ENERGY, ExternalForce: ENERGY,
@@ -40,7 +47,8 @@ KINDS = {FixAtoms: LINEAR, FixCom: LINEAR, FixSubsetCom: LINEAR, FixedPlane: LIN
 
 SUPPORTED = ("FixAtoms, FixCom, FixSubsetCom, FixedPlane, FixedLine, FixCartesian (by "
              "projection), Hookean, ExternalForce (as terms of the energy), and "
-             "FixBondLength(s) with FixAtoms alone (rigid bonds in the constrained step)")
+             "FixBondLength(s) and FixLinearTriatomic with FixAtoms or FixCom (rigid bonds "
+             "in the constrained step)")
 
 
 def classify(constraint) -> str:
@@ -67,12 +75,12 @@ def name(constraint) -> str:
 def refuse(kinds: dict) -> None:
     """ValueError naming the first holonomic or unsupported constraint, if any."""
     for c in kinds[HOLONOMIC]:
-        raise ValueError(
+        raise UnsupportedConstraintError(
             f"HBVMDynamics does not support the holonomic constraint {name(c)} yet (it keeps "
             f"distances, which needs Lagrange multipliers inside the step); supported: "
             f"{SUPPORTED}. Remove it, or use VelocityVerlet (RATTLE) for rigid molecules")
     for c in kinds[UNSUPPORTED]:
-        raise ValueError(f"HBVMDynamics does not support the constraint {name(c)}; supported: "
+        raise UnsupportedConstraintError(f"HBVMDynamics does not support the constraint {name(c)}; supported: "
                          f"{SUPPORTED}. Remove it or use VelocityVerlet")
 
 

@@ -77,9 +77,12 @@ class HBVMDynamics(MolecularDynamics):
         (FixAtoms, FixCom, FixSubsetCom, FixedPlane, FixedLine, FixCartesian) by projection
         of the stage forces and the momenta, kept to round-off, the momenta projected onto
         them here (fixed atoms at rest, no centre-of-mass drift with FixCom); Hookean and
-        ExternalForce as terms of the energy, which is conserved with them.  Holonomic
-        constraints (FixBondLength(s), FixLinearTriatomic) and any other class raise
-        ``ValueError`` naming the class.
+        ExternalForce as terms of the energy, which is conserved with them; rigid bonds
+        (FixBondLength(s), FixLinearTriatomic, alone or with FixAtoms or FixCom) inside the
+        step (:mod:`hbvm_md.ase.holonomic`), bonds and energy kept to round-off.  Any other
+        class, or combination, raises :class:`hbvm_md.ase.constraints.UnsupportedConstraintError`
+        (a ``NotImplementedError``, as ASE's dynamics raise for FixSymmetry, and a
+        ``ValueError``) naming it and the reason.
     timestep : float
         In ASE time units (e.g. ``2 * ase.units.fs``).
     s : int

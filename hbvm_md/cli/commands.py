@@ -15,6 +15,17 @@ from .common import (DEFAULT_OUT, _fail, _int_at_least, _Parser, _positive_float
 from .ensemble import add_ensemble_parser, cmd_ensemble
 
 
+def _at_least_a_day(text: str) -> float:
+    """--t-end of the demo: the solar system's energy behaviour needs at least a day (Jupiter's
+    period is 4333 days; a shorter run is a fraction of one step and shows round-off only)."""
+    v = _positive_float(text)
+    if v < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a run of at least 1 day, got {text!r}; the "
+                                         "demo compares energy behaviour over orbits (Jupiter's "
+                                         "period: 4333 days), e.g. --t-end 2e4")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
     from ..reports.names import scene_key
@@ -31,8 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "print comparison tables and write PNG plots of the relative energy and angular-momentum errors.")
     d.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default ./{DEFAULT_OUT})")
     d.add_argument("--quick", action="store_true", help="shorter runs (for CI)")
-    d.add_argument("--t-end", type=_positive_float, default=None,
-                   help="length of the solar-system run in days (default 1e5, 2e4 with --quick)")
+    d.add_argument("--t-end", type=_at_least_a_day, default=None,
+                   help="length of the solar-system run in days, at least 1 (default 1e5, 2e4 "
+                        "with --quick)")
     # a cluster needs a pair: checked here, before the solar-system half runs
     d.add_argument("--atoms", type=_int_at_least(2), default=None,
                    help="atoms in the cluster, at least 2 (default 38, 13 with --quick)")

@@ -74,7 +74,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .identity import identity
+from .identity import code_identity, identity
 
 __all__ = ["run_ensemble", "load_store", "EnsembleStoreWarning"]
 
@@ -295,7 +295,9 @@ class _Store:
         self.task = _task_text(task)
         self.saved: dict[int, dict] = {}       # index -> stored record (what consolidate joins)
         self.write_error: tuple[Path, BaseException] | None = None     # the first failed write
-        meta = {"task": self.task, "task_sha256": self.task_id, "n_members": len(params)}
+        self.code_id = code_identity(task)
+        meta = {"task": self.task, "task_sha256": self.task_id, "task_code_sha256": self.code_id,
+                "n_members": len(params)}
         mfile = self.path / "meta.json"
         if mfile.exists():
             try:
@@ -310,6 +312,18 @@ class _Store:
                 raise ValueError(f"`store` {str(self.path)!r} holds the ensemble of task "
                                  f"{old.get('task')!r}, not {self.task!r}; pass another store "
                                  "folder or delete this one")
+            if old.get("task_code_sha256", self.code_id) != self.code_id:
+                raise ValueError(f"`store` {str(self.path)!r} holds the ensemble of task "
+                                 f"{self.task}, whose code has been edited since (its source, or "
+                                 "that of a function of its module it calls, differs): its "
+                                 "records are the old code's. Delete the store to compute them "
+                                 "again with the new code, or pass another store folder (or "
+                                 "put the old code back to use these records)")
+            if "task_sha256" in old and "task_code_sha256" not in old:
+                raise ValueError(f"`store` {str(self.path)!r} was written by an earlier hbvm-md, "
+                                 "which did not identify the task by its code (an edited task "
+                                 "got the old records); delete it to compute the ensemble "
+                                 "again, or pass another store folder")
             if old.get("task_sha256", self.task_id) != self.task_id:
                 raise ValueError(self._same_text_message("the ensemble of task", self.task))
             if old == meta:
@@ -513,6 +527,35 @@ def _ranges(indices: list[int]) -> str:
     return ", ".join(out) or "none"
 
 
+def _warn_foreign(folder: Path, table: Path, rows: list[dict]) -> None:
+    """Warn naming the rows of ``table`` that this store's journal does not hold: no part of
+    that member, or a part of other param, result or task (a table copied in from another
+    store, or a part of another ensemble copied in)."""
+    import pyarrow.parquet as pq
+    try:
+        task_id = json.loads((folder / "meta.json").read_text()).get("task_sha256")
+    except (OSError, ValueError, AttributeError):
+        task_id = None
+    foreign = []
+    for row in rows:
+        part = folder / "parts" / f"member-{row['member']:07d}.parquet"
+        try:
+            p = pq.read_table(part, columns=["param", "task_sha256", "result_pickle"]).to_pylist()[0]
+        except Exception:  # noqa: BLE001 - missing or unreadable: not this store's record
+            foreign.append(row["member"])
+            continue
+        if (p["param"] != row["param"] or p["result_pickle"] != row.get("result_pickle")
+                or (task_id is not None and p["task_sha256"] != task_id)):
+            foreign.append(row["member"])
+    if foreign:
+        warnings.warn(f"{str(table)!r}: the rows of members {_ranges(sorted(foreign))} (of "
+                      f"{len(rows)}) are not this store's records: its journal ({folder}/parts, "
+                      "meta.json) holds no such member, or one of other param, result or task "
+                      "(a table copied in from another store?); they are returned as read. "
+                      "Run run_ensemble with this store's task and params to rebuild the table "
+                      "from its parts", EnsembleStoreWarning, stacklevel=3)
+
+
 def load_store(path) -> list[dict]:
     """The rows of a store's ``ensemble.parquet`` as dicts, ``result.<key>`` exactly as returned.
 
@@ -521,7 +564,8 @@ def load_store(path) -> list[dict]:
     the values unpickled from the ``result_pickle`` column: the task's own objects, types
     included (a big integer, a nested dict, an array).  Unpickling runs code named in the
     file: load stores you wrote.  A member whose pickle no longer loads (its class is gone)
-    keeps the column values, with a warning.  ``pandas.read_parquet`` gives the columns as a
+    keeps the column values, with a warning.  Rows the store's own journal does not hold (a
+    table copied in from another store) are named in an :class:`EnsembleStoreWarning`.  ``pandas.read_parquet`` gives the columns as a
     frame (the columns listed in the schema metadata ``hbvm_md.json_columns`` as JSON text).
     """
     import pyarrow.parquet as pq
@@ -535,6 +579,7 @@ def load_store(path) -> list[dict]:
         raise ValueError(f"the store table {str(f)!r} cannot be read ({type(exc).__name__}: {exc}); "
                          "run run_ensemble with the same task, params and store again to rebuild it "
                          "from the parts") from None
+    _warn_foreign(Path(path), f, rows)
     results = {}
     for n, row in enumerate(rows):
         blob = row.pop("result_pickle", None)

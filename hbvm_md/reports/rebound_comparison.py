@@ -122,10 +122,21 @@ def angular_momentum_change(nb, xv) -> np.ndarray:
     return change_series(nb.angular_momentum(y), nb.angular_momentum_scale(y))
 
 
+def _slope(ts, err) -> float:
+    """The slope of a linear fit of ``err`` against ``ts`` (0 for fewer than three samples).
+    Fitted in time scaled to [0, 1]: times of a very short run (1e-300 days) would otherwise
+    underflow inside the least-squares solve (numpy's LinAlgError)."""
+    ts = np.asarray(ts, dtype=float)
+    span = ts[-1] - ts[0] if len(ts) else 0.0
+    if len(ts) <= 2 or not span > 0:
+        return 0.0
+    return float(np.polyfit((ts - ts[0]) / span, err, 1)[0] / span)
+
+
 def _summary(label, steps, wall, ts, err, final_t, setup_time=0.0, compile_time=None, dL=None) -> dict:
     return dict(method=label, steps=int(steps), wall_time_s=float(wall), setup_time_s=float(setup_time),
                 compile_time_s=compile_time, max_rel_energy_error=float(err.max()),
-                drift_slope=float(np.polyfit(ts - ts[0], err, 1)[0]) if len(ts) > 2 else 0.0,
+                drift_slope=_slope(ts, err),
                 max_rel_angular_momentum_error=float(dL.max()) if dL is not None else float("nan"),
                 final_t=float(final_t))
 
