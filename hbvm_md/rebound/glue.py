@@ -133,7 +133,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         sd[SL_H_FAIL] = h
         return BAD_DT
     t_start = simd[ctx[R_T]]
-    adaptive = st[SL_ADAPTIVE] != 0
+    # epsilon = 0: fixed steps of sim.dt, as IAS15 takes them (REBOUND's idiom)
+    adaptive = st[SL_ADAPTIVE] != 0 and sd[SL_EPSILON] != 0.0
     epsilon = sd[SL_EPSILON] if adaptive else 0.0
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     N = view.shape[0]

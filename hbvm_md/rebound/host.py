@@ -684,8 +684,12 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
-    if st[L.SL_ADAPTIVE]:
-        check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
+    if st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] != 0.0:   # (0: fixed steps, as IAS15's)
+        try:
+            check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
+        except ValueError as exc:
+            raise ValueError(f"sim.integrator: {exc}; sim.integrator.epsilon = 0 takes fixed "
+                             "steps of sim.dt, as with IAS15") from None
     return method
 
 

@@ -258,6 +258,9 @@ class HBVMIntegrator(Counted):
         if not auto and energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
             raise ValueError(f"`energy_tol` must be a positive number or None, or 'auto' (got "
                              f"energy_tol={energy_tol!r}); None switches the energy check off")
+        if epsilon == 0 and not isinstance(epsilon, bool) and adaptive is not True:
+            # IAS15's idiom: epsilon = 0 takes fixed steps of sim.dt (here: of dt, or sim.dt)
+            adaptive, epsilon = False, DEFAULT_EPSILON if family is HBVM else EQUIP_DEFAULT_EPSILON
         if adaptive is None:
             adaptive = dt is None      # like IAS15: no step to choose unless one is given
         if not isinstance(adaptive, (bool, np.bool_)):
@@ -338,7 +341,10 @@ class HBVMIntegrator(Counted):
                         doc="Adaptive trial steps rejected (and retried smaller).")
     resyncs = property(lambda self: self._get(L.SL_RESYNCS),
                        doc="How often the state was read afresh from the particles.")
-    adaptive = property(lambda self: bool(self._get(L.SL_ADAPTIVE)))
+    adaptive = property(lambda self: bool(self._get(L.SL_ADAPTIVE))
+                        and self._get(L.SL_EPSILON) != 0.0,
+                        doc="Adaptive steps (False: fixed steps of sim.dt, also with "
+                            "``sim.integrator.epsilon = 0``, as with IAS15).")
     epsilon = property(lambda self: self._get(L.SL_EPSILON))
     min_dt = property(lambda self: self._get(L.SL_MIN_DT))
 

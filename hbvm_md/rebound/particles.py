@@ -74,7 +74,9 @@ def settings_ok(st, sd):
     settings a user may change in ``sim.integrator`` between runs."""
     if st[SL_MAX_ITER] < 1 or not 0.0 <= sd[SL_TOL] < 1.0 or not -1.0 < sd[SL_ETOL] < np.inf:
         return False
-    return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
+    # epsilon = 0 is IAS15's idiom for fixed steps of sim.dt (glue.step_arrays)
+    return st[SL_ADAPTIVE] == 0 or sd[SL_EPSILON] == 0.0 or (
+        0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
 
 
 @jit
