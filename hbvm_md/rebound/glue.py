@@ -40,7 +40,7 @@ from hbvm_md.rebound.layout import (
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
     R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
     SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
-    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
+    SL_K, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
 from hbvm_md.rebound.forces import CLOCK
@@ -136,6 +136,9 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     # epsilon = 0: fixed steps of sim.dt, as IAS15 takes them (REBOUND's idiom)
     adaptive = st[SL_ADAPTIVE] != 0 and sd[SL_EPSILON] != 0.0
     epsilon = sd[SL_EPSILON] if adaptive else 0.0
+    max_dt = sd[SL_MAX_DT] if adaptive else 0.0
+    if max_dt > 0.0 and abs(h) > max_dt:       # (the user's bound, e.g. for an operator)
+        h = max_dt if h > 0.0 else -max_dt
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     N = view.shape[0]
     nv = V.shape[0]
@@ -220,7 +223,10 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
     simd[ctx[R_DTL]] = h_done
     if adaptive:
-        simd[ctx[R_DT]] = res[1]               # the next step proposed
+        h_next = res[1]                        # the next step proposed
+        if max_dt > 0.0 and abs(h_next) > max_dt:
+            h_next = max_dt if h_next > 0.0 else -max_dt
+        simd[ctx[R_DT]] = h_next
     if _TANGENTS and nv > 0:
         write_tangents(pv, vidx, N, ix, ivx, minv, V)
         if (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0:

@@ -219,7 +219,9 @@ def _install_runs(rebound) -> None:
     reb_integrate, reb_steps = S.integrate, S.steps
     step_at, dispatch, eft_at = _REG["step_at"], _REG["dispatch"], _REG["eft_at"]
     messages_at = _REG["messages_at"]
+    auto_step_at = S.simulationarchive_auto_step.offset
     c_int, c_void_p, addressof = ctypes.c_int, ctypes.c_void_p, ctypes.addressof
+    c_uint64 = ctypes.c_uint64
     c_double, c_size_t = ctypes.c_double, ctypes.c_size_t
 
     def integrate(self, tmax, exact_finish_time=1):
@@ -228,6 +230,8 @@ def _install_runs(rebound) -> None:
             return reb_integrate(self, tmax, exact_finish_time)
         with _Run(addr) as run:
             _PENDING.pop(addr, None)
+            if c_uint64.from_address(addr + auto_step_at).value:
+                _warn_step_archive(addr)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
@@ -240,6 +244,8 @@ def _install_runs(rebound) -> None:
             return reb_steps(self, N_steps)
         with _Run(addr) as run:
             _PENDING.pop(addr, None)
+            if c_uint64.from_address(addr + auto_step_at).value:
+                _warn_step_archive(addr)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             status = c_steps(addr, c_size_t(N_steps))
@@ -248,6 +254,27 @@ def _install_runs(rebound) -> None:
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _warn_step_archive(addr: int) -> None:
+    """An archive saved every N steps (``sim.save_to_file(f, step=N)``) of a run with adaptive
+    steps holds snapshots unevenly spaced in time, which a user written for fixed steps (a
+    frequency analysis, REBOUND's FrequencyAnalysis notebook) takes as evenly spaced: warn at
+    the run's start, naming ``interval=`` (REBOUND's docs tell IAS15's users the same)."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    if not st[L.SL_ADAPTIVE] or sd[L.SL_EPSILON] == 0.0:
+        return
+    sim = _rebound().Simulation.from_address(addr)
+    warnings.warn(
+        f"sim.save_to_file(..., step={sim.simulationarchive_auto_step}) saves a snapshot every "
+        f"{sim.simulationarchive_auto_step} steps, and HBVM's adaptive steps vary in length (as "
+        "IAS15's), so the snapshots are unevenly spaced in time (a frequency analysis of them is "
+        "wrong); save at even times with sim.save_to_file(filename, interval=...), or take "
+        "fixed steps of sim.dt with sim.integrator.epsilon = 0", RuntimeWarning,
+        stacklevel=_user_stacklevel())
 
 
 def _prepared(addr: int):
@@ -411,14 +438,67 @@ def _install_operators() -> None:
 
     def add_operator(self, operator, dtfraction=None, timing="post"):
         sim = self._sim
-        if (dtfraction is None and sim and ctypes.c_void_p.from_address(
+        if not (sim and ctypes.c_void_p.from_address(
                 ctypes.addressof(sim.contents) + step_at).value == dispatch):
-            return rebx_add_operator(self, operator, 1.0, "post")   # (IAS15's choice)
-        return rebx_add_operator(self, operator, dtfraction, timing)
+            return rebx_add_operator(self, operator, dtfraction, timing)
+        if dtfraction is None:
+            rebx_add_operator(self, operator, 1.0, "post")   # (IAS15's choice)
+        else:
+            rebx_add_operator(self, operator, dtfraction, timing)
+        # (before the first run the step's preparation warns, for operators added to another
+        # integrator too)
+        if _prepared(ctypes.addressof(sim.contents)) is not None:
+            _warn_operators(sim.contents, [operator])
 
     add_operator.__doc__ = rebx_add_operator.__doc__
     add_operator._hbvm_md = True
     Extras.add_operator = add_operator
+
+
+def _operators(sim) -> list:
+    """REBOUNDx's operators attached to ``sim`` (before and after the step), [] without."""
+    if not sim.extras:
+        return []
+    try:
+        import reboundx
+    except ImportError:
+        return []
+    extras = reboundx.extras.Extras.from_address(sim.extras)
+    out = []
+    for node in (extras._pre_timestep_modifications, extras._post_timestep_modifications):
+        while node:
+            # a rebx_step: the operator's address, then its dt fraction
+            op = ctypes.c_void_p.from_address(node.contents.object).value
+            if op:
+                out.append(reboundx.extras.Operator.from_address(op))
+            node = node.contents.next
+    return out
+
+
+def _warn_operators(sim, operators) -> None:
+    """REBOUNDx warns IAS15's users that an operator that changes the particles, applied once
+    per adaptive step, can give spurious results.  At HBVM's longer steps the splitting error is
+    larger (REBOUNDx's operator notebooks: 2.5 to 10 times IAS15's), so the same warning, with
+    HBVM's ways out: a bound on the step (``max_dt``), or fixed steps of a small ``sim.dt``.
+    Not when the user chose the steps (fixed steps, or ``max_dt`` set)."""
+    p = ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    if not st[L.SL_ADAPTIVE] or sd[L.SL_EPSILON] == 0.0 or sd[L.SL_MAX_DT] > 0.0:
+        return
+    for op in operators:
+        if op._operator_type == 2:          # a recorder (REBOUNDx's REBX_OPERATOR_TYPE)
+            continue
+        name = op.name.decode() if op.name else "?"
+        warnings.warn(
+            f"REBOUNDx operator '{name}' is applied once per HBVM step, after it (as REBOUNDx "
+            "applies it for IAS15, which warns too): a splitting error that grows with the step, "
+            "and HBVM's adaptive steps are longer than IAS15's (REBOUNDx's operator notebooks: "
+            "2.5 to 10 times IAS15's error); bound the step with sim.integrator.max_dt (IAS15's "
+            "step on the scene gives about IAS15's error), take fixed steps of a small sim.dt "
+            "(sim.integrator.epsilon = 0), or use a REBOUNDx force in place of the operator",
+            RuntimeWarning, stacklevel=_user_stacklevel())
 
 
 def _after_run(sim, addr: int, status: int, messages_at: int, raised=None) -> None:
@@ -678,9 +758,12 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
         ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
         ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
         ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check), or in "
-         "(-1, 0) for the not-a-solution rule"))
+         "(-1, 0) for the not-a-solution rule"),
+        ("max_dt", float(sd[L.SL_MAX_DT]), "a finite number >= 0 (0: no bound on the adaptive "
+         "step)"))
         if not (v >= 1 if n == "max_iter" else
-                0 <= v < 1 if n == "tol" else -1 < v < math.inf)]
+                0 <= v < 1 if n == "tol" else
+                0 <= v < math.inf if n == "max_dt" else -1 < v < math.inf)]
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
@@ -795,6 +878,8 @@ def _prepare(sim, p: int) -> None:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
     _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
+    if sim.extras:
+        _warn_operators(sim, _operators(sim))
     (_HOST_PATH.add if nb is None else _HOST_PATH.discard)(ctypes.addressof(sim))
 
 

@@ -9,8 +9,8 @@ its own copies (six REBOUND variants in the test suite compiled them six times).
 import numpy as np
 
 from integrators.jit import jit
-from hbvm_md.rebound.layout import (SL_ADAPTIVE, SL_EPSILON, SL_ETOL, SL_MAX_ITER, SL_MIN_DT,
-                                    SL_TOL)
+from hbvm_md.rebound.layout import (SL_ADAPTIVE, SL_EPSILON, SL_ETOL, SL_MAX_DT, SL_MAX_ITER,
+                                    SL_MIN_DT, SL_TOL)
 
 
 @jit
@@ -73,6 +73,8 @@ def settings_ok(st, sd):
     """The ranges :func:`hbvm_md.rebound.host.check_settings` checks (and names), for the
     settings a user may change in ``sim.integrator`` between runs."""
     if st[SL_MAX_ITER] < 1 or not 0.0 <= sd[SL_TOL] < 1.0 or not -1.0 < sd[SL_ETOL] < np.inf:
+        return False
+    if not 0.0 <= sd[SL_MAX_DT] < np.inf:
         return False
     # epsilon = 0 is IAS15's idiom for fixed steps of sim.dt (glue.step_arrays)
     return st[SL_ADAPTIVE] == 0 or sd[SL_EPSILON] == 0.0 or (
