@@ -228,7 +228,7 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_integrate(self, tmax, exact_finish_time)
-        with _Run(addr) as run:
+        with _Run(addr, self) as run:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
                 _warn_step_archive(addr)
@@ -242,7 +242,7 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_steps(self, N_steps)
-        with _Run(addr) as run:
+        with _Run(addr, self) as run:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
                 _warn_step_archive(addr)
@@ -316,10 +316,11 @@ class _Run:
     ``sim.integrate`` call that takes no step cost 4.5 us, now 3.0 us (REBOUND's own for WHFast:
     3.3 us), and one that takes one step of the outer solar system 24 us, now 22 us."""
 
-    __slots__ = ("addr", "raised", "outer", "owner")
+    __slots__ = ("addr", "sim", "raised", "outer", "owner")
 
-    def __init__(self, addr: int):
-        self.addr, self.raised = addr, None
+    def __init__(self, addr: int, sim=None):
+        # (sim: the user's Python object, which holds the Python callbacks: messages name them)
+        self.addr, self.sim, self.raised = addr, sim, None
 
     def __enter__(self):
         # the hook is chained in front of whatever hook is in place when a run starts (not at
@@ -810,6 +811,8 @@ def _prepare(sim, p: int) -> None:
         # them
         _check_host_path(sim, method, reasons)
         _clear_gravity_ignore(sim)
+        if not sim.force_is_velocity_dependent and sim._additional_forces:
+            _probe_velocities(sim, view, ix, ivx, reasons)
         scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
         nb = None
         # (variational particles are refused on this path: no tangent map is compiled)
@@ -904,6 +907,57 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
         if not np.array_equal(written[:, 6], m):
             return True
     return False
+
+
+def _force_name(sim, reasons) -> str:
+    """The added forces by name: REBOUNDx's, or the user's Python function (held by the user's
+    Simulation object of the run in progress, :class:`_Run`)."""
+    if any(r.startswith("REBOUNDx") for r in reasons):
+        return ", ".join(r for r in reasons if r.startswith("REBOUNDx"))
+    run = getattr(_RUN, "run", None)
+    while run is not None and run.addr != ctypes.addressof(sim):
+        run = run.outer
+    try:
+        import gc
+        afp = run.sim._afp               # (REBOUND's ctypes wrapper of the user's function)
+        fn = next(r for r in gc.get_referents(afp) if callable(r) and not isinstance(r, type))
+        return f"sim.additional_forces ({getattr(fn, '__qualname__', fn)!r})"
+    except Exception:  # noqa: BLE001 - a C function, or another Python than CPython
+        return "sim.additional_forces"
+
+
+def _probe_velocities(sim, view, ix, ivx, reasons) -> None:
+    """A force that reads the velocities without ``sim.force_is_velocity_dependent`` would see
+    the step's initial velocities at every stage (as IAS15's substeps then do): integrated to
+    first order only, in silence (a drag ended 1.1 off, 30 times IAS15's error under the same
+    mistake).  So the forces are evaluated once more with the velocities moved: when the
+    accelerations move with them, the flag is set (the stages then hand the force their own
+    velocities, order 2s) and a warning names the force and the flag.  The particles' positions
+    and velocities are as before; the accelerations are scratch (each stage computes them)."""
+    lib = _rebound().clibrebound
+    ax = _REG["ax"]
+    v0 = view[:, ivx:ivx + 3].copy()
+    scale = float(np.max(np.abs(v0))) or 1.0
+    # every component moved, by different amounts, so that no symmetry of a force hides it
+    dv = 1e-3 * scale * (1.0 + np.arange(v0.size).reshape(v0.shape) / v0.size)
+    try:
+        lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
+        a0 = view[:, ax:ax + 3].copy()
+        view[:, ivx:ivx + 3] = v0 + dv
+        lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
+        a1 = view[:, ax:ax + 3].copy()
+    finally:
+        view[:, ivx:ivx + 3] = v0
+    if np.array_equal(a0, a1) or not (np.all(np.isfinite(a0)) and np.all(np.isfinite(a1))):
+        return
+    sim.force_is_velocity_dependent = 1
+    warnings.warn(
+        f"{_force_name(sim, reasons)} changes the accelerations when the velocities change, but "
+        "sim.force_is_velocity_dependent was 0: its stages would have seen the step's initial "
+        "velocities (a first-order error, as IAS15's substeps under the same setting); HBVM "
+        "set sim.force_is_velocity_dependent = 1 (each stage hands the force its own "
+        "velocities: order 2s). Set it yourself after setting the force to silence this warning",
+        RuntimeWarning, stacklevel=_user_stacklevel())
 
 
 def _check_host_path(sim, method, reasons) -> None:
