@@ -1020,7 +1020,8 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
                    L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
-                   L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx})
+                   L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx,
+                   L.A_TP: np.zeros((nv, 4 * N + 3))})
     sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
     head = 8 * L.N_HEADER
     total = head + sum(sizes.values())
@@ -1111,5 +1112,6 @@ def _python_step(code, st):
                             f(L.A_EZERO, (s, s))),
             R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),
                        f(L.A_DGT, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
-                       f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3))))
+                       f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3),
+                       f(L.A_TP, (nv, 4 * N + 3)))))
     return step

@@ -136,7 +136,10 @@ C_VALUES = C_WORDS + N_CFG
 #: state (q, clock, v, CLOCK), whose clock the glue sets to ``sim.t`` and whose stages it
 #: restores the particles from), 0 for the compiled N-body kernel; both separable (width D_M)
 D_HOST = R_MEGNO_T0 + 1
-N_HEADER = D_HOST + 1
+#: each variational set's params of the force's derivative (nv, 4 D_N + 3): the kernel's, then
+#: the set's variation of the masses (:func:`hbvm_md.rebound.particles.read_tangents`)
+A_TP = D_HOST + 1
+N_HEADER = A_TP + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")
