@@ -232,6 +232,8 @@ def _install_runs(rebound) -> None:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
                 _warn_step_archive(addr)
+            if addr in _HOST_PATH:
+                _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
@@ -246,6 +248,8 @@ def _install_runs(rebound) -> None:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
                 _warn_step_archive(addr)
+            if addr in _HOST_PATH:
+                _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             status = c_steps(addr, c_size_t(N_steps))
@@ -909,9 +913,10 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
     return False
 
 
-def _force_name(sim, reasons) -> str:
+def _force_name(sim, reasons=None) -> str:
     """The added forces by name: REBOUNDx's, or the user's Python function (held by the user's
     Simulation object of the run in progress, :class:`_Run`)."""
+    reasons = host_reasons(sim) if reasons is None else reasons
     if any(r.startswith("REBOUNDx") for r in reasons):
         return ", ".join(r for r in reasons if r.startswith("REBOUNDx"))
     run = getattr(_RUN, "run", None)
@@ -926,14 +931,32 @@ def _force_name(sim, reasons) -> str:
         return "sim.additional_forces"
 
 
-def _probe_velocities(sim, view, ix, ivx, reasons) -> None:
+def _probe_run(sim) -> None:
+    """:func:`_probe_velocities` at the start of a run on REBOUND's own accelerations (the
+    step's preparation probes the first run): a force may start reading the velocities later
+    (a drag switched on at some time)."""
+    if not sim._additional_forces or sim.force_is_velocity_dependent:
+        return
+    ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
+    N = sim.N
+    if not ptr or N == 0:
+        return
+    offsets = _REG["offsets"]
+    ix, ivx = (offsets[i - L.R_T] for i in (L.R_X, L.R_VX))
+    view = doubles(ptr, N * offsets[L.R_STRIDE - L.R_T]).reshape(N, -1)
+    _probe_velocities(sim, view, ix, ivx)
+
+
+def _probe_velocities(sim, view, ix, ivx, reasons=None) -> None:
     """A force that reads the velocities without ``sim.force_is_velocity_dependent`` would see
     the step's initial velocities at every stage (as IAS15's substeps then do): integrated to
     first order only, in silence (a drag ended 1.1 off, 30 times IAS15's error under the same
     mistake).  So the forces are evaluated once more with the velocities moved: when the
     accelerations move with them, the flag is set (the stages then hand the force their own
     velocities, order 2s) and a warning names the force and the flag.  The particles' positions
-    and velocities are as before; the accelerations are scratch (each stage computes them)."""
+    and velocities are as before; the accelerations are scratch (each stage computes them).
+    Done when the step is prepared and at the start of every later run (:func:`_probe_run`):
+    two evaluations of the forces a run."""
     lib = _rebound().clibrebound
     ax = _REG["ax"]
     v0 = view[:, ivx:ivx + 3].copy()
