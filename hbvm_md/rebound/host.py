@@ -835,9 +835,26 @@ def _prepare(sim, p: int) -> None:
         u, vw = dim, binding.minv
     y, g, c = (doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
-    keep = (not model_changed and y.size == 4 * dim and g.size == s * u
-            and np.array_equal(y[:3 * N], x.reshape(-1))
+    same = not model_changed and y.size == 4 * dim and g.size == s * u
+    keep = (same and np.array_equal(y[:3 * N], x.reshape(-1))
             and np.array_equal(y[dim:dim + 3 * N] * vw, v.reshape(-1)))
+    if same and not keep and np.all(np.isfinite(x)) and np.all(np.isfinite(v)):
+        # a saved or copied run whose particles were moved after its last step (a REBOUNDx
+        # operator, a post-timestep callback): read them as the compiled step reads particles
+        # moved between two steps (particles.reread_particles: q = x, p = v / minv, the
+        # compensations zeroed, the previous coefficients and step kept as the next step's
+        # initial guess), so that the continued run is the uninterrupted one bit for bit (it
+        # started afresh here: restarts with integrate_force differed by 1e-14 to 6e-11)
+        if nb is not None:
+            y0 = np.concatenate([x.reshape(-1), v.reshape(-1) / vw])
+            check_particles(y0, nb)
+        else:                   # (v / 1: the state of REBOUND's own accelerations holds v)
+            y0 = scene.state(x, v, sim.t)
+        y[:] = 0.0
+        y[:2 * dim] = y0
+        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
+        st[L.SL_RESYNCS] += 1
+        keep = True
     if not keep:
         if nb is not None:
             q0 = x.reshape(-1).copy()
