@@ -838,13 +838,16 @@ def _prepare(sim, p: int) -> None:
     same = not model_changed and y.size == 4 * dim and g.size == s * u
     keep = (same and np.array_equal(y[:3 * N], x.reshape(-1))
             and np.array_equal(y[dim:dim + 3 * N] * vw, v.reshape(-1)))
-    if same and not keep and np.all(np.isfinite(x)) and np.all(np.isfinite(v)):
+    if (same and not keep and np.isfinite(sd[L.SL_H_PREV]) and np.all(np.isfinite(x))
+            and np.all(np.isfinite(v))):
         # a saved or copied run whose particles were moved after its last step (a REBOUNDx
         # operator, a post-timestep callback): read them as the compiled step reads particles
         # moved between two steps (particles.reread_particles: q = x, p = v / minv, the
         # compensations zeroed, the previous coefficients and step kept as the next step's
         # initial guess), so that the continued run is the uninterrupted one bit for bit (it
-        # started afresh here: restarts with integrate_force differed by 1e-14 to 6e-11)
+        # started afresh here: restarts with integrate_force differed by 1e-14 to 6e-11).
+        # Only after a step (h_prev known): before any, the fresh start below (p = m v) is the
+        # uninterrupted run's, also when a signal stopped the first preparation halfway.
         if nb is not None:
             y0 = np.concatenate([x.reshape(-1), v.reshape(-1) / vw])
             check_particles(y0, nb)
