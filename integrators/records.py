@@ -63,7 +63,9 @@ Extrapolation = namedtuple("Extrapolation", ["E1", "t", "w", "buf", "zero"])
 Adaptive = namedtuple("Adaptive", ["epsilon", "min_dt", "res"])
 StepConstants = namedtuple("StepConstants", ["h", "ht", "ht_lo", "h2", "h2_lo"])
 Block = namedtuple("Block", ["y", "cy", "minv", "a", "X", "F"])
-Tangents = namedtuple("Tangents", ["V", "DG", "Vt", "DGt", "tw", "tcw", "tcount"])
+#: P (nv, p): each tangent's own params for the jvp kernel (p = 0: the system's), e.g. the N-body
+#: params followed by a variation of the masses (:func:`systems.nbody.nbody_force_jvp`)
+Tangents = namedtuple("Tangents", ["V", "DG", "Vt", "DGt", "tw", "tcw", "tcount", "P"])
 Variational = namedtuple("Variational", ["max_iter", "y0", "cy0", "gsave", "snap", "mg", "wv",
                                          "out_v", "out_m"])
 

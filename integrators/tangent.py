@@ -113,7 +113,10 @@ def stages(full, narrow, y, cy, minv, g, tab, sc, a, X, R, exact):
 def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     """V (nv, d) <- dPhi_h/dy0 V: the tangent vectors carried through the step of size h from
     the double-double state (y0, cy0) whose converged coefficients are gamma (s, u).  The
-    records (:mod:`integrators.records`): ``tan`` holds V, DG, Vt, DGt, tw, tcw, tcount.
+    records (:mod:`integrators.records`): ``tan`` holds V, DG, Vt, DGt, tw, tcw, tcount and P
+    (nv, p): each tangent's params for the jvp kernel, or p = 0 for the system's (a parameter
+    varied along the tangent, as a mass of REBOUND's variational particles: the kernel's
+    derivative along it is part of the linearised stage equations).
 
     DG (nv, s, u): each tangent's coefficients d gamma of the previous step (zero: none), the
     initial guess extrapolated with E, and replaced by this step's.  (NV, NVinv, NM): the
@@ -123,7 +126,7 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     tangent's iterations.  Returns OK, or DIVERGED / NOT_FINITE with V and DG unchanged."""
     full, minv, _, params = system
     NV, NVinv, NM = newton
-    V, DG, Vt, DGt, tw, tcw, tcount = tan
+    V, DG, Vt, DGt, tw, tcw, tcount, P = tan
     tab = tableau(method)
     tau, tau_lo, X0, X0_lo, W = tab.tau, tab.tau_lo, tab.X0, tab.X0_lo, tab.W
     n = tau.shape[0]
@@ -146,6 +149,9 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     stages(full, narrow, y0, cy0, minv, gamma, tab, sc, a, X, R, True)
     for v in range(V.shape[0]):
         dy = V[v]
+        # a tangent's own params (a variation of a parameter the force depends on, e.g. a mass:
+        # the jvp then adds the force's derivative along it, the same at every iteration)
+        pv = params if P.shape[1] == 0 else P[v]
         if narrow:
             guess_narrow(E, DG[v], dg)
         else:
@@ -158,7 +164,7 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
             it += 1
             # the tangent's stages: the step's affine stage map with (dy0, 0) for (y0, cy0)
             stages(full, narrow, dy, zero, minv, dg, tab, sc, a, dX, R, False)
-            evaluate_jvp(full, X, dX, params, dF, dG)
+            evaluate_jvp(full, X, dX, pv, dF, dG)
             tcount[1] += n
             if _NEWTON and newton:
                 if narrow:

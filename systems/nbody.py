@@ -560,13 +560,21 @@ def nbody_force_jvp(Q, dQ, params, out):
     """The derivative of :func:`nbody_forces` along dQ, row by row: out[r] = (dF/dq)(Q[r]) dQ[r]
     (n, 3N), with the kernel's params (module docstring; only G, N, w and g are read).
 
+    params whose N is given as -N (params[1]) hold a variation dg (N,) of the gravitating
+    masses at 3N + 3 (after the kernel's own 3N + 3 entries; REBOUND's variational particles
+    carry one in their m): the derivative along it is added, dF_i = G w_i sum_j dg_j (q_j -
+    q_i) / r^3 (the force is linear in g; w, the masses of the momenta, stays: a tangent's
+    momenta are w dv, so this is w times the acceleration's derivative, as REBOUND's
+    variational equations take it).  (A sign, not a length: the followers' block may follow the
+    kernel's entries.)
+
     The force on i from j, G w_i g_j d / r^3 with d = q_j - q_i, moves along dd = dq_j - dq_i by
     the tidal tensor G w_i g_j [dd / r^3 - 3 d (d . dd) / r^5]; j feels the opposite with w_j
     g_i.  As in the force kernel a test particle (g = 0) acts on nobody: a pair is visited only
     when a source is in it (a source's row and test particles' rows against the sources), so
     the cost is O(n N_s N) for N_s sources."""
     G = params[0]
-    N = int(params[1])
+    N = abs(int(params[1]))
     for r in range(Q.shape[0]):
         for a in range(3 * N):
             out[r, a] = 0.0
@@ -600,3 +608,35 @@ def nbody_force_jvp(Q, dQ, params, out):
                 out[r, 3 * j] -= cj * tx
                 out[r, 3 * j + 1] -= cj * ty
                 out[r, 3 * j + 2] -= cj * tz
+    if params[1] < 0.0:
+        _mass_jvp(Q, params, out)
+
+
+@jit
+def _mass_jvp(Q, params, out):
+    """out[r] += G w_i sum_j dg_j (q_j - q_i) / r^3 at each row of Q: the force's derivative
+    along the variation dg of the gravitating masses that follows the kernel's params
+    (:func:`nbody_force_jvp`); nothing when dg is zero."""
+    G = params[0]
+    N = -int(params[1])
+    base = 3 * N + 3
+    varied = False
+    for j in range(N):
+        varied = varied or params[base + j] != 0.0
+    if not varied:
+        return
+    for r in range(Q.shape[0]):
+        for i in range(N):
+            wi = params[2 + i]
+            for j in range(N):
+                dgj = params[base + j]
+                if dgj == 0.0 or j == i:
+                    continue
+                dx = Q[r, 3 * j] - Q[r, 3 * i]
+                dy = Q[r, 3 * j + 1] - Q[r, 3 * i + 1]
+                dz = Q[r, 3 * j + 2] - Q[r, 3 * i + 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                c = G * wi * dgj / (r2 * np.sqrt(r2))
+                out[r, 3 * i] += c * dx
+                out[r, 3 * i + 1] += c * dy
+                out[r, 3 * i + 2] += c * dz

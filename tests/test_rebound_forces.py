@@ -122,23 +122,27 @@ def test_stage_velocities_keep_order_2s_on_a_drag(s):
     """A linear drag a = -0.01 v on two planets (a user's Python force that sets
     ``force_is_velocity_dependent``): HBVM(s, s), fixed steps over one inner orbit, error
     against IAS15 (epsilon 1e-12) falls as h^(2s).  The same runs with the flag unset (the
-    stage sees the step's initial velocities, as IAS15 then does) fall as h only (measured
-    slopes 3.98 and 5.99 with the flag, 0.86 without): the stage velocities keep the order."""
+    stage saw the step's initial velocities, as IAS15 then does) fell as h only (measured
+    slopes 3.98 and 5.99 with the flag, 0.86 without): the host now probes the force, sets the
+    flag and warns (:func:`hbvm_md.rebound.host._probe_velocities`), so the run without the flag
+    is the run with it, bit for bit."""
     t_end = 2 * np.pi
     ref = _drag_planets("ias15")
     ref.integrator.epsilon = 1e-12
     ref.integrate(t_end)
-    slopes = {}
-    for flag in (1, 0):
-        hs, errs = [], []
-        for n in (16, 24, 32, 48):
-            sim = _drag_planets("hbvm", flag, s=s, k=s, dt=t_end / n, energy_tol=None)
-            sim.integrate(t_end)
-            hs.append(t_end / n)
-            errs.append(_diff(sim, ref))
-        slopes[flag] = np.polyfit(np.log(hs), np.log(errs), 1)[0]
-    assert abs(slopes[1] - 2 * s) < 0.3, slopes
-    assert slopes[0] < 1.5, slopes
+    hs, errs, runs = [], [], []
+    for n in (16, 24, 32, 48):
+        sim = _drag_planets("hbvm", 1, s=s, k=s, dt=t_end / n, energy_tol=None)
+        sim.integrate(t_end)
+        hs.append(t_end / n)
+        errs.append(_diff(sim, ref))
+        runs.append(sim)
+    slope = np.polyfit(np.log(hs), np.log(errs), 1)[0]
+    assert abs(slope - 2 * s) < 0.3, slope
+    unset = _drag_planets("hbvm", 0, s=s, k=s, dt=t_end / 16, energy_tol=None)
+    with pytest.warns(RuntimeWarning, match=r"force_is_velocity_dependent = 1"):
+        unset.integrate(t_end)
+    assert unset.force_is_velocity_dependent == 1 and _diff(unset, runs[0]) == 0.0
 
 
 def test_gr_potential_keeps_its_hamiltonian():
@@ -492,7 +496,8 @@ def test_velocity_flag_set_between_runs_takes_the_stage_velocities():
     """``force_is_velocity_dependent`` set between two runs (a drag that starts at t = 5) is a
     change HBVM notices (a setting it checks): the second run hands the stages their
     velocities and agrees with IAS15 to 1e-8 (measured 1.2e-14); with the flag left unset
-    for HBVM alone (the stages see the step's initial velocities) the runs end 3.8e-2 apart."""
+    for HBVM alone (the stages saw the step's initial velocities) the runs ended 3.8e-2 apart,
+    and now the second run's probe sets it (and warns): the same answer."""
     sims = []
     for integ in ("ias15", "hbvm"):
         sim = _drag_planets(integ, flag=0, start=5.0)
@@ -501,6 +506,13 @@ def test_velocity_flag_set_between_runs_takes_the_stage_velocities():
         sim.integrate(20.0)
         sims.append(sim)
     assert _diff(*sims) < 1e-8
+    # the drag is off at the first run's start (nothing to detect), on at the second's
+    unset = _drag_planets("hbvm", flag=0, start=5.0)
+    unset.integrate(5.0)
+    assert unset.force_is_velocity_dependent == 0
+    with pytest.warns(RuntimeWarning, match=r"force_is_velocity_dependent = 1"):
+        unset.integrate(20.0)
+    assert _diff(unset, sims[1]) < 1e-12
 
 
 def test_reboundx_force_added_between_runs_is_noticed():

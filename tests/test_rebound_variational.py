@@ -160,3 +160,43 @@ def test_a_users_edit_of_the_variational_particles_is_carried_on():
         sim.integrate(100.0)
         out.append(_xv(sim.particles_var))
     assert np.max(np.abs(out[1] - 2 * out[0])) / np.max(np.abs(out[1])) < 1e-12
+
+
+def _three_bodies(masses, start=None):
+    sim = rebound.Simulation()
+    sim.add(m=masses[0])
+    sim.add(m=masses[1], a=1.0, e=0.1, inc=0.02, f=0.4)
+    sim.add(primary=sim.particles[0], m=masses[2], a=1.76, f=2.0)
+    for p, (x, v) in zip(sim.particles, start or ()):
+        p.xyz, p.vxyz = x, v
+    HBVMIntegrator(sim, s=6, k=8, dt=0.05, adaptive=False)
+    return sim
+
+
+@pytest.mark.parametrize("body, elements", [(0, False), (1, False), (2, False), (1, True)])
+def test_a_varied_mass_is_the_central_difference_of_two_runs(body, elements):
+    """A variational particle set that varies a mass (its particle's m, as ``var.vary(i, "m")``
+    sets it; REBOUND's ``test_all_1st_order_full`` with "hbvm") is the derivative of the
+    fixed-step map along that mass, as central differences of two runs with m_i +- eps converge
+    to: the mass alone at a fixed Cartesian start (the star's moves every pull; a planet's, the
+    others'), and with ``vary`` at fixed orbital elements (the velocities move too).  It used to
+    be off by order one: the tangent map left the force's dependence on the masses out."""
+    masses = np.array([1.0, 1e-3, 1e-3])
+    start = None if elements else [(p.xyz, p.vxyz) for p in _three_bodies(masses).particles]
+    sim = _three_bodies(masses, start)
+    var = sim.add_variation()
+    if elements:
+        var.vary(body, "m")
+    else:
+        var.particles[body].m = 1.0
+    sim.integrate(1.4)
+    eps = 1e-6
+    dm = eps * (np.arange(3) == body)
+    plus, minus = _three_bodies(masses + dm, start), _three_bodies(masses - dm, start)
+    plus.integrate(1.4)
+    minus.integrate(1.4)
+    fd = (_xv(plus.particles) - _xv(minus.particles)) / (2 * eps)
+    tangent = _xv(var.particles)
+    err = np.max(np.abs(tangent - fd)) / np.max(np.abs(fd))
+    assert err < 1e-8, err                       # (measured 3e-11 to 1.4e-10)
+    assert var.particles[body].m == 1.0          # (REBOUND's, carried through unchanged)

@@ -35,13 +35,13 @@ from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
     R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
     SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
-    SL_K, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
+    SL_K, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
 from hbvm_md.rebound.forces import CLOCK
@@ -115,7 +115,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     y, cy, gamma, eref, clock = state
     yt, cyt, gammat, ereft, _ = trial
     counters = wk.counters
-    V, DG, Vt, DGt, tw, tcw, tcount = tan
+    V, DG, Vt, DGt, tw, tcw, tcount, TP = tan
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
@@ -134,8 +134,12 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         sd[SL_H_FAIL] = h
         return BAD_DT
     t_start = simd[ctx[R_T]]
-    adaptive = st[SL_ADAPTIVE] != 0
+    # epsilon = 0: fixed steps of sim.dt, as IAS15 takes them (REBOUND's idiom)
+    adaptive = st[SL_ADAPTIVE] != 0 and sd[SL_EPSILON] != 0.0
     epsilon = sd[SL_EPSILON] if adaptive else 0.0
+    max_dt = sd[SL_MAX_DT] if adaptive else 0.0
+    if max_dt > 0.0 and abs(h) > max_dt:       # (the user's bound, e.g. for an operator)
+        h = max_dt if h > 0.0 else -max_dt
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     # the step's own error estimate (integrators.core.resolution_error, every body of three
     # coordinates), on with the energy check (energy_tol=None switches both off)
@@ -147,7 +151,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
         cy[m - 1] = 0.0
     if _TANGENTS and nv > 0:
-        read_tangents(pv, vidx, N, ix, ivx, minv, V, DG)
+        read_tangents(pv, vidx, N, ix, ivx, ctx[R_M], minv, V, DG, host[1], params, TP)
     res[2] = 0.0
     # a fixed step's test-particle check may refuse a converged step: its work then comes out
     # of the counters and the clock, as the core takes a failed step's out
@@ -193,7 +197,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             dg = DGs
         tstatus = tangent_map(System(False, minv, kin_w, params), y, cy, gammat, h_done, E,
                               method, newton, 2 * st[SL_MAX_ITER],
-                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount))
+                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount, TP))
         if tstatus != OK:
             sd[SL_H_FAIL] = h_done
             sd[SL_T_FAIL] = t_start
@@ -221,7 +225,10 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
     simd[ctx[R_DTL]] = h_done
     if adaptive:
-        simd[ctx[R_DT]] = res[1]               # the next step proposed
+        h_next = res[1]                        # the next step proposed
+        if max_dt > 0.0 and abs(h_next) > max_dt:
+            h_next = max_dt if h_next > 0.0 else -max_dt
+        simd[ctx[R_DT]] = h_next
     if _TANGENTS and nv > 0:
         write_tangents(pv, vidx, N, ix, ivx, minv, V)
         if (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0:
@@ -291,7 +298,8 @@ def core_step(r, p):
         Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s)),
         Tangents(f2(A_V, nv, 2 * m), f3(A_DG, nv, s, m), f2(A_VT, nv, 2 * m),
                  f3(A_DGT, nv, s, m), f(A_TW, ctx[D_TGF]),
-                 carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3)))
+                 carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
+                 f2(A_TP, nv, 4 * N + 3)))
 
 if TYPE_CHECKING:
     # integrators.specialise compiles this text after the step's (integrators.loop, and

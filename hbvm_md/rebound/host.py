@@ -220,15 +220,21 @@ def _install_runs(rebound) -> None:
     reb_integrate, reb_steps = S.integrate, S.steps
     step_at, dispatch, eft_at = _REG["step_at"], _REG["dispatch"], _REG["eft_at"]
     messages_at = _REG["messages_at"]
+    auto_step_at = S.simulationarchive_auto_step.offset
     c_int, c_void_p, addressof = ctypes.c_int, ctypes.c_void_p, ctypes.addressof
+    c_uint64 = ctypes.c_uint64
     c_double, c_size_t = ctypes.c_double, ctypes.c_size_t
 
     def integrate(self, tmax, exact_finish_time=1):
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_integrate(self, tmax, exact_finish_time)
-        with _Run(addr) as run:
+        with _Run(addr, self) as run:
             _PENDING.pop(addr, None)
+            if c_uint64.from_address(addr + auto_step_at).value:
+                _warn_step_archive(addr)
+            if addr in _HOST_PATH:
+                _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
@@ -239,8 +245,12 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_steps(self, N_steps)
-        with _Run(addr) as run:
+        with _Run(addr, self) as run:
             _PENDING.pop(addr, None)
+            if c_uint64.from_address(addr + auto_step_at).value:
+                _warn_step_archive(addr)
+            if addr in _HOST_PATH:
+                _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             status = c_steps(addr, c_size_t(N_steps))
@@ -249,6 +259,27 @@ def _install_runs(rebound) -> None:
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _warn_step_archive(addr: int) -> None:
+    """An archive saved every N steps (``sim.save_to_file(f, step=N)``) of a run with adaptive
+    steps holds snapshots unevenly spaced in time, which a user written for fixed steps (a
+    frequency analysis, REBOUND's FrequencyAnalysis notebook) takes as evenly spaced: warn at
+    the run's start, naming ``interval=`` (REBOUND's docs tell IAS15's users the same)."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    if not st[L.SL_ADAPTIVE] or sd[L.SL_EPSILON] == 0.0:
+        return
+    sim = _rebound().Simulation.from_address(addr)
+    warnings.warn(
+        f"sim.save_to_file(..., step={sim.simulationarchive_auto_step}) saves a snapshot every "
+        f"{sim.simulationarchive_auto_step} steps, and HBVM's adaptive steps vary in length (as "
+        "IAS15's), so the snapshots are unevenly spaced in time (a frequency analysis of them is "
+        "wrong); save at even times with sim.save_to_file(filename, interval=...), or take "
+        "fixed steps of sim.dt with sim.integrator.epsilon = 0", RuntimeWarning,
+        stacklevel=_user_stacklevel())
 
 
 def _prepared(addr: int):
@@ -290,10 +321,11 @@ class _Run:
     ``sim.integrate`` call that takes no step cost 4.5 us, now 3.0 us (REBOUND's own for WHFast:
     3.3 us), and one that takes one step of the outer solar system 24 us, now 22 us."""
 
-    __slots__ = ("addr", "raised", "outer", "owner")
+    __slots__ = ("addr", "sim", "raised", "outer", "owner")
 
-    def __init__(self, addr: int):
-        self.addr, self.raised = addr, None
+    def __init__(self, addr: int, sim=None):
+        # (sim: the user's Python object, which holds the Python callbacks: messages name them)
+        self.addr, self.sim, self.raised = addr, sim, None
 
     def __enter__(self):
         # the hook is chained in front of whatever hook is in place when a run starts (not at
@@ -412,14 +444,67 @@ def _install_operators() -> None:
 
     def add_operator(self, operator, dtfraction=None, timing="post"):
         sim = self._sim
-        if (dtfraction is None and sim and ctypes.c_void_p.from_address(
+        if not (sim and ctypes.c_void_p.from_address(
                 ctypes.addressof(sim.contents) + step_at).value == dispatch):
-            return rebx_add_operator(self, operator, 1.0, "post")   # (IAS15's choice)
-        return rebx_add_operator(self, operator, dtfraction, timing)
+            return rebx_add_operator(self, operator, dtfraction, timing)
+        if dtfraction is None:
+            rebx_add_operator(self, operator, 1.0, "post")   # (IAS15's choice)
+        else:
+            rebx_add_operator(self, operator, dtfraction, timing)
+        # (before the first run the step's preparation warns, for operators added to another
+        # integrator too)
+        if _prepared(ctypes.addressof(sim.contents)) is not None:
+            _warn_operators(sim.contents, [operator])
 
     add_operator.__doc__ = rebx_add_operator.__doc__
     add_operator._hbvm_md = True
     Extras.add_operator = add_operator
+
+
+def _operators(sim) -> list:
+    """REBOUNDx's operators attached to ``sim`` (before and after the step), [] without."""
+    if not sim.extras:
+        return []
+    try:
+        import reboundx
+    except ImportError:
+        return []
+    extras = reboundx.extras.Extras.from_address(sim.extras)
+    out = []
+    for node in (extras._pre_timestep_modifications, extras._post_timestep_modifications):
+        while node:
+            # a rebx_step: the operator's address, then its dt fraction
+            op = ctypes.c_void_p.from_address(node.contents.object).value
+            if op:
+                out.append(reboundx.extras.Operator.from_address(op))
+            node = node.contents.next
+    return out
+
+
+def _warn_operators(sim, operators) -> None:
+    """REBOUNDx warns IAS15's users that an operator that changes the particles, applied once
+    per adaptive step, can give spurious results.  At HBVM's longer steps the splitting error is
+    larger (REBOUNDx's operator notebooks: 2.5 to 10 times IAS15's), so the same warning, with
+    HBVM's ways out: a bound on the step (``max_dt``), or fixed steps of a small ``sim.dt``.
+    Not when the user chose the steps (fixed steps, or ``max_dt`` set)."""
+    p = ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    if not st[L.SL_ADAPTIVE] or sd[L.SL_EPSILON] == 0.0 or sd[L.SL_MAX_DT] > 0.0:
+        return
+    for op in operators:
+        if op._operator_type == 2:          # a recorder (REBOUNDx's REBX_OPERATOR_TYPE)
+            continue
+        name = op.name.decode() if op.name else "?"
+        warnings.warn(
+            f"REBOUNDx operator '{name}' is applied once per HBVM step, after it (as REBOUNDx "
+            "applies it for IAS15, which warns too): a splitting error that grows with the step, "
+            "and HBVM's adaptive steps are longer than IAS15's (REBOUNDx's operator notebooks: "
+            "2.5 to 10 times IAS15's error); bound the step with sim.integrator.max_dt (IAS15's "
+            "step on the scene gives about IAS15's error), take fixed steps of a small sim.dt "
+            "(sim.integrator.epsilon = 0), or use a REBOUNDx force in place of the operator",
+            RuntimeWarning, stacklevel=_user_stacklevel())
 
 
 def _after_run(sim, addr: int, status: int, messages_at: int, raised=None) -> None:
@@ -688,14 +773,21 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
         ("max_iter", int(st[L.SL_MAX_ITER]), "a positive integer"),
         ("tol", float(sd[L.SL_TOL]), "in [0, 1) (0: round-off)"),
         ("energy_tol", float(sd[L.SL_ETOL]), "a finite number >= 0 (0: no check), or in "
-         "(-1, 0) for the not-a-solution rule"))
+         "(-1, 0) for the not-a-solution rule"),
+        ("max_dt", float(sd[L.SL_MAX_DT]), "a finite number >= 0 (0: no bound on the adaptive "
+         "step)"))
         if not (v >= 1 if n == "max_iter" else
-                0 <= v < 1 if n == "tol" else -1 < v < math.inf)]
+                0 <= v < 1 if n == "tol" else
+                0 <= v < math.inf if n == "max_dt" else -1 < v < math.inf)]
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
-    if st[L.SL_ADAPTIVE]:
-        check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
+    if st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] != 0.0:   # (0: fixed steps, as IAS15's)
+        try:
+            check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
+        except ValueError as exc:
+            raise ValueError(f"sim.integrator: {exc}; sim.integrator.epsilon = 0 takes fixed "
+                             "steps of sim.dt, as with IAS15") from None
     return method
 
 
@@ -733,6 +825,8 @@ def _prepare(sim, p: int) -> None:
         # them
         _check_host_path(sim, method, reasons)
         _clear_gravity_ignore(sim)
+        if not sim.force_is_velocity_dependent and sim._additional_forces:
+            _probe_velocities(sim, view, ix, ivx, reasons)
         scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
         nb = None
         # (variational particles are refused on this path: no tangent map is compiled)
@@ -751,9 +845,29 @@ def _prepare(sim, p: int) -> None:
         u, vw = dim, binding.minv
     y, g, c = (doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
-    keep = (not model_changed and y.size == 4 * dim and g.size == s * u
-            and np.array_equal(y[:3 * N], x.reshape(-1))
+    same = not model_changed and y.size == 4 * dim and g.size == s * u
+    keep = (same and np.array_equal(y[:3 * N], x.reshape(-1))
             and np.array_equal(y[dim:dim + 3 * N] * vw, v.reshape(-1)))
+    if (same and not keep and np.isfinite(sd[L.SL_H_PREV]) and np.all(np.isfinite(x))
+            and np.all(np.isfinite(v))):
+        # a saved or copied run whose particles were moved after its last step (a REBOUNDx
+        # operator, a post-timestep callback): read them as the compiled step reads particles
+        # moved between two steps (particles.reread_particles: q = x, p = v / minv, the
+        # compensations zeroed, the previous coefficients and step kept as the next step's
+        # initial guess), so that the continued run is the uninterrupted one bit for bit (it
+        # started afresh here: restarts with integrate_force differed by 1e-14 to 6e-11).
+        # Only after a step (h_prev known): before any, the fresh start below (p = m v) is the
+        # uninterrupted run's, also when a signal stopped the first preparation halfway.
+        if nb is not None:
+            y0 = np.concatenate([x.reshape(-1), v.reshape(-1) / vw])
+            check_particles(y0, nb)
+        else:                   # (v / 1: the state of REBOUND's own accelerations holds v)
+            y0 = scene.state(x, v, sim.t)
+        y[:] = 0.0
+        y[:2 * dim] = y0
+        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
+        st[L.SL_RESYNCS] += 1
+        keep = True
     if not keep:
         if nb is not None:
             q0 = x.reshape(-1).copy()
@@ -801,6 +915,8 @@ def _prepare(sim, p: int) -> None:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
     _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
+    if sim.extras:
+        _warn_operators(sim, _operators(sim))
     (_HOST_PATH.add if nb is None else _HOST_PATH.discard)(ctypes.addressof(sim))
 
 
@@ -825,6 +941,76 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
         if not np.array_equal(written[:, 6], m):
             return True
     return False
+
+
+def _force_name(sim, reasons=None) -> str:
+    """The added forces by name: REBOUNDx's, or the user's Python function (held by the user's
+    Simulation object of the run in progress, :class:`_Run`)."""
+    reasons = host_reasons(sim) if reasons is None else reasons
+    if any(r.startswith("REBOUNDx") for r in reasons):
+        return ", ".join(r for r in reasons if r.startswith("REBOUNDx"))
+    run = getattr(_RUN, "run", None)
+    while run is not None and run.addr != ctypes.addressof(sim):
+        run = run.outer
+    try:
+        import gc
+        afp = run.sim._afp               # (REBOUND's ctypes wrapper of the user's function)
+        fn = next(r for r in gc.get_referents(afp) if callable(r) and not isinstance(r, type))
+        return f"sim.additional_forces ({getattr(fn, '__qualname__', fn)!r})"
+    except Exception:  # noqa: BLE001 - a C function, or another Python than CPython
+        return "sim.additional_forces"
+
+
+def _probe_run(sim) -> None:
+    """:func:`_probe_velocities` at the start of a run on REBOUND's own accelerations (the
+    step's preparation probes the first run): a force may start reading the velocities later
+    (a drag switched on at some time)."""
+    if not sim._additional_forces or sim.force_is_velocity_dependent:
+        return
+    ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
+    N = sim.N
+    if not ptr or N == 0:
+        return
+    offsets = _REG["offsets"]
+    ix, ivx = (offsets[i - L.R_T] for i in (L.R_X, L.R_VX))
+    view = doubles(ptr, N * offsets[L.R_STRIDE - L.R_T]).reshape(N, -1)
+    _probe_velocities(sim, view, ix, ivx)
+
+
+def _probe_velocities(sim, view, ix, ivx, reasons=None) -> None:
+    """A force that reads the velocities without ``sim.force_is_velocity_dependent`` would see
+    the step's initial velocities at every stage (as IAS15's substeps then do): integrated to
+    first order only, in silence (a drag ended 1.1 off, 30 times IAS15's error under the same
+    mistake).  So the forces are evaluated once more with the velocities moved: when the
+    accelerations move with them, the flag is set (the stages then hand the force their own
+    velocities, order 2s) and a warning names the force and the flag.  The particles' positions
+    and velocities are as before; the accelerations are scratch (each stage computes them).
+    Done when the step is prepared and at the start of every later run (:func:`_probe_run`):
+    two evaluations of the forces a run."""
+    lib = _rebound().clibrebound
+    ax = _REG["ax"]
+    v0 = view[:, ivx:ivx + 3].copy()
+    scale = float(np.max(np.abs(v0))) or 1.0
+    # every component moved, by different amounts, so that no symmetry of a force hides it
+    dv = 1e-3 * scale * (1.0 + np.arange(v0.size).reshape(v0.shape) / v0.size)
+    try:
+        lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
+        a0 = view[:, ax:ax + 3].copy()
+        view[:, ivx:ivx + 3] = v0 + dv
+        lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
+        a1 = view[:, ax:ax + 3].copy()
+    finally:
+        view[:, ivx:ivx + 3] = v0
+    if np.array_equal(a0, a1) or not (np.all(np.isfinite(a0)) and np.all(np.isfinite(a1))):
+        return
+    sim.force_is_velocity_dependent = 1
+    warnings.warn(
+        f"{_force_name(sim, reasons)} changes the accelerations when the velocities change, but "
+        "sim.force_is_velocity_dependent was 0: its stages would have seen the step's initial "
+        "velocities (a first-order error, as IAS15's substeps under the same setting); HBVM "
+        "set sim.force_is_velocity_dependent = 1 (each stage hands the force its own "
+        "velocities: order 2s). Set it yourself after setting the force to silence this warning",
+        RuntimeWarning, stacklevel=_user_stacklevel())
 
 
 def _check_host_path(sim, method, reasons) -> None:
@@ -887,7 +1073,8 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
                    L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
-                   L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx})
+                   L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx,
+                   L.A_TP: np.zeros((nv, 4 * N + 3))})
     sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
     head = 8 * L.N_HEADER
     total = head + sum(sizes.values())
@@ -978,5 +1165,6 @@ def _python_step(code, st):
                             f(L.A_EZERO, (s, s))),
             R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),
                        f(L.A_DGT, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
-                       f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3))))
+                       f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3),
+                       f(L.A_TP, (nv, 4 * N + 3)))))
     return step

@@ -188,6 +188,11 @@ class HBVMIntegrator(Counted):
     min_dt : float
         Smallest step the adaptive control may take; below it a step that cannot be resolved
         raises :class:`integrators.StepSizeError`.
+    max_dt : float
+        Largest step the adaptive control may take (0, the default: no bound).  REBOUNDx
+        operators are applied once per step, after it, so their splitting error grows with the
+        step: a bound of about IAS15's step on the scene brings it to IAS15's
+        (``sim.integrator.max_dt``, saved with the simulation).
     energy_tol : float, "auto" or None
         A step that changes the energy of the gravitating bodies by more than this, relative to
         |T| + |V|, is refused with :class:`integrators.UnresolvedStepError` (nothing committed).
@@ -225,7 +230,7 @@ class HBVMIntegrator(Counted):
                  dt: float | None = None, max_iter: int = 60, tol: float | None = None,
                  nodes: str = "gauss", energy_tol: float | str | None = "auto",
                  adaptive: bool | None = None, epsilon: float | None = None,
-                 min_dt: float = 0.0, method: str = "hbvm"):
+                 min_dt: float = 0.0, method: str = "hbvm", max_dt: float = 0.0):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
@@ -258,12 +263,18 @@ class HBVMIntegrator(Counted):
         if not auto and energy_tol is not None and not 0 < _real("energy_tol", energy_tol) < math.inf:
             raise ValueError(f"`energy_tol` must be a positive number or None, or 'auto' (got "
                              f"energy_tol={energy_tol!r}); None switches the energy check off")
+        if epsilon == 0 and not isinstance(epsilon, bool) and adaptive is not True:
+            # IAS15's idiom: epsilon = 0 takes fixed steps of sim.dt (here: of dt, or sim.dt)
+            adaptive, epsilon = False, DEFAULT_EPSILON if family is HBVM else EQUIP_DEFAULT_EPSILON
         if adaptive is None:
             adaptive = dt is None      # like IAS15: no step to choose unless one is given
         if not isinstance(adaptive, (bool, np.bool_)):
             raise TypeError(f"`adaptive` must be True, False or None (got adaptive={adaptive!r})")
         if adaptive:
             epsilon, min_dt = check_adaptive(epsilon, min_dt, method.s)
+        if not 0 <= _real("max_dt", max_dt) < math.inf:
+            raise ValueError(f"`max_dt` must be a finite number >= 0 (got max_dt={max_dt!r}); "
+                             "0 leaves the adaptive step unbounded")
         check_simulation(sim)
         if dt is not None:
             h = _step_size("dt", dt)
@@ -298,8 +309,8 @@ class HBVMIntegrator(Counted):
         st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
             L.METHODS.index("equip" if family is EQUIP else "hbvm"), method.s, method.k,
             L.NODES.index(method.nodes), int(max_iter), int(adaptive))
-        sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL]] = (
-            float(epsilon), float(min_dt), float(tol or 0.0), etol)
+        sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_MAX_DT]] = (
+            float(epsilon), float(min_dt), float(tol or 0.0), etol, float(max_dt))
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":
@@ -338,9 +349,25 @@ class HBVMIntegrator(Counted):
                         doc="Adaptive trial steps rejected (and retried smaller).")
     resyncs = property(lambda self: self._get(L.SL_RESYNCS),
                        doc="How often the state was read afresh from the particles.")
-    adaptive = property(lambda self: bool(self._get(L.SL_ADAPTIVE)))
+    adaptive = property(lambda self: bool(self._get(L.SL_ADAPTIVE))
+                        and self._get(L.SL_EPSILON) != 0.0,
+                        doc="Adaptive steps (False: fixed steps of sim.dt, also with "
+                            "``sim.integrator.epsilon = 0``, as with IAS15).")
     epsilon = property(lambda self: self._get(L.SL_EPSILON))
     min_dt = property(lambda self: self._get(L.SL_MIN_DT))
+
+    @property
+    def max_dt(self) -> float:
+        """Largest adaptive step (0: no bound); settable between runs, also as
+        ``sim.integrator.max_dt``."""
+        return self._get(L.SL_MAX_DT)
+
+    @max_dt.setter
+    def max_dt(self, value: float) -> None:
+        if not 0 <= _real("max_dt", value) < math.inf:
+            raise ValueError(f"`max_dt` must be a finite number >= 0 (got max_dt={value!r}); "
+                             "0 leaves the adaptive step unbounded")
+        self._slots()[1][L.SL_MAX_DT] = float(value)
 
     @property
     def attached(self) -> bool:

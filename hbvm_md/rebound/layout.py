@@ -51,7 +51,10 @@ TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error 
  SL_CORE, SL_CTX, SL_PREPARE, SL_FAIL, SL_FREE, SL_ECHECK,
  SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(35)
 N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, its status
-N_SLOTS = SL_RES + N_RES
+#: saved: the largest adaptive step (0: no bound), after the unsaved slots so that no slot
+#: number above moved when it was added
+SL_MAX_DT = SL_RES + N_RES
+N_SLOTS = SL_MAX_DT + 1
 #: the step's eref (integrators.loop): the energy, and EQUIP's alpha and dE/dalpha (its warm
 #: starts), in the consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE (integrators.equip_core's
 #: EREF_EQUIP entries; HBVM reads the first only)
@@ -79,6 +82,8 @@ SAVED = (
     ("epsilon", SL_EPSILON, _DOUBLE, None, "Precision of the adaptive step control."),
     ("min_dt", SL_MIN_DT, _DOUBLE, None, "Smallest adaptive step; below it a step that cannot "
      "be resolved raises StepSizeError."),
+    ("max_dt", SL_MAX_DT, _DOUBLE, None, "Largest adaptive step (0: no bound), e.g. to bound the "
+     "splitting error of REBOUNDx operators, which are applied once per step."),
     ("tol", SL_TOL, _DOUBLE, None, "Relative tolerance of the iteration (0: round-off)."),
     ("energy_tol", SL_ETOL, _DOUBLE, None, "A step changing the energy by more than this "
      "(relative) is refused with UnresolvedStepError (0: no check; negative: the engine's "
@@ -131,7 +136,10 @@ C_VALUES = C_WORDS + N_CFG
 #: state (q, clock, v, CLOCK), whose clock the glue sets to ``sim.t`` and whose stages it
 #: restores the particles from), 0 for the compiled N-body kernel; both separable (width D_M)
 D_HOST = R_MEGNO_T0 + 1
-N_HEADER = D_HOST + 1
+#: each variational set's params of the force's derivative (nv, 4 D_N + 3): the kernel's, then
+#: the set's variation of the masses (:func:`hbvm_md.rebound.particles.read_tangents`)
+A_TP = D_HOST + 1
+N_HEADER = A_TP + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")

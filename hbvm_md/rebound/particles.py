@@ -9,8 +9,8 @@ its own copies (six REBOUND variants in the test suite compiled them six times).
 import numpy as np
 
 from integrators.jit import jit
-from hbvm_md.rebound.layout import (SL_ADAPTIVE, SL_EPSILON, SL_ETOL, SL_MAX_ITER, SL_MIN_DT,
-                                    SL_TOL)
+from hbvm_md.rebound.layout import (SL_ADAPTIVE, SL_EPSILON, SL_ETOL, SL_MAX_DT, SL_MAX_ITER,
+                                    SL_MIN_DT, SL_TOL)
 
 
 @jit
@@ -74,14 +74,25 @@ def settings_ok(st, sd):
     settings a user may change in ``sim.integrator`` between runs."""
     if st[SL_MAX_ITER] < 1 or not 0.0 <= sd[SL_TOL] < 1.0 or not -1.0 < sd[SL_ETOL] < np.inf:
         return False
-    return st[SL_ADAPTIVE] == 0 or (0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
+    if not 0.0 <= sd[SL_MAX_DT] < np.inf:
+        return False
+    # epsilon = 0 is IAS15's idiom for fixed steps of sim.dt (glue.step_arrays)
+    return st[SL_ADAPTIVE] == 0 or sd[SL_EPSILON] == 0.0 or (
+        0.0 < sd[SL_EPSILON] < 1.0 and 0.0 <= sd[SL_MIN_DT] < np.inf)
 
 
 @jit
-def read_tangents(pv, vidx, N, ix, ivx, minv, V, DG):
+def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
     """V (nv, 2u) <- REBOUND's first-order variational particles (pv: (N_var, stride) doubles
     over ``particles_var``; set v's rows vidx[v] .. vidx[v] + N): dq = dx and dp = dv / minv
     (the momenta's variation: m dv for a gravitating body, dv for a test particle).
+
+    TP (nv, 4N + 3) <- each set's params of the force's derivative: the N-body kernel's first
+    3N + 3 ``params`` with N given as -N, then the set's variation of the masses, its
+    particles' m (column im), of the gravitating particles (index below na, or all when
+    na < 0) as REBOUND's variational equations count them
+    (:func:`systems.nbody.nbody_force_jvp`).  With the momenta's variation
+    taken as m dv (fixed m), a mass varied enters the linearised step through the force only.
 
     V holds the tangents as the last step wrote them: a set that differs (edited by the user,
     rescaled by REBOUND) gets its previous coefficients DG[v] (the tangent map's initial
@@ -102,6 +113,14 @@ def read_tangents(pv, vidx, N, ix, ivx, minv, V, DG):
             for j in range(DG.shape[1]):
                 for u in range(DG.shape[2]):
                     DG[v, j, u] = 0.0
+    P = 3 * N + 3
+    for v in range(V.shape[0]):
+        i0 = int(vidx[v])
+        for a in range(P):
+            TP[v, a] = params[a]
+        TP[v, 1] = -N
+        for i in range(N):
+            TP[v, P + i] = pv[i0 + i, im] if (na < 0 or i < na) else 0.0
 
 
 @jit

@@ -1,0 +1,150 @@
+"""Benchmark (not a test): the splitting error of REBOUNDx operators on HBVM's steps, and the
+bound on the step (``sim.integrator.max_dt``) that brings it to IAS15's.
+
+A REBOUNDx operator is applied once per step, after it (for IAS15 and HBVM alike): a splitting
+of order one in the step, so the error follows the step length, and HBVM's adaptive steps are
+longer than IAS15's.  Three scenes modelled on REBOUNDx's operator notebooks (written here,
+not copied; shortened):
+
+* ModifyMass: a star (G = 4 pi^2) losing mass, ``modify_mass`` with ``tau_mass = -1e4``, three
+  massless planets at 1, 2, 3 AU, to t = 1000 yr;
+* EccAndIncDamping: two planets (1e-6) at a = 1 and 10, e = inc = 0.1, ``modify_orbits_direct``
+  with tau_e = tau_inc = -100 and -1000, to t = 1000;
+* IntegrateForce: REBOUNDx ``gr`` as an operator (``integrate_force``, implicit midpoint) on
+  the notebook's two planets (P = 0.571 and 13.34 days), to 1000 inner orbits.
+
+Each runs with IAS15 (its defaults), HBVM at its defaults, and HBVM with ``max_dt`` set to
+IAS15's mean step on the scene and to half of it.  The error: the largest |x - x_ref| over the
+particles at the end, relative to the largest |x_ref|, against IAS15 at fixed steps of 1/4000
+of the innermost period (the same splitting at steps far shorter).  Time: one run each, HBVM /
+IAS15 in this process.  Writes benchmarks/results/operator_splitting.md.
+
+    python benchmarks/bench_operator_splitting.py
+"""
+from __future__ import annotations
+
+import os
+import time
+import warnings
+
+import numpy as np
+import rebound
+import reboundx
+
+import hbvm_md  # noqa: F401  (registers "hbvm")
+from hbvm_md.reports.machine import machine
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def modify_mass():
+    sim = rebound.Simulation()
+    sim.G = 4 * np.pi ** 2
+    sim.add(m=1.0)
+    for a in (1.0, 2.0, 3.0):
+        sim.add(a=a)
+    sim.move_to_com()
+
+    def attach(sim):
+        rebx = reboundx.Extras(sim)
+        rebx.add_operator(rebx.load_operator("modify_mass"))
+        sim.particles[0].params["tau_mass"] = -1e4
+        return rebx
+    return sim, attach, 1000.0, 1.0
+
+
+def damping():
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-6, a=1.0, e=0.1, inc=0.1)
+    sim.add(m=1e-6, a=10.0, e=0.1, inc=0.1)
+    sim.move_to_com()
+
+    def attach(sim):
+        rebx = reboundx.Extras(sim)
+        rebx.add_operator(rebx.load_operator("modify_orbits_direct"))
+        ps = sim.particles
+        ps[1].params["tau_e"] = ps[1].params["tau_inc"] = -100.0
+        ps[2].params["tau_e"] = ps[2].params["tau_inc"] = -1000.0
+        return rebx
+    return sim, attach, 1000.0, 2 * np.pi
+
+
+def integrate_force():
+    sim = rebound.Simulation()
+    sim.G = 4 * np.pi ** 2
+    sim.add(m=0.93)
+    sim.add(m=4.5 * 3e-7, P=0.571 / 365.25, e=0.01)
+    sim.add(m=41 * 3e-7, P=13.34 / 365.25, e=0.01)
+    sim.move_to_com()
+    P = sim.particles[1].P
+
+    def attach(sim):
+        rebx = reboundx.Extras(sim)
+        gr = rebx.load_force("gr")
+        gr.params["c"] = 63197.8
+        op = rebx.load_operator("integrate_force")
+        op.params["force"] = gr
+        op.params["integrator"] = reboundx.integrators["implicit_midpoint"]
+        rebx.add_operator(op)
+        return rebx
+    return sim, attach, 1000 * P, P
+
+
+SCENES = {"ModifyMass (modify_mass)": modify_mass,
+          "EccAndIncDamping (modify_orbits_direct)": damping,
+          "IntegrateForce (gr by integrate_force)": integrate_force}
+
+
+def run(builder, integrator, max_dt=None, fixed=None):
+    sim, attach, t_end, _ = builder()
+    sim.integrator = integrator
+    if fixed is not None:
+        sim.dt, sim.integrator.epsilon = fixed, 0.0
+    if max_dt is not None:
+        sim.integrator.max_dt = max_dt
+    rebx = attach(sim)
+    t0 = time.perf_counter()
+    sim.integrate(t_end)
+    wall = time.perf_counter() - t0
+    x = np.array([p.xyz for p in sim.particles])
+    return x, sim.steps_done, wall, rebx
+
+
+def main() -> None:
+    warnings.simplefilter("ignore")       # (the operator warning is what this measures)
+    load = os.getloadavg()
+    rows = []
+    for name, builder in SCENES.items():
+        _, _, t_end, period = builder()
+        ref, _, _, _ = run(builder, "ias15", fixed=period / 4000)
+        scale = np.max(np.abs(ref))
+
+        def err(x):
+            return np.max(np.abs(x - ref)) / scale
+        xi, ni, wi, _ = run(builder, "ias15")
+        mean = t_end / ni
+        cells = [f"{err(xi):.1e} ({ni} steps)"]
+        for max_dt in (None, mean, mean / 2):
+            xh, nh, wh, _ = run(builder, "hbvm", max_dt=max_dt)
+            cells.append(f"{err(xh):.1e} ({nh} steps, time {wh / wi:.2f}x)")
+        rows.append(f"| {name} | " + " | ".join(cells) + " |")
+        print(rows[-1], flush=True)
+    out = ["# REBOUNDx operators: splitting error on HBVM's steps, and `max_dt`", "",
+           f"{machine()}, load average at the start {load[0]:.1f}, {load[1]:.1f}, "
+           f"{load[2]:.1f} (1, 5, 15 min). Generated by "
+           "`python benchmarks/bench_operator_splitting.py` on "
+           f"{time.strftime('%Y-%m-%d')}. Error: largest |x - x_ref| over the particles at the "
+           "end, relative to the largest |x_ref|, x_ref from IAS15 at fixed steps of 1/4000 of "
+           "the innermost period. Time: HBVM / IAS15 (one run each, this process). `max_dt`: "
+           "IAS15's mean step on the scene (its step count over the time), and half of it.", "",
+           "| scene | IAS15 | HBVM defaults | HBVM max_dt = IAS15's mean step | "
+           "HBVM max_dt = half of it |", "|---|---|---|---|---|", *rows, ""]
+    path = os.path.join(HERE, "results", "operator_splitting.md")
+    with open(path, "w") as fh:
+        fh.write("\n".join(out))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
