@@ -740,7 +740,7 @@ class Stepper(Counted):
                  fast: bool | None = None, energy_tol: float | str | None = "auto", *,
                  error_bound: float | str | None = "auto"):
         check_method(method)
-        self._ebound = error_check(error_bound)
+        self.error_bound = error_bound
         t0 = check_options(solver, form, tol, max_iter, t0)
         energy_check(method, None, energy_tol, tol)        # checks the argument first
         system, self._y = check_state(system, y0)
@@ -799,6 +799,17 @@ class Stepper(Counted):
     def energy_tol(self, value) -> None:
         self._etol = energy_check(self.method, self.system, value, self.tol)
         self._energy_tol = value
+
+    @property
+    def error_bound(self):
+        """The bound on each step's own error estimate as given ("auto", a number or None);
+        setting it re-derives what the step checks (:func:`error_check`)."""
+        return self._error_bound
+
+    @error_bound.setter
+    def error_bound(self, value) -> None:
+        self._ebound = error_check(value)
+        self._error_bound = value
 
     @property
     def solver(self) -> str:

@@ -16,7 +16,7 @@ import pytest
 
 from integrators import HBVM, Stepper, integrate
 from integrators import engine
-from integrators.records import Options, Samples
+from integrators.records import Samples
 from systems import Kepler, outer_solar_system
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -57,8 +57,8 @@ GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebou
                 "hbvm_md.rebound.forces", "hbvm_md.rebound.particles")
 
 #: A fixed step (with the energy check on) refuses a test particle whose own error estimate
-#: (``core.test_particle_error``) exceeds max(TP_FLOOR, TP_FACTOR x the sources' estimate), and
-#: any gravitating body whose own estimate exceeds SOURCE_FLOOR.
+#: (``core.test_particle_error``) exceeds max(TP_FLOOR, TP_FACTOR x the sources' estimate); the
+#: gravitating bodies are judged by the step's own estimate (``core.resolution_error``).
 #: Measured (s = 6, k = 7, no check): the adaptive tests' comet (past the Sun, then Jupiter)
 #: ends 1e-11 AU from IAS15 at a largest estimate of 7e-3, 1e-7 AU off at 0.19, 0.1 AU off at
 #: 27; the outer solar system's sources at a step of 200 days reach 1.5e-4, test particles at
@@ -68,14 +68,6 @@ GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebou
 _TANGENTS = True
 TP_FLOOR = 1e-2
 TP_FACTOR = 10.0
-#: A gravitating body's own estimate of 1: the top Legendre term of its acceleration over the
-#: step as large as the mean, a step that does not resolve its motion.  Measured (three bodies
-#: with softening 0.05 crossing at speed 9; HBVM(8, 6) fixed, no check, t = 1, against IAS15 at
-#: 1e-11): largest estimates 24, 1.7, 0.19, 2e-3 at steps 0.01, 0.005, 0.003, 0.001 end 1e-6,
-#: 1.4e-10, 4e-13, 5e-15 off; the outer solar system (HBVM(9, 8), 2e4 days) 57, 1.5, 0.09,
-#: 1e-3 at 2500, 1500, 1000, 500 days ends 2.9e-4, 1.8e-7, 4.3e-10, 5.6e-14 AU off.  (TP_FLOOR
-#: would refuse good steps here: a body in an encounter has a small mean force.)
-SOURCE_FLOOR = 1.0
 
 #: REBOUND's side of a step: the simulation's head as float64 and int64 words (simd, simi), its
 #: particles (view: (N, stride) doubles over reb_particle), the context block's header (ctx,

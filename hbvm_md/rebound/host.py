@@ -641,40 +641,32 @@ def _encounter_text(sim, enc: dict | None, h: float) -> str:
 
 
 def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> UnresolvedStepError:
-    """A fixed step refused for its test particle, or on REBOUND's own accelerations for any
-    body (the glue's check, layout.TEST_PARTICLE)."""
-    from hbvm_md.rebound.glue import SOURCE_FLOOR, TP_FACTOR, TP_FLOOR
+    """A fixed step refused for its test particle (the glue's check, layout.TEST_PARTICLE; the
+    gravitating bodies are judged by the step's own estimate, status NOT_RESOLVED)."""
+    from hbvm_md.rebound.glue import TP_FACTOR, TP_FLOOR
     i, err, s = int(sd[L.SL_CAUSE_STATUS]), float(sd[L.SL_CAUSE_ERR]), int(st[L.SL_S])
     ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
     m = int(ctx[L.D_M])
     gammat = doubles(int(ctx[L.A_GAMMAT]), s * m).reshape(s, m)
     minv, kin_w = doubles(int(ctx[L.A_MINV]), m), doubles(int(ctx[L.A_KINW]), m)
-    host = bool(ctx[L.D_HOST])
-    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, SOURCE_FLOOR)
-    source = kin_w[3 * i] != 0.0
+    _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, 0.0)
     # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
     h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
     enc = _encounter(sim, only=i, s=s)
     where = (f"passes {_name(sim, enc['j'])} {enc['distance']:.3g} away at relative speed "
              f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} "
              "steps); " if enc else "")
-    through = "encounters" if source else "the test particles' encounters too"
+    through = "the test particles' encounters too"
     hint = (f"{where}leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink "
             f"through {through}), or "
             f"use a smaller sim.dt (about {h_ok:.2g} or less here), or pass energy_tol=None to "
             "accept such steps")
     exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, hint)
     where_t = f"HBVM step of size h={h:.6g} at t={t:.17g}"
-    why = ("on REBOUND's own accelerations the energy check cannot see such a step, as a "
-           "softened potential is conserved at any step and a force without a potential is not "
-           "checked" if host else "HBVM keeps the energy of smooth motion at any step, so the "
-           "energy check alone cannot see such a step")
-    rule = (f"{SOURCE_FLOOR:g}, the top term of its acceleration's polynomial over the step as "
-            f"large as its mean: {why}" if source else
-            f"the larger of {TP_FLOOR:g} and {TP_FACTOR:g} times the gravitating bodies' "
+    rule = (f"the larger of {TP_FLOOR:g} and {TP_FACTOR:g} times the gravitating bodies' "
             "estimate")
     RuntimeError.__init__(exc, (
-        f"{where_t} does not resolve {'' if source else 'test '}{_name(sim, i)}: its own error "
+        f"{where_t} does not resolve test {_name(sim, i)}: its own error "
         f"estimate {err:.3e} (the weight of the last Legendre coefficient of its acceleration "
         f"over the step) exceeds {bound:.3g} ({rule}), so its orbit leaves the run's "
         f"accuracy; it {hint}"))
