@@ -24,6 +24,8 @@ _LAZY = {
     "ReboundComparison": "hbvm_md.reports.rebound_comparison",
     "run_ensemble": "hbvm_md.ensemble",
     "precompile": "hbvm_md.compile_ahead",
+    "audit": "hbvm_md.reports.audit",
+    "AuditReport": "hbvm_md.reports.audit",
 }
 
 __all__ = ["HBVM", "ConvergenceError", "UnresolvedStepError", "integrate", *_LAZY]
