@@ -218,13 +218,27 @@ def crossings(atoms, probe: PathProbe, cutoff: float):
 
 def bisect_jump(probe: PathProbe, levels: int = 32):
     """Bisection of the step in time for a jump: the half with the larger residual, ``levels``
-    times.  Returns (lo, hi, residual on [lo, hi]) and the whole step's residual; a jump keeps
-    its size while the bracket shrinks, non-conservative work shrinks with it."""
+    times, or until the residual is round-off (no jump).  Returns (lo, hi, residual on
+    [lo, hi], the whole step's residual); a jump keeps its size while the bracket shrinks,
+    non-conservative work and the quadrature's error shrink with it."""
+    energy = {}
+
+    def V(x):
+        if x not in energy:
+            energy[x] = probe.energy(x)
+        return energy[x]
+
+    def residual(a, b):
+        return V(b) - V(a) + probe.work_done(a, b)
+
     lo, hi = 0.0, 1.0
-    whole = r = probe.residual(lo, hi)
+    whole = r = residual(lo, hi)
+    noise = probe.noise(0.0, 1.0)
     for _ in range(levels):
+        if abs(r) <= noise:
+            break
         mid = 0.5 * (lo + hi)
-        r_left, r_right = probe.residual(lo, mid), probe.residual(mid, hi)
+        r_left, r_right = residual(lo, mid), residual(mid, hi)
         if abs(r_left) >= abs(r_right):
             hi, r = mid, r_left
         else:
@@ -282,7 +296,7 @@ def locate_jumps(atoms, q0, p0, q1, p1, h: float, t0: float, step: int = 0,
             lo, hi, r, whole = bisect_jump(probe)
             # a jump keeps its size on the final bracket (2^-32 of the step); work spread over
             # the step would have shrunk by that factor
-            if abs(r) > probe.noise(lo, hi) and abs(r) > 1e-6 * abs(whole):
+            if hi - lo < 1e-8 and abs(r) > probe.noise(lo, hi) and abs(r) > 1e-6 * abs(whole):
                 pair, d = _nearest_changed(atoms, probe, lo, hi)
                 jumps.append(Jump(float((t0 + 0.5 * (lo + hi) * h) / units.fs), pair, d, float(r),
                                   None, step))

@@ -35,11 +35,12 @@ from hbvm_md.ase.discontinuity import Jump, calculator_cutoff, locate_jumps
 
 #: nodes added to k for the repeated steps that measure the quadrature's share
 K_EXTRA = 4
-#: a step is looked at by bisection when its energy change exceeds this many times the run's
-#: median |dH| (and the round-off): a jump stands out of the smooth work around it
+#: a step is looked at by bisection when its energy change exceeds this many times both its
+#: neighbours' (and the round-off): a jump stands out of the smooth work around it
 SPIKE = 8.0
-#: at most this many such steps are bisected (the largest), each costs ~300 calculator calls
-MAX_BISECTED = 50
+#: at most this many such steps are bisected (the largest), each costs up to ~200 calculator
+#: calls (a step with no jump stops once the residual is round-off)
+MAX_BISECTED = 20
 #: the audit's parts are separated when the integrator's share is below this fraction of them
 MEANINGFUL = 1e-2
 
@@ -282,9 +283,14 @@ def _audit(atoms, h, steps, options, copy_options, k, sample, calls) -> AuditRep
                                  bisect=False)
             if found:
                 jumps_at[i] = found
-    median = float(np.median(np.abs(dH))) if steps else 0.0
-    spikes = [i for i in np.argsort(-np.abs(dH))
-              if abs(dH[i]) > SPIKE * median and abs(dH[i]) > floor[i] and i not in jumps_at]
+    # a step whose change stands out of both its neighbours' (the quadrature's error and the
+    # non-conservative work vary smoothly from step to step along a resolved path)
+    size = np.abs(dH)
+    around = np.maximum(np.concatenate([[0.0], size[:-1]]), np.concatenate([size[1:], [0.0]]))
+    if steps == 1:
+        around[:] = 0.0
+    spikes = [int(i) for i in np.argsort(-size)
+              if size[i] > SPIKE * around[i] and size[i] > floor[i] and i not in jumps_at]
     notes = []
     if len(spikes) > MAX_BISECTED:
         notes.append(f"{len(spikes)} steps stood out of the run's energy changes; the "
