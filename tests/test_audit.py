@@ -82,7 +82,7 @@ def test_smooth_lennard_jones_cluster_has_no_jump_and_no_work():
     report = hbvm_md.audit(atoms, 2 * units.fs, 12, sample=4)
     assert report.jumps == []
     assert abs(report.nonconservative_work) < 1e-10
-    assert "conserves its energy on this path" in str(report)
+    assert "conserves its energy on this path" in str(report) and report.meaningful
 
 
 def test_plot_and_arguments(tmp_path):

@@ -271,7 +271,7 @@ def _nearest_changed(atoms, probe: PathProbe, lo: float, hi: float):
 
 
 def locate_jumps(atoms, q0, p0, q1, p1, h: float, t0: float, step: int = 0,
-                 bisect: bool = True) -> list:
+                 bisect: bool = True, seen: list | None = None) -> list:
     """The calculator's energy jumps on the step from (q0, p0) at t0 to (q1, p1), h later.
 
     ``atoms`` gives the calculator, masses, cell and pbc (it is not moved); positions (N, 3)
@@ -279,7 +279,9 @@ def locate_jumps(atoms, q0, p0, q1, p1, h: float, t0: float, step: int = 0,
     (:func:`calculator_cutoff`) every pair that crossed it is looked at and the energy's jump
     read on a bracket of BRACKET of the step around the crossing; without one (or when no
     crossing jumps and ``bisect``), the step is bisected in time.  Returns a list of
-    :class:`Jump` (empty when the energy has no jump on this step above round-off)."""
+    :class:`Jump` (empty when the energy has no jump on this step above round-off); every
+    crossing of the cutoff, with a jump or not, is appended to ``seen`` as (tau, (i, j)), tau
+    the fraction of the step."""
     m = np.asarray(atoms.get_masses(), float)[:, None]
     q0, q1 = np.asarray(q0, float).reshape(-1, 3), np.asarray(q1, float).reshape(-1, 3)
     v0, v1 = np.asarray(p0, float).reshape(-1, 3) / m, np.asarray(p1, float).reshape(-1, 3) / m
@@ -288,6 +290,8 @@ def locate_jumps(atoms, q0, p0, q1, p1, h: float, t0: float, step: int = 0,
         cutoff = calculator_cutoff(atoms.calc)
         if cutoff is not None:
             for tau, pair, d, lo, hi in crossings(atoms, probe, cutoff):
+                if seen is not None:
+                    seen.append((tau, pair))
                 a, b = max(0.0, lo - BRACKET), min(1.0, hi + BRACKET)
                 r = probe.residual(a, b)
                 if abs(r) > probe.noise(a, b):

@@ -64,9 +64,9 @@ def cmd_audit(args) -> int:
         _fail(f"cannot read the structure {args.structure!r}: {err}")
     if args.temperature is not None:
         import numpy as np
-        from ase.md.velocitydistribution import MaxwellBoltzmannDistribution
-        MaxwellBoltzmannDistribution(atoms, temperature_K=args.temperature,
-                                     rng=np.random.default_rng(args.seed))
+        from ase.md.velocitydistribution import thermalize_momenta
+        thermalize_momenta(atoms, temperature_K=args.temperature,
+                           rng=np.random.default_rng(args.seed))
     atoms.calc = calc
     report = audit(atoms, args.timestep * units.fs, args.steps, s=args.s, k=args.k)
     _say(report)
