@@ -2,7 +2,8 @@
 
 HBVM(k, s) as an ASE ``MolecularDynamics`` class (:class:`HBVMDynamics`), as an integrator
 driven by REBOUND (:class:`HBVMIntegrator`), conservation checks against the hosts' own
-integrators (:func:`compare_md`, :func:`compare_rebound`) and the ``hbvm-md`` command line.
+integrators (:func:`compare_md`, :func:`compare_rebound`), the conservation audit of an ASE
+calculator (:func:`audit`) and the ``hbvm-md`` command line.
 
 Names are imported lazily so that ``import hbvm_md`` does not pull in ASE.  When REBOUND is
 installed, ``import hbvm_md`` registers HBVM with it under the name "hbvm" (once per process,
