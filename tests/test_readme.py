@@ -172,6 +172,11 @@ def _check_comparison(ns, out):
     assert "| VelocityVerlet | 2 |" in out and "| HBVM(4, 2) | 2 |" in out, out
 
 
+def _check_audit(ns, out):
+    assert "1 jump" in out and "crossed the calculator's cutoff 5.8768 A" in out, out
+    assert pathlib.Path("audit.png").stat().st_size > 0
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -183,6 +188,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     'sim.units = ("day", "AU", "Msun")': ((), None, _check_readme_rebound),
     'Icosahedron("Cu", noshells=2)': ((("dyn.run(100)", "dyn.run(30)"),), None, _check_readme_ase),
     '# was: "ias15"': ((), None, _check_notebook_pattern),
+    "hbvm_md.audit(atoms": ((), None, _check_audit),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),
 }
