@@ -150,7 +150,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     steps = 20 if args.quick else args.steps
     repeat = 1 if args.quick else args.repeat
-    lines = ["Conservation audit against VelocityVerlet's drift (issue 50) and a Cu2 collision "
+    lines = ["# The conservation audit against VelocityVerlet's drift", "",
+             "Conservation audit against VelocityVerlet's drift (issue 50) and a Cu2 collision "
              "through EMT's cutoff (issue 46, item 4), written by `benchmarks/bench_audit.py`.",
              "", f"`python benchmarks/bench_audit.py --steps {steps} --repeat {repeat}"
              f"{' --quick' if args.quick else ''}` on {machine()} (loaded: times are ratios "
