@@ -2,7 +2,8 @@
 
 HBVM(k, s) as an ASE ``MolecularDynamics`` class (:class:`HBVMDynamics`), as an integrator
 driven by REBOUND (:class:`HBVMIntegrator`), conservation checks against the hosts' own
-integrators (:func:`compare_md`, :func:`compare_rebound`) and the ``hbvm-md`` command line.
+integrators (:func:`compare_md`, :func:`compare_rebound`), the conservation audit of an ASE
+calculator (:func:`audit`) and the ``hbvm-md`` command line.
 
 Names are imported lazily so that ``import hbvm_md`` does not pull in ASE.  When REBOUND is
 installed, ``import hbvm_md`` registers HBVM with it under the name "hbvm" (once per process,
@@ -24,6 +25,8 @@ _LAZY = {
     "ReboundComparison": "hbvm_md.reports.rebound_comparison",
     "run_ensemble": "hbvm_md.ensemble",
     "precompile": "hbvm_md.compile_ahead",
+    "audit": "hbvm_md.reports.audit",
+    "AuditReport": "hbvm_md.reports.audit",
 }
 
 __all__ = ["HBVM", "ConvergenceError", "UnresolvedStepError", "integrate", *_LAZY]

@@ -176,6 +176,11 @@ def _check_kepler_flow(ns, out):
     assert ns["status"] == -1 and ns["phi"].shape == (2, 6, 6)
 
 
+def _check_audit(ns, out):
+    assert "1 jump" in out and "crossed the calculator's cutoff 5.8768 A" in out, out
+    assert pathlib.Path("audit.png").stat().st_size > 0
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -188,6 +193,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     'Icosahedron("Cu", noshells=2)': ((("dyn.run(100)", "dyn.run(30)"),), None, _check_readme_ase),
     '# was: "ias15"': ((), None, _check_notebook_pattern),
     "kepler_flow_into(x, v, mu, 0.3, x, v)": ((), None, _check_kepler_flow),
+    "hbvm_md.audit(atoms": ((), None, _check_audit),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),
 }

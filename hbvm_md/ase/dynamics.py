@@ -18,11 +18,12 @@ from ase import units
 from ase.md.md import MolecularDynamics
 
 from integrators import EQUIP, HBVM, ConvergenceError, Stepper, UnresolvedStepError
-from integrators.engine import DEFAULT_EPSILON, check_adaptive, error_check
-from integrators.engine import check_step
+from integrators.engine import (DEFAULT_EPSILON, check_adaptive, check_step, energy_check,
+                                error_check)
 
 from .atoms_system import _AtomsSystem, _AtomsSystemWithHessian, calculator_cache
 from .constraints import AtomsConstraints, signature
+from .discontinuity import change_persists, locate_jumps, warn_jumps
 from .holonomic import bond_constraints, check_supported, holonomic_step, other_constraints
 
 _log = logging.getLogger(__name__)
@@ -115,6 +116,19 @@ class HBVMDynamics(MolecularDynamics):
         HBVM(k, s) conserves H exactly (a polynomial calculator and k from its degree) and
         for EQUIP, otherwise 1e-12 (:meth:`iteration_tol`: the stage forces' own round-off;
         a third fewer force evaluations a step on EMT copper at 5 fs, the same energy error).
+    energy_tol : "auto", float or None
+        The step's energy check (:class:`integrators.Stepper`'s): a converged step whose
+        energy change, relative to |T| + |V|, exceeds it is refused
+        (:class:`integrators.UnresolvedStepError`, nothing committed).  "auto" (default):
+        1e-10 when the method conserves the calculator's polynomial energy exactly; otherwise a
+        change above 1e-6 that is also far above the method's own error against the energy the
+        step moved between T and V (a step too large for what it crosses).  A number: that
+        tolerance.  None: no check.  A refused step whose energy change does not shrink when
+        the step is retried at h/2 and h/4 (on a copy of the atoms) is the calculator's own
+        jump (EMT's cutoff, a neighbour list), not the step's error: it is accepted with one
+        :class:`hbvm_md.ase.discontinuity.CalculatorDiscontinuityWarning` naming the time,
+        the pair of atoms, the jump in eV, and the run goes on (``warnings.simplefilter(
+        "error", CalculatorDiscontinuityWarning)`` makes it an error, the step not taken).
     error_bound : "auto", float or None
         Each step is judged by its own estimate of its local error, atom by atom (the first
         Legendre term it leaves out of the atom's velocity, :func:`integrators.core.
@@ -144,6 +158,8 @@ class HBVMDynamics(MolecularDynamics):
     stage_evaluations : int
         Force evaluations at stage configurations so far (plus one per step at the final
         positions, made through ``atoms.get_forces``).
+    jumps : list of hbvm_md.ase.discontinuity.Jump
+        The calculator's energy jumps the run stepped through (each also warned once).
 
     Notes
     -----
@@ -165,8 +181,8 @@ class HBVMDynamics(MolecularDynamics):
     def __init__(self, atoms, timestep: float, s: int = 2, k: int | None = None,
                  solver: str = "auto", nodes: str = "gauss", trajectory=None, logfile=None,
                  loginterval: int = 1, method: str = "hbvm", tol="auto",
-                 error_bound="auto", adaptive: bool = False, epsilon: float | None = None,
-                 **kwargs):
+                 energy_tol="auto", error_bound="auto", adaptive: bool = False,
+                 epsilon: float | None = None, **kwargs):
         thermo = [key for key in _ENSEMBLE_KWARGS if key in kwargs]
         if thermo:
             raise TypeError(f"HBVMDynamics is NVE (it conserves the energy) and takes no "
@@ -212,8 +228,12 @@ class HBVMDynamics(MolecularDynamics):
         self.method = EQUIP(k, s) if method == "equip" else HBVM(k, s, nodes)
         _log.info("HBVMDynamics: %r, k=%d (%s), s=%d (order %d), solver=%s",
                   self.method, k, why, s, self.method.order, solver)
+        energy_check(self.method, None, energy_tol)     # the argument's own message
         self.solver = solver
         self.tol = tol
+        self.energy_tol = energy_tol
+        self.jumps = []
+        self._through_jump = False
         self.error_bound = error_bound
         error_check(error_bound)            # checks the argument (ValueError naming it)
         if not isinstance(adaptive, (bool, np.bool_)):
@@ -309,7 +329,7 @@ class HBVMDynamics(MolecularDynamics):
         d.update({"method": repr(self.method), "k": self.k, "s": self.s,
                   "nodes": self.method.nodes, "solver": self.solver,
                   "tol": self.tol if isinstance(self.tol, str) else self.iteration_tol(),
-                  "adaptive": self.adaptive})
+                  "energy_tol": self.energy_tol, "adaptive": self.adaptive})
         if self.adaptive:
             d.update({"epsilon": self.epsilon, "inner_steps": self.inner_steps,
                       "inner_rejections": self.inner_rejections})
@@ -410,7 +430,8 @@ class HBVMDynamics(MolecularDynamics):
             self._system = sys_
             self._stepper = Stepper(self.method, sys_, np.concatenate([q, p.ravel()]),
                                     solver=self.solver, form="separable",
-                                    tol=self.iteration_tol(sys_), error_bound=self.error_bound)
+                                    tol=self.iteration_tol(sys_), energy_tol=self.energy_tol,
+                                    error_bound=self.error_bound)
             self._stepper.hints = {"body": "atom {i}",
                                    "resolution": "or a larger s (a higher order resolves more "
                                                  "of the motion in one step)"}
@@ -487,12 +508,81 @@ class HBVMDynamics(MolecularDynamics):
                 self._new_hamiltonian("the calculator's results at the step's start, computed "
                                       "again, no longer match the last step's energy")
                 return self.step()
+            if isinstance(err, UnresolvedStepError) and not self._through_jump:
+                jumps = self._calculator_jumps(pos0, mom0)
+                if jumps:
+                    return self._step_through(st, jumps)
             if isinstance(err, (ConvergenceError, UnresolvedStepError)):
                 raise self._in_fs(err) from None
             raise
         if st.solver_switches > switches:
             self._warn_switch(st, per_step)
         self._written = self._current_state()
+        return forces
+
+    # -- a calculator's own discontinuity -----------------------------------------------------
+    def _copy_run(self, pos0, mom0, h: float, n: int):
+        """(energy change, positions, momenta) after n steps of size h from (pos0, mom0), on a
+        copy of the atoms with the same calculator and no energy check."""
+        work = self.atoms.copy()
+        work.set_positions(pos0, apply_constraint=False)
+        work.set_momenta(mom0, apply_constraint=False)
+        work.calc = self.atoms.calc
+        dyn = HBVMDynamics(work, h, s=self.s, k=self.k, solver=self.solver,
+                           nodes=self.method.nodes, tol=self.tol, energy_tol=None,
+                           error_bound=None,
+                           method="equip" if isinstance(self.method, EQUIP) else "hbvm")
+        e0 = work.get_potential_energy() + work.get_kinetic_energy()
+        for _ in range(n):
+            dyn.step()
+        e1 = work.get_potential_energy() + work.get_kinetic_energy()
+        return e1 - e0, work.get_positions(), work.get_momenta()
+
+    def _calculator_jumps(self, pos0, mom0) -> list:
+        """After a step refused for its energy change: the step again at h, h/2 and h/4 on
+        copies (:func:`hbvm_md.ase.discontinuity.change_persists`); when the change does not
+        shrink, the calculator's jumps on the step (:func:`locate_jumps`), else [].  The
+        calculator's cached results are put back."""
+        calc = self.atoms.calc
+        saved = calculator_cache(calc)
+        try:
+            runs = [self._copy_run(pos0, mom0, self.dt / n, n) for n in (1, 2, 4)]
+            if not change_persists([r[0] for r in runs]):
+                return []
+            t0 = self._stepper.t
+            jumps = locate_jumps(self.atoms, pos0, mom0, runs[0][1], runs[0][2], self.dt, t0,
+                                 step=self.nsteps)
+        except (ConvergenceError, UnresolvedStepError):
+            return []
+        finally:
+            if saved is not None:
+                calc.atoms, calc.results = saved
+        if not jumps:
+            _log.info("HBVMDynamics: a step's energy change did not shrink with the step but no "
+                      "jump of the calculator's energy was found on it")
+        return jumps
+
+    def _step_through(self, st: Stepper, jumps: list):
+        """The step through the calculator's jumps: warned first (so that a warning made an
+        error leaves the step untaken), then taken without the energy check."""
+        warn_jumps(jumps, stacklevel=4)
+        etol = st.energy_tol
+        # a check that passes every change rather than none (None): the engine then still
+        # takes the step's end as the next step's energy reference, which None would leave at
+        # the start (the next step would see a changed Hamiltonian)
+        st.energy_tol = float(np.finfo(float).max)
+        # (the force jumps with the energy: the step's own error estimate, whose omitted
+        # Legendre term a jump in the force makes large at any step, stands aside too)
+        ebound = st.error_bound
+        st.error_bound = None
+        self._through_jump = True
+        try:
+            forces = self.step()
+        finally:
+            st.energy_tol = etol
+            st.error_bound = ebound
+            self._through_jump = False
+        self.jumps.extend(jumps)
         return forces
 
     # -- a Hamiltonian changed between steps, the solver policy --------------------------------

@@ -1,4 +1,4 @@
-"""The ``hbvm-md`` command line: demo, bench, spectrum, hard-cases, ensemble, compile.
+"""The ``hbvm-md`` command line: demo, bench, spectrum, hard-cases, ensemble, compile, audit.
 
 ``hbvm-md demo`` is the quick start: the outer solar system through REBOUND and a
 polynomial-pair cluster through ASE, each with HBVM and with the host's own integrators; it

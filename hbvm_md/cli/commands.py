@@ -1,5 +1,6 @@
 """The ``hbvm-md`` parser, its entry point :func:`main` and the subcommands demo, bench,
-spectrum, hard-cases and compile (ensemble: :mod:`hbvm_md.cli.ensemble`).
+spectrum, hard-cases and compile (ensemble: :mod:`hbvm_md.cli.ensemble`; audit:
+:mod:`hbvm_md.cli.audit`).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 
 from .common import (DEFAULT_OUT, _fail, _int_at_least, _Parser, _positive_float, _positive_int,
                      _say, _UsageError)
+from .audit import add_audit_parser, cmd_audit
 from .ensemble import add_ensemble_parser, cmd_ensemble
 
 
@@ -78,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--quick", action="store_true", help="small sizes (for CI)")
 
     add_ensemble_parser(sub)
+    add_audit_parser(sub)
 
     from ..compile_ahead import DEFAULT_SCENES, SCENES
     c = sub.add_parser("compile", help="compile and cache HBVM's steps ahead (CI, containers, "
@@ -257,7 +260,7 @@ def cmd_compile(args) -> int:
 
 
 COMMANDS = {"demo": cmd_demo, "bench": cmd_bench, "spectrum": cmd_spectrum, "hard-cases": cmd_hard_cases,
-            "ensemble": cmd_ensemble, "compile": cmd_compile}
+            "ensemble": cmd_ensemble, "compile": cmd_compile, "audit": cmd_audit}
 
 
 def main(argv=None) -> int:

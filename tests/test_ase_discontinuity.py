@@ -1,0 +1,84 @@
+"""A calculator's own energy discontinuity does not stop HBVMDynamics (issue 46, item 4): EMT's
+energy jumps by 1.6e-5 eV when a Cu2 pair crosses its neighbour list's cutoff, 5.8768 A; the
+step's energy change then does not shrink with the step, so the step is accepted with one
+CalculatorDiscontinuityWarning and the run goes on, on the true path."""
+import warnings
+
+import numpy as np
+import pytest
+from ase import Atoms, units
+from ase.calculators.emt import EMT
+from ase.md.verlet import VelocityVerlet
+
+from hbvm_md import HBVMDynamics, UnresolvedStepError
+from hbvm_md.ase.discontinuity import CalculatorDiscontinuityWarning, change_persists
+
+EMT_CU_CUTOFF = 5.8768
+
+
+def cu2(distance=6.0, speed=0.03):
+    """A head-on Cu2 pair, each atom at ``speed`` A/fs towards the other."""
+    atoms = Atoms("Cu2", positions=[[0.0, 0.0, 0.0], [distance, 0.0, 0.0]])
+    atoms.calc = EMT()
+    m = atoms.get_masses()[0]
+    v = speed / units.fs
+    atoms.set_momenta([[m * v, 0, 0], [-m * v, 0, 0]])
+    return atoms
+
+
+def test_cu2_collision_through_emts_cutoff_finishes_with_one_warning_a_crossing():
+    """Before: UnresolvedStepError at the crossing, at any timestep.  Now: in and out through
+    the cutoff, one warning each, naming the time, the pair and the jump; positions within
+    1e-3 A of VelocityVerlet at 0.1 fs (bench_audit.py: 0.01 fs, and 0.5 fs too)."""
+    atoms = cu2()
+    dyn = HBVMDynamics(atoms, 1 * units.fs)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        dyn.run(200)
+    ours = [w for w in seen if issubclass(w.category, CalculatorDiscontinuityWarning)]
+    assert len(ours) == 2 and len(dyn.jumps) == 2
+    assert atoms.get_distance(0, 1) > EMT_CU_CUTOFF               # collided and separated
+    first = str(ours[0].message)
+    assert "atoms 0 and 1 crossed the calculator's cutoff 5.8768 A" in first
+    assert "the energy stepped by -1.590e-05 eV" in first and "t=2.053" in first
+    assert "no integrator can conserve an energy that jumps" in first
+    for jump, sign in zip(dyn.jumps, (-1, 1)):
+        assert jump.atoms == (0, 1) and jump.distance == pytest.approx(EMT_CU_CUTOFF, abs=1e-4)
+        assert sign * jump.energy == pytest.approx(1.59e-5, rel=0.01)
+    ref = cu2()
+    VelocityVerlet(ref, 0.1 * units.fs).run(2000)
+    assert np.max(np.abs(atoms.positions - ref.positions)) < 1e-3
+
+
+def test_the_warning_made_an_error_leaves_the_step_untaken():
+    atoms = cu2(distance=5.95)
+    dyn = HBVMDynamics(atoms, 1 * units.fs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalculatorDiscontinuityWarning)
+        with pytest.raises(CalculatorDiscontinuityWarning, match="atoms 0 and 1"):
+            dyn.run(10)
+    assert atoms.get_distance(0, 1) > EMT_CU_CUTOFF and dyn.nsteps == 1
+    assert dyn.jumps == []
+
+
+def test_a_change_that_shrinks_with_the_step_is_still_refused():
+    """The integrator's own error falls with the step: a strict energy_tol still refuses it
+    (the jump test does not swallow it)."""
+    atoms = cu2(distance=2.6, speed=0.02)
+    dyn = HBVMDynamics(atoms, 5 * units.fs, s=1, k=1, energy_tol=1e-13)
+    with pytest.raises(UnresolvedStepError, match="energy_tol=1.0e-13"):
+        dyn.run(5)
+
+
+def test_energy_tol_is_an_argument_checked_by_name():
+    atoms = cu2()
+    assert HBVMDynamics(atoms, units.fs, energy_tol=1e-8).todict()["energy_tol"] == 1e-8
+    with pytest.raises(ValueError, match="`energy_tol` must be 'auto', a positive number or None"):
+        HBVMDynamics(atoms, units.fs, energy_tol=-1.0)
+
+
+def test_change_persists_tells_a_jump_from_an_order_two_error():
+    assert change_persists([1.6e-5, 1.6e-5, 1.59e-5])
+    assert change_persists([2.6e-5, 2.1e-5, 1.8e-5])       # a jump and the kink's error
+    assert not change_persists([1e-6, 1e-6 / 4, 1e-6 / 16])
+    assert not change_persists([0.0, 0.0, 0.0])
