@@ -34,11 +34,10 @@ import time
 import warnings
 
 import numpy as np
-from ase import Atoms, units
+from ase import units
 from ase.calculators.emt import EMT
 from ase.calculators.lj import LennardJones
 from ase.build import bulk
-from ase.cluster import Icosahedron
 from ase.md.verlet import VelocityVerlet
 from ase.md.velocitydistribution import thermalize_momenta
 
@@ -48,34 +47,13 @@ sys.path.insert(0, str(ROOT))
 from hbvm_md import HBVMDynamics, audit                                       # noqa: E402
 from hbvm_md.ase.discontinuity import CalculatorDiscontinuityWarning          # noqa: E402
 from hbvm_md.reports.machine import machine                                   # noqa: E402
+from hbvm_md.reports.audit_scenes import ScaledForcesLJ, cu2_pair, lj_cluster  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "audit.md"
 
 
-class ScaledForcesLJ(LennardJones):
-    """Lennard-Jones whose forces are 1.03 times the energy's gradient (not conservative)."""
-
-    def calculate(self, *args, **kwargs):
-        super().calculate(*args, **kwargs)
-        self.results["forces"] = self.results["forces"] * 1.03
-
-
 def cu2(distance=6.0, speed=0.03):
-    atoms = Atoms("Cu2", positions=[[0.0, 0.0, 0.0], [distance, 0.0, 0.0]])
-    atoms.calc = EMT()
-    m = atoms.get_masses()[0]
-    v = speed / units.fs
-    atoms.set_momenta([[m * v, 0, 0], [-m * v, 0, 0]])
-    return atoms
-
-
-def lj_cluster(calc, seed=1):
-    atoms = Icosahedron("Ar", noshells=2, latticeconstant=2 ** (1 / 6) * np.sqrt(2))
-    rng = np.random.default_rng(seed)
-    atoms.positions += 0.03 * rng.standard_normal(atoms.positions.shape)
-    atoms.set_momenta(rng.standard_normal((len(atoms), 3)) * np.sqrt(40 * 0.02))
-    atoms.calc = calc
-    return atoms
+    return cu2_pair(distance, speed)
 
 
 def cu_crystal():

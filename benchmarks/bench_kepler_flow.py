@@ -46,6 +46,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hbvm_md.reports.machine import machine  # noqa: E402
+from integrators.kepler_flow import orbit_state as orbit  # noqa: E402
 from integrators.kepler_flow import (kepler_flow, kepler_flow_into, kepler_flow_stm,  # noqa: E402
                                      reference_flow)
 
@@ -54,29 +55,6 @@ ELLIPTIC = (0.0, 0.1, 0.3, 0.5, 0.9, 0.99, 0.999, 0.9999)
 HYPERBOLIC = (1.0001, 1.5, 3.0, 10.0)
 
 
-def orbit(e, M, inc=0.3, node=0.7, peri=1.1):
-    """Position, velocity at mean anomaly M of the conic a = 1 (e < 1) or a = -1, mu = 1."""
-    if e < 1:
-        E = M
-        for _ in range(100):
-            E -= (E - e * math.sin(E) - M) / (1 - e * math.cos(E))
-        d = 1 - e * math.cos(E)
-        p = (math.cos(E) - e, math.sqrt(1 - e * e) * math.sin(E))
-        w = (-math.sin(E) / d, math.sqrt(1 - e * e) * math.cos(E) / d)
-    else:
-        H = math.asinh(M / e)
-        for _ in range(200):
-            H -= (e * math.sinh(H) - H - M) / (e * math.cosh(H) - 1)
-        d = e * math.cosh(H) - 1
-        p = (e - math.cosh(H), math.sqrt(e * e - 1) * math.sinh(H))
-        w = (-math.sinh(H) / d, math.sqrt(e * e - 1) * math.cosh(H) / d)
-    co, so, ci, si, cn, sn = (math.cos(peri), math.sin(peri), math.cos(inc), math.sin(inc),
-                              math.cos(node), math.sin(node))
-
-    def rot(a, b):
-        a, b = co * a - so * b, so * a + co * b
-        return np.array([cn * a - sn * ci * b, sn * a + cn * ci * b, si * b])
-    return rot(*p), rot(*w)
 
 
 def whfast_solver():

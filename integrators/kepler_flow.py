@@ -695,3 +695,30 @@ def reference_flow(x0, v0, mu, dt, dps: int = 40):
         x = [f * p + g * q for p, q in zip(x0, v0)]
         v = [fd * p + gd * q for p, q in zip(x0, v0)]
     return x, v
+
+
+def orbit_state(e, M, mu=1.0, inc=0.3, node=0.7, peri=1.1):
+    """Position and velocity (3,), (3,) at mean anomaly M of the conic a = 1 (ellipse) or
+    a = -1 (hyperbola) with eccentricity e about mu, tilted out of every coordinate plane: the
+    test and benchmark states of the flow (plain Python, not compiled)."""
+    if e < 1:
+        E = M
+        for _ in range(100):
+            E -= (E - e * math.sin(E) - M) / (1 - e * math.cos(E))
+        d = 1 - e * math.cos(E)
+        p = (math.cos(E) - e, math.sqrt(1 - e * e) * math.sin(E))
+        w = (-math.sin(E) / d, math.sqrt(1 - e * e) * math.cos(E) / d)
+    else:
+        H = math.asinh(M / e)
+        for _ in range(200):
+            H -= (e * math.sinh(H) - H - M) / (e * math.cosh(H) - 1)
+        d = e * math.cosh(H) - 1
+        p = (e - math.cosh(H), math.sqrt(e * e - 1) * math.sinh(H))
+        w = (-math.sinh(H) / d, math.sqrt(e * e - 1) * math.cosh(H) / d)
+    co, so, ci, si, cn, sn = (math.cos(peri), math.sin(peri), math.cos(inc), math.sin(inc),
+                              math.cos(node), math.sin(node))
+
+    def rot(a, b):
+        a, b = co * a - so * b, so * a + co * b
+        return np.array([cn * a - sn * ci * b, sn * a + cn * ci * b, si * b])
+    return rot(*p), rot(*w) * math.sqrt(mu)

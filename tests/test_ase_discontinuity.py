@@ -6,24 +6,14 @@ import warnings
 
 import numpy as np
 import pytest
-from ase import Atoms, units
-from ase.calculators.emt import EMT
+from ase import units
 from ase.md.verlet import VelocityVerlet
 
 from hbvm_md import HBVMDynamics, UnresolvedStepError
 from hbvm_md.ase.discontinuity import CalculatorDiscontinuityWarning, change_persists
+from hbvm_md.reports.audit_scenes import EMT_CU_CUTOFF, cu2_pair
 
-EMT_CU_CUTOFF = 5.8768
-
-
-def cu2(distance=6.0, speed=0.03):
-    """A head-on Cu2 pair, each atom at ``speed`` A/fs towards the other."""
-    atoms = Atoms("Cu2", positions=[[0.0, 0.0, 0.0], [distance, 0.0, 0.0]])
-    atoms.calc = EMT()
-    m = atoms.get_masses()[0]
-    v = speed / units.fs
-    atoms.set_momenta([[m * v, 0, 0], [-m * v, 0, 0]])
-    return atoms
+cu2 = cu2_pair
 
 
 def test_cu2_collision_through_emts_cutoff_finishes_with_one_warning_a_crossing():

@@ -1,45 +1,18 @@
 """The conservation audit of an ASE calculator (issue 50): jumps, non-conservative work and the
 integrator's share, told apart by HBVM's own line integral."""
-import numpy as np
 import pytest
-from ase import Atoms, units
-from ase.calculators.emt import EMT
+from ase import units
 from ase.calculators.lj import LennardJones
-from ase.cluster import Icosahedron
 
 import hbvm_md
 from hbvm_md.cli import main
+from hbvm_md.reports.audit_scenes import EMT_CU_CUTOFF, ScaledForcesLJ, cu2_pair, lj_cluster
 
-EMT_CU_CUTOFF = 5.8768
-#: the toy's forces are this factor times the energy's gradient
 SCALE = 1.03
 
 
-class ScaledForcesLJ(LennardJones):
-    """Lennard-Jones whose forces are SCALE times the energy's gradient: not conservative."""
-
-    def calculate(self, *args, **kwargs):
-        super().calculate(*args, **kwargs)
-        self.results["forces"] = self.results["forces"] * SCALE
-
-
 def cu2(distance=5.95, speed=0.02):
-    atoms = Atoms("Cu2", positions=[[0.0, 0.0, 0.0], [distance, 0.0, 0.0]])
-    atoms.calc = EMT()
-    m = atoms.get_masses()[0]
-    v = speed / units.fs
-    atoms.set_momenta([[m * v, 0, 0], [-m * v, 0, 0]])
-    return atoms
-
-
-def lj_cluster(calc, seed=1):
-    """13 atoms (sigma = 1 A, epsilon = 1 eV, argon's mass) near the icosahedron, warm."""
-    atoms = Icosahedron("Ar", noshells=2, latticeconstant=2 ** (1 / 6) * np.sqrt(2))
-    rng = np.random.default_rng(seed)
-    atoms.positions += 0.03 * rng.standard_normal(atoms.positions.shape)
-    atoms.set_momenta(rng.standard_normal((len(atoms), 3)) * np.sqrt(40 * 0.02))
-    atoms.calc = calc
-    return atoms
+    return cu2_pair(distance, speed)
 
 
 def test_emt_cu2_crossing_the_cutoff_is_one_jump_at_the_pair():
@@ -64,7 +37,7 @@ def test_emt_cu2_crossing_the_cutoff_is_one_jump_at_the_pair():
 
 def test_scaled_forces_give_their_nonconservative_work_and_a_small_integrator_share():
     """F = 1.03 (-grad V): the work is -1.03 dV, so H changes by -0.03 dV."""
-    atoms = lj_cluster(ScaledForcesLJ(rc=10.0))
+    atoms = lj_cluster(ScaledForcesLJ(SCALE, rc=10.0))
     v0 = atoms.get_potential_energy()
     report = hbvm_md.audit(atoms, 2 * units.fs, 12, sample=4)
     expected = -(SCALE - 1) * (atoms.get_potential_energy() - v0)

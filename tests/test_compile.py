@@ -76,7 +76,7 @@ def test_rebound_step_then_ase_step_loaded_from_cache_in_one_process():
         from hbvm_md import HBVMDynamics
         atoms = Atoms("Cu3", positions=[[0, 0, 0], [2.5, 0, 0], [1.2, 2.2, 0]])
         atoms.calc = EMT()
-        HBVMDynamics(atoms, 2.0).run(5)
+        HBVMDynamics(atoms, 0.2).run(5)                     # (2 fs)
         print("ase", repr(atoms.positions[0, 0]))
         """
     a, b = _python(rebound_run), _python(ase_run)
