@@ -81,3 +81,25 @@ def test_cli_audit_on_a_structure_file(tmp_path, capsys):
     assert "1 jump" in out and "atoms 0 and 1 crossed" in out
     assert main(["audit", str(path), "--calculator", "ase.calculators.emt:Nope"]) == 2
     assert "Nope" in capsys.readouterr().err
+
+
+def test_tip3p_rigid_water_conserves_its_energy():
+    """TIP3P (smooth switching before rc) on a rigid water dimer (FixBondLengths, held in the
+    step): no jump, non-conservative work and the integrator's share at round-off."""
+    from ase import Atoms
+    from ase.calculators.tip3p import TIP3P, angleHOH, rOH
+    from ase.constraints import FixBondLengths
+    import numpy as np
+    x = angleHOH * np.pi / 180 / 2
+    water = Atoms("OH2", positions=[[0, 0, 0], [0, rOH * np.cos(x), rOH * np.sin(x)],
+                                    [0, rOH * np.cos(x), -rOH * np.sin(x)]])
+    atoms = water + water.copy()
+    atoms.positions[3:] += [3.0, 0.2, 0.1]
+    atoms.center(vacuum=6)
+    atoms.calc = TIP3P(rc=5.0)
+    atoms.set_constraint(FixBondLengths([(3 * i + j, 3 * i + (j + 1) % 3)
+                                         for i in range(2) for j in range(3)]))
+    atoms.set_momenta(np.random.default_rng(1).standard_normal((6, 3)) * 0.5)
+    report = hbvm_md.audit(atoms, units.fs, 30)
+    assert report.jumps == []
+    assert abs(report.nonconservative_work) < 1e-12 and abs(report.integrator_error) < 1e-11
