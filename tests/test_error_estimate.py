@@ -191,3 +191,17 @@ def test_ase_names_the_atom_and_the_timestep_that_would_pass():
     for bad in (dict(epsilon=1e-4), dict(adaptive="yes")):
         with pytest.raises(ValueError):
             HBVMDynamics(_copper(), units.fs, **bad)
+
+
+def test_equip_flying_past_a_pericentre_is_refused_by_its_own_estimate():
+    """EQUIP keeps the energy at any step, so no energy rule can see it fly past a pericentre;
+    its step's own estimate (one evaluation at the step's end: EQUIP's stages are Gauss's) does,
+    and a resolving step passes (e = 0.99: 1000 steps a period refused, 30000 right to 1e-11)."""
+    from integrators import EQUIP
+    kep, y0 = _start(0.99)
+    with pytest.raises(UnresolvedStepError, match="EQUIP step .* does not resolve the motion"):
+        integrate(EQUIP(8, 4), kep, y0, P / 1000, 1000, sample_every=1000)
+    n = 30000
+    res = integrate(EQUIP(8, 4), kep, y0, P / n, n, sample_every=n)
+    exact = kep.exact_solution(y0, np.longdouble(n) * np.longdouble(P / n)).astype(float)
+    assert np.linalg.norm(res.y[-1, :2] - exact[:2]) < 1e-10
