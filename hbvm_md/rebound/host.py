@@ -709,7 +709,8 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
         cause = (f"error estimate {sd[L.SL_CAUSE_ERR]:.3e} > epsilon={sd[L.SL_EPSILON]:.3e}"
                  if cause_status == OK else
                  str(step_error(cause_status, h, t, counters, "fixed_point", energy_tol=etol,
-                                hints={k: "a smaller step" for k in _HINTS}, method=name)))
+                                hints={k: "a smaller step" for k in _HINTS}, method=name,
+                                error_bound=ERROR_BOUND, s=int(st[L.SL_S]))))
         exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
     else:
         hints = {k: near + v for k, v in _HINTS.items()}
