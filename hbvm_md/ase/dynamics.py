@@ -455,6 +455,8 @@ class HBVMDynamics(MolecularDynamics):
         self._h_inner = h
         self.inner_steps += steps
         self.inner_rejections += st.rejected - rejected
+        _log.debug("HBVMDynamics: t=%.6g fs: %d inner steps (%d rejected), next inner step "
+                   "%.3g fs", st.t / units.fs, steps, st.rejected - rejected, h / units.fs)
         return st.y
 
     def step(self, forces=None):
