@@ -1154,15 +1154,15 @@ def resolution_error(full, y, minv, g, om, h, group):
     acceleration's) against the velocity it keeps (:func:`body_motion`, or the bodies' mean
     when larger: a body nearly at rest is judged against the motion around it); dimensionless,
     independent of the energy, and not fooled by a force that passes through zero (an atom
-    crossing its equilibrium: its velocity is largest there).  Full form (no bodies): d = max |om| / max |gamma_j| over the
-    whole state, the first omitted term of y' against the largest kept.  0 for a body at rest
+    crossing its equilibrium: its velocity is largest there).  Full form (no bodies):
+    d = max |om| / max |gamma_j| over the whole state, the first omitted term of y' against
+    the largest kept.  0 for a body at rest
     in no force.  With omega the motion's local frequency, d ~ (omega h)^(s+1) (full form:
     (omega h)^s, y' itself keeps s terms) while the step's local error (order 2s) is
     ~ (omega h)^(2s+1): the estimate returned is d^((2s+1)/(s+1)) (full form: d^((2s+1)/s)),
     the local error relative to the motion over the step, in the same units for every s (so
     one bound, :data:`ERROR_BOUND`, serves every method)."""
     s, u = g.shape
-    p = (2.0 * s + 1.0) / (s + 1.0)
     worst = -1
     if full:
         top = 0.0
@@ -1206,7 +1206,7 @@ def resolution_error(full, y, minv, g, om, h, group):
                 err = e
                 worst = b
         b += 1
-    return err ** p, worst
+    return err ** ((2.0 * s + 1.0) / (s + 1.0)), worst
 
 
 @jit

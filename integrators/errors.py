@@ -145,15 +145,16 @@ def unresolved_by_estimate(h: float, estimate: float, bound: float, body: int, s
     NOT_RESOLVED, :func:`integrators.core.resolution_error`): it names the body (``hints
     ["body"]``, a format with ``{i}``: "atom {i}", "particle {i}"; "body {i}" by default), the
     estimate, the bound and a step that would pass (:func:`integrators.core.suggested_step`);
-    ``hints["resolution"]``: a host's own way out, after the step size."""
+    ``hints["resolution"]``: a host's own way out, after the step size; ``hints["switch_off"]``:
+    the host's switch for the check ("error_bound=None" by default)."""
     from .core import suggested_step
     hints = hints or {}
     h_ok = suggested_step(abs(h), estimate, bound, s)
     who = hints.get("body", "body {i}").format(i=body) if body >= 0 else "the state"
     way = hints.get("resolution", "or adaptive steps (adaptive=True), which shrink through it")
+    off = hints.get("switch_off", "error_bound=None")
     hint = (f"use a smaller step (h={h_ok:.3g} or less here: the estimate falls like "
-            f"h^{s + 1} or faster), {way}; or {hints.get('switch_off', 'error_bound=None')} to accept "
-            "such steps")
+            f"h^{s + 1} or faster), {way}; or {off} to accept such steps")
     exc = UnresolvedStepError(h, estimate, bound, iterations, t, hint, solver)
     where = exc._where()
     RuntimeError.__init__(exc, (
@@ -210,22 +211,19 @@ def step_error(status: int, h: float, t: float | None, counters, solver: str, *,
     ``method``: the name the message gives the step ("HBVM", "EQUIP"; None: the error's own,
     HBVM but for EQUIP's energy condition); ``error_bound`` and ``s``: the bound a step's own
     error estimate exceeded (NOT_RESOLVED) and the method's s (for the step that would pass)."""
-    if status == NOT_RESOLVED:
-        from .core import C_ERR, C_LASTIT, C_WORST
-        exc = unresolved_by_estimate(h, float(counters[C_ERR]), error_bound,
-                                     int(counters[C_WORST]), s, int(counters[C_LASTIT]), t,
-                                     solver, hints)
-    else:
-        exc = _step_error(status, h, t, counters, solver, energy_tol, hints or {})
+    exc = _step_error(status, h, t, counters, solver, energy_tol, hints or {}, error_bound, s)
     if method is not None and method != exc.method:
         exc.method = method
         exc.args = (re.sub(r"^\w+ step", f"{method} step", str(exc), count=1),)
     return exc
 
 
-def _step_error(status, h, t, counters, solver, energy_tol, hints):
-    from .core import C_CHANGE, C_LAST, C_LASTIT
+def _step_error(status, h, t, counters, solver, energy_tol, hints, error_bound, s):
+    from .core import C_CHANGE, C_ERR, C_LAST, C_LASTIT, C_WORST
     it = int(counters[C_LASTIT])
+    if status == NOT_RESOLVED:
+        return unresolved_by_estimate(h, float(counters[C_ERR]), error_bound,
+                                      int(counters[C_WORST]), s, it, t, solver, hints)
     if status == NO_ENERGY_ROOT:
         return EnergyConditionError(h, float(counters[C_LAST]), it, solver, t,
                                     hints.get("energy_condition"))

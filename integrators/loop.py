@@ -400,13 +400,10 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     Xpb[0, c] = yt[col] - cyt[col]
                     if vel:
                         Xpb[0, ub + c] = (yt[m + col] - cyt[m + col]) * minv[col]
-                if full:
-                    _force(Xpb[:1], pb, Fpb[:1])
-                    symplectic(Fpb[:1], Xpb[:1])
-                    endpoint_defect(gb, Xpb[0], om)
-                else:
-                    _force(Xpb[:1], pb, Fpb[:1])
-                    endpoint_defect(gb, Fpb[0], om)
+                # (the full form's grad H into Fpb[0], J grad H back over the stage in Xpb[0])
+                f1 = Xpb[:1] if full else Fpb[:1]
+                evaluate(full, Xpb[:1], pb, f1, Fpb[:1])
+                endpoint_defect(gb, f1[0], om)
                 counters[C_NFEV] += 1
             err, worst = resolution_error(full, yb, mb, gb, om, h, group)
             counters[C_ERR] = err

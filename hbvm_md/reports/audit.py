@@ -32,7 +32,7 @@ import numpy as np
 from ase import units
 
 from hbvm_md.ase.atoms_system import calculator_cache
-from hbvm_md.ase.discontinuity import Jump, calculator_cutoff, locate_jumps
+from hbvm_md.ase.discontinuity import calculator_cutoff, locate_jumps
 
 #: nodes added to k for the repeated steps that measure the quadrature's share
 K_EXTRA = 4
@@ -292,7 +292,6 @@ def audit(atoms, timestep: float, steps: int, *, s: int = 2, k: int | None = Non
     AuditReport
         ``print(report)`` for a summary, ``report.plot()`` for the parts against time.
     """
-    from hbvm_md.ase import HBVMDynamics
     _check(atoms, timestep, steps)
     if "energy_tol" in hbvm_options:
         raise TypeError("audit() runs without the step's energy check (energy_tol=None): the "
