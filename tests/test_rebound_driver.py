@@ -136,7 +136,8 @@ def test_particles_added_between_calls():
 # (softening, testparticle_type = 1, gravity = 'none' and additional forces were refused here;
 # they now run on REBOUND's own accelerations: tests/test_rebound_forces.py)
 @pytest.mark.parametrize("setting, match", [
-    (lambda s: s.create_ode(length=2), "user ODEs attached"),
+    (lambda s: s.create_ode(length=2), r"a user ODE \(sim._odes\[0\], length 2\) has no "
+     r"derivatives function; set ode.derivatives"),
     (lambda s: (setattr(s, "softening", 0.01), s.add_variation()),
      "variational particles with softening"),
     (lambda s: s.add_variation(order=2, first_order=s.add_variation()),

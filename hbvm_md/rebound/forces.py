@@ -74,8 +74,14 @@ from hbvm_md.rebound.cabi import call_void
 CLOCK = 2.0 ** -200
 CLOCK_INV = 2.0 ** 200
 (P_SIM, P_UPDATE, P_PTR, P_N, P_STRIDE, P_IX, P_IVX, P_IAX, P_TWORD, P_G, P_SOFT2,
- P_NPOT, P_VEL) = range(13)
-P_HEAD = 13
+ P_NPOT, P_VEL, P_NODES, P_CLOCK, P_ODES_WORD, P_ODES_HELD) = range(17)
+P_HEAD = 17
+#: one attached ODE's entry in the parameters (after the active flags): the ``reb_ode``'s
+#: address, its length, its ``derivatives``, ``pre_timestep`` and ``post_timestep`` functions
+#: (0: none), its ``y`` and ``yDot`` arrays, its first column in the state's ODE block, and
+#: sigma, the power of two by which the state holds it (module docstring, "Attached ODEs")
+(O_ODE, O_LEN, O_DERIV, O_PRE, O_POST, O_Y, O_YDOT, O_COL, O_SIGMA) = range(9)
+O_WIDTH = 9
 #: REBOUNDx forces whose accelerations are -grad of a potential it exports: name ->
 #: (C function, its arity: 1 takes the extras, 2 the extras and the force)
 POTENTIALS = {"gr_potential": ("rebx_gr_potential_potential", 2),
@@ -113,6 +119,68 @@ def call_double2(typingctx, fn, a, b):
     return types.float64(fn, a, b), codegen
 
 
+@intrinsic
+def call_void2(typingctx, fn, a, b):
+    """``((void (*)(void*, void*)) fn)((void*) a, (void*) b)``: an ODE's ``pre_timestep`` or
+    ``post_timestep`` (``ode``, ``y``)."""
+    if not all(isinstance(x, types.Integer) for x in (fn, a, b)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i8p])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
+                     [builder.inttoptr(args[1], i8p), builder.inttoptr(args[2], i8p)])
+        return context.get_dummy_value()
+    return types.none(fn, a, b), codegen
+
+
+@intrinsic
+def call_derivatives(typingctx, fn, ode, ydot, y, t):
+    """``((void (*)(void*, double*, double*, double)) fn)(ode, yDot, y, t)``: an attached ODE's
+    ``derivatives``."""
+    if not (all(isinstance(x, types.Integer) for x in (fn, ode, ydot, y))
+            and isinstance(t, types.Float)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p = ir.IntType(8).as_pointer()
+        f64 = ir.DoubleType()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, f64.as_pointer(), f64.as_pointer(), f64])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
+                     [builder.inttoptr(args[1], i8p),
+                      builder.inttoptr(args[2], f64.as_pointer()),
+                      builder.inttoptr(args[3], f64.as_pointer()), args[4]])
+        return context.get_dummy_value()
+    return types.none(fn, ode, ydot, y, t), codegen
+
+
+@jit
+def odes_at(params):
+    """Where the attached ODEs' entries start in the parameters (:data:`O_WIDTH` each)."""
+    return P_HEAD + 4 * int(params[P_NPOT]) + 2 * int(params[P_N])
+
+
+@jit
+def odes_set(params, z, cz, low):
+    """Each attached ODE's ``y`` <- its part of the state's ODE block z (sigma z: the ODE's
+    columns from its O_COL; less cz when ``low``, the state's low parts), then its
+    ``post_timestep`` when it has one (REBOUNDx's spin ODE writes the spins into the particles'
+    "Omega", which its force reads)."""
+    o0 = odes_at(params)
+    for e in range(int(params[P_NODES])):
+        at = o0 + O_WIDTH * e
+        n, col, sig = int(params[at + O_LEN]), int(params[at + O_COL]), params[at + O_SIGMA]
+        y = carray(float64_pointer(int(params[at + O_Y])), n)
+        for i in range(n):
+            zi = z[col + i] - cz[col + i] if low else z[col + i]
+            y[i] = zi / sig             # (exact: sigma is a power of two)
+        if params[at + O_POST] != 0.0:
+            call_void2(int(params[at + O_POST]), int(params[at + O_ODE]), int(params[at + O_Y]))
+
+
 @jit
 def _write_positions(x, params, view, simd):
     """The particles' x and ``sim.t`` <- the stage x (>= m,) (positions, then the clock)."""
@@ -121,7 +189,7 @@ def _write_positions(x, params, view, simd):
     for i in range(N):
         for c in range(3):
             view[i, ix + c] = x[3 * i + c]
-    simd[int(params[P_TWORD])] = x[3 * N] * CLOCK_INV
+    simd[int(params[P_TWORD])] = x[int(params[P_CLOCK])] * CLOCK_INV
 
 
 @jit
@@ -148,11 +216,31 @@ def rebound_accelerations(X, params, out):
             for i in range(N):
                 for c in range(3):
                     view[i, ivx + c] = X[r, m + 3 * i + c]
+        nodes = int(params[P_NODES])
+        if nodes > 0:           # the stage's ODE states, where the forces may read them
+            odes_set(params, X[r, m + 3 * N:], X[r, m + 3 * N:], False)
         call_void(fn, sim)
         for i in range(N):
             for c in range(3):
                 out[r, 3 * i + c] = view[i, iax + c]
-        out[r, 3 * N] = 0.0
+        for j in range(3 * N, m):       # the clock's acceleration is 0
+            out[r, j] = 0.0
+        if nodes > 0:
+            # each ODE's derivatives with the bodies, the time and every ODE at the stage;
+            # yDot is filled with nan first, so that a Python derivatives function that raises
+            # (ctypes prints it and returns) fails the step instead of leaving stale numbers
+            t = simd[int(params[P_TWORD])]
+            o0 = odes_at(params)
+            for e in range(nodes):
+                at = o0 + O_WIDTH * e
+                n, col, sig = int(params[at + O_LEN]), int(params[at + O_COL]), params[at + O_SIGMA]
+                yd = carray(float64_pointer(int(params[at + O_YDOT])), n)
+                for i in range(n):
+                    yd[i] = np.nan
+                call_derivatives(int(params[at + O_DERIV]), int(params[at + O_ODE]),
+                                 int(params[at + O_YDOT]), int(params[at + O_Y]), t)
+                for i in range(n):
+                    out[r, 3 * N + col + i] = yd[i] * sig
 
 
 @jit
@@ -298,12 +386,74 @@ def host_reasons(sim) -> list[str]:
         out.append("testparticle_type=1")
     if sim.gravity == "none":
         out.append("gravity='none'")
+    if sim._N_odes > 0:
+        out.append("attached ODEs")
     return out
+
+
+def ode_list(sim) -> list[int]:
+    """The addresses of the ``reb_ode`` structs attached to ``sim`` (``sim._odes``)."""
+    return [ctypes.cast(sim._odes[i], ctypes.c_void_p).value for i in range(int(sim._N_odes))]
+
+
+def ode_signature(sim) -> tuple:
+    """What the step's parameters hold of the attached ODEs (address, length, functions and
+    arrays of each): a run whose ODEs differ from the prepared ones prepares the step again."""
+    import rebound
+    O = rebound.ode.ODE
+    out = []
+    for a in ode_list(sim):
+        words = tuple(ctypes.c_void_p.from_address(a + getattr(O, f).offset).value or 0
+                      for f in ("y", "_derivatives", "_pre_timestep", "_post_timestep", "_yDot"))
+        out.append((a, ctypes.c_uint.from_address(a + O.length.offset).value) + words)
+    return tuple(out)
+
+
+def sync_odes_in(sim) -> None:
+    """Each attached ODE's ``pre_timestep`` (REBOUNDx's spin ODE reads the spins from the
+    particles' "Omega" into its ``y``: the state the step starts from), as REBOUND's BS
+    integrator calls it before a step."""
+    for a, n, y, deriv, pre, post, ydot in ode_signature(sim):
+        if pre:
+            ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p)(pre)(a, y)
+
+
+def ode_entries(sim, vscale: float) -> tuple[list[float], int]:
+    """(the parameters' ODE entries (:data:`O_WIDTH` each), the ODE block's width).  Each ODE
+    is held in the state as sigma z, sigma the power of two nearest ``vscale`` / max |z| (1
+    when either is 0): the module docstring, "Attached ODEs".  ``sim``'s ODEs are synced in
+    first (:func:`sync_odes_in`)."""
+    sync_odes_in(sim)
+    out, col = [], 0
+    for a, n, y, deriv, pre, post, ydot in ode_signature(sim):
+        if not deriv:           # (checks.check_simulation names it first)
+            raise ValueError(f"an ODE attached to the simulation (length {n}) has no "
+                             "derivatives function; set ode.derivatives before integrating")
+        if not y or not ydot:
+            raise ValueError(f"an ODE attached to the simulation (length {n}) has no y array")
+        z = np.ctypeslib.as_array((ctypes.c_double * n).from_address(y)) if n else np.zeros(0)
+        if not np.all(np.isfinite(z)):
+            raise ValueError(f"an ODE attached to the simulation (length {n}) holds non-finite "
+                             f"values in ode.y: {z.tolist()}; set its initial state")
+        zmax = float(np.max(np.abs(z))) if n else 0.0
+        sigma = 1.0
+        if zmax > 0.0 and vscale > 0.0:
+            sigma = 2.0 ** round(math.log2(vscale / zmax))
+            sigma = min(max(sigma, 2.0 ** -500), 2.0 ** 500)
+        for v in (a, deriv, pre, post, y, ydot):
+            if not 0 <= v < 2 ** 53:
+                raise RuntimeError(f"an address (0x{int(v):x}) does not fit a double exactly")
+        out += [float(a), float(n), float(deriv), float(pre), float(post), float(y), float(ydot),
+                float(col), sigma]
+        col += n
+    return out, col
 
 
 def hamiltonian(sim) -> bool:
     """Does the scene conserve the H of the module docstring: no added force, or only REBOUNDx
     forces whose potential REBOUNDx exports (:data:`POTENTIALS`)?"""
+    if sim._N_odes > 0:         # (an attached ODE has no energy in general)
+        return False
     if not sim._additional_forces:
         return True
     rebx = reboundx_forces(sim)
@@ -359,25 +509,34 @@ class ReboundScene:
         na = sim.N_active
         act = np.arange(N) < (N if na < 0 or na >= N else na)
         semi = sim.testparticle_type == 1
-        self.N, self.dim = N, 3 * N + 1
+        v = np.zeros(3 * N)
+        sim.serialize_particle_data(vxvyvz=v)
+        vmax = float(np.max(np.abs(v))) if np.all(np.isfinite(v)) else 0.0
+        odes, nz = ode_entries(sim, vmax)
+        self.N, self.nz, self.dim = N, nz, 3 * N + nz + 1
         self.gravitating = (m > 0) & (act | semi)
         self.masses = np.ones(self.dim)
-        self.kinetic_weights = np.append(np.repeat(np.where(self.gravitating, m, 0.0), 3), 0.0)
+        self.kinetic_weights = np.concatenate(
+            [np.repeat(np.where(self.gravitating, m, 0.0), 3), np.zeros(nz + 1)])
         self.hamiltonian = hamiltonian(sim)
-        self.velocities = velocity_dependent(sim)
+        # (an ODE's stages are the momenta's: the step with stage velocities hands them over)
+        self.velocities = velocity_dependent(sim) or len(odes) > 0
+        self.sigma = np.repeat(odes[O_SIGMA::O_WIDTH], odes[O_LEN::O_WIDTH]).astype(float)
         pots = _potential_entries(sim) if self.hamiltonian else []
         fn = ctypes.cast(rebound.clibrebound.reb_simulation_update_acceleration,
                          ctypes.c_void_p).value
         addr = ctypes.addressof(sim)
         head = [addr, fn, ptr, N, stride, ix, ivx, iax, tword,
                 0.0 if sim.gravity == "none" else sim.G, sim.softening ** 2, len(pots),
-                float(self.velocities)]
+                float(self.velocities), len(odes) // O_WIDTH, self.dim - 1,
+                type(sim)._N_odes.offset // 8, 0.0]
         for a in (addr, fn, ptr) + tuple(x for e in pots for x in (e[0], e[2], e[3])):
             if not 0 <= a < 2 ** 53:
                 raise RuntimeError(f"an address (0x{int(a):x}) does not fit a double exactly")
         self.params = np.concatenate([np.array(head, dtype=float),
                                       np.array(pots, dtype=float).reshape(-1),
-                                      np.where(self.gravitating, m, 0.0), act.astype(float)])
+                                      np.where(self.gravitating, m, 0.0), act.astype(float),
+                                      np.array(odes, dtype=float)])
 
     def separable_kernels(self):
         return rebound_accelerations, rebound_potential, self.params
@@ -397,10 +556,24 @@ class ReboundScene:
         """V(q) + U(q) (module docstring)."""
         return float(rebound_potential(np.asarray(q, float), self.params))
 
+    def ode_state(self) -> np.ndarray:
+        """The attached ODEs' state as the step holds it, sigma z (nz,), read from their ``y``
+        (synced in when the scene was built)."""
+        z = np.zeros(self.nz)
+        o0 = int(odes_at(self.params))
+        for e in range(int(self.params[P_NODES])):
+            at = o0 + O_WIDTH * e
+            n, col = int(self.params[at + O_LEN]), int(self.params[at + O_COL])
+            if n:
+                z[col:col + n] = np.ctypeslib.as_array(
+                    (ctypes.c_double * n).from_address(int(self.params[at + O_Y])))
+        return z * self.sigma
+
     def state(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
-        """y = (x, CLOCK t, v, CLOCK) (2 dim,) from positions and velocities (N, 3)."""
-        q = np.append(np.asarray(x, float).reshape(-1), t * CLOCK)
-        p = np.append(np.asarray(v, float).reshape(-1), CLOCK)
+        """y = (x, 0, CLOCK t, v, sigma z, CLOCK) (2 dim,) from positions and velocities (N, 3)
+        and the attached ODEs' y (:meth:`ode_state`; 0: their positions, which nothing reads)."""
+        q = np.concatenate([np.asarray(x, float).reshape(-1), np.zeros(self.nz), [t * CLOCK]])
+        p = np.concatenate([np.asarray(v, float).reshape(-1), self.ode_state(), [CLOCK]])
         return np.concatenate([q, p])
 
 

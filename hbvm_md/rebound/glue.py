@@ -44,11 +44,13 @@ from hbvm_md.rebound.layout import (
     SL_K, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
-from hbvm_md.rebound.forces import CLOCK
+from hbvm_md.rebound.forces import (CLOCK, O_COL, O_LEN, O_SIGMA, O_WIDTH, O_Y, P_N, P_NODES,
+                                    P_ODES_HELD, P_ODES_WORD, call_void2, odes_at, odes_set,
+                                    O_ODE, O_PRE)
 from hbvm_md.rebound.particles import (delta2, particles_match, read_tangents, reread_particles,
                                        restore_particles, settings_ok, write_tangents)
 
-GLUE_FUNCTIONS = ("step_arrays",)
+GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
 #: built without the simplified Newton iteration (integrators.specialise, "Compile time")
 GLUE_NEWTON = False
@@ -108,8 +110,72 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     yt, cyt, gammat, ereft, _ = trial
     counters = wk.counters
     V, DG, Vt, DGt, tw, tcw, tcount, TP = tan
+    nodes = int(params[P_NODES]) if host_forces else 0
+    if nodes > 0:
+        odes_release(simi, params)
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
+    status = _step(rb, hb, system, state, trial, method, newton, wk, ext, tan)
+    if nodes > 0 and status != RESYNC:
+        # REBOUND steps the attached ODEs with its BS integrator after any other integrator's
+        # step (from t - dt_last_done, with the bodies at the step's end): HBVM has stepped
+        # them with the bodies, so the simulation shows no ODE until the step's next call or
+        # the end of the run puts them back (odes_release; hbvm_md.rebound.host)
+        params[P_ODES_HELD] = simi[int(params[P_ODES_WORD])]
+        simi[int(params[P_ODES_WORD])] = 0
+    return status
+
+
+def odes_release(simi, params):
+    """``sim->N_odes`` as it was before the last step hid the ODEs from REBOUND (above)."""
+    if params[P_ODES_HELD] != 0.0:
+        simi[int(params[P_ODES_WORD])] = int(params[P_ODES_HELD])
+        params[P_ODES_HELD] = 0.0
+
+
+def odes_read(params, y, cy, eref, st):
+    """The attached ODEs' state before a step: each ODE's ``pre_timestep`` (REBOUNDx's spins
+    from the particles' "Omega"), then, where ``y`` differs from what the last step wrote (a
+    user's change between runs), the state's ODE block reread from it, as moved particles are
+    (compensations zeroed, the reference energy afresh).  The ODE block's positions (nothing
+    reads them: module docstring of hbvm_md.rebound.forces) are set to 0, so that they never
+    grow into the iteration's scale."""
+    N = int(params[P_N])
+    m = y.shape[0] // 2
+    o0 = odes_at(params)
+    moved = False
+    for e in range(int(params[P_NODES])):
+        at = o0 + O_WIDTH * e
+        n, col, sig = int(params[at + O_LEN]), int(params[at + O_COL]), params[at + O_SIGMA]
+        if params[at + O_PRE] != 0.0:
+            call_void2(int(params[at + O_PRE]), int(params[at + O_ODE]), int(params[at + O_Y]))
+        z = carray(float64_pointer(int(params[at + O_Y])), n)
+        for i in range(n):
+            j = m + 3 * N + col + i
+            if z[i] != y[j] / sig:
+                y[j] = z[i] * sig
+                cy[j] = 0.0
+                moved = True
+            y[3 * N + col + i] = 0.0
+            cy[3 * N + col + i] = 0.0
+    if moved:
+        for i in range(eref.shape[0]):
+            eref[i] = np.nan
+        st[SL_RESYNCS] += 1
+    return moved
+
+
+def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
+    """:func:`step_arrays` past its first checks."""
+    simd, simi, view, ctx, r, pv = rb
+    st, sd, res, written, host, vidx, DGs = hb
+    _, minv, kin_w, params = system
+    host_forces = ctx[D_HOST] != 0
+    y, cy, gamma, eref, clock = state
+    yt, cyt, gammat, ereft, _ = trial
+    counters = wk.counters
+    V, DG, Vt, DGt, tw, tcw, tcount, TP = tan
+    nodes = int(params[P_NODES]) if host_forces else 0
     ix, ivx = ctx[R_X], ctx[R_VX]
     if not settings_ok(st, sd):
         return BAD_SETTINGS
@@ -142,6 +208,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     if host_forces:
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
         cy[m - 1] = 0.0
+    if nodes > 0:
+        odes_read(params, y, cy, eref, st)
     if _TANGENTS and nv > 0:
         read_tangents(pv, vidx, N, ix, ivx, ctx[R_M], minv, V, DG, host[1], params, TP)
     res[2] = 0.0
@@ -168,6 +236,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         if host_forces:
             restore_particles(view, written, ix, ivx)
             simd[ctx[R_T]] = t_start
+        if nodes > 0:       # (each ODE's y, and what its post_timestep writes, as before)
+            odes_set(params, y[m + 3 * int(params[P_N]):], cy, False)
         sd[SL_H_FAIL] = res[0]
         sd[SL_T_FAIL] = t_start
         sd[SL_CAUSE_ERR] = res[3]
@@ -214,6 +284,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             view[i, ivx + c] = y[m + 3 * i + c] * minv[3 * i + c]
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
+    if nodes > 0:
+        odes_set(params, y[m + 3 * int(params[P_N]):], cy, False)
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
     simd[ctx[R_DTL]] = h_done
     if adaptive:

@@ -25,7 +25,8 @@ from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
-from hbvm_md.rebound.forces import ReboundScene, host_reasons, reboundx_forces
+from hbvm_md.rebound.forces import (P_NODES, P_ODES_HELD, ReboundScene, host_reasons,
+                                    ode_signature, reboundx_forces)
 from hbvm_md.rebound.glue import Host, Rebound
 from hbvm_md.rebound.masses import masses_only, same_model
 from integrators import records as R
@@ -238,7 +239,11 @@ def _install_runs(rebound) -> None:
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
-            status = c_integrate(addr, c_double(tmax))
+            _recheck_odes(self, addr)
+            try:
+                status = c_integrate(addr, c_double(tmax))
+            finally:
+                _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)  # (as REBOUND)
 
     def steps(self, N_steps):
@@ -253,7 +258,11 @@ def _install_runs(rebound) -> None:
                 _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
-            status = c_steps(addr, c_size_t(N_steps))
+            _recheck_odes(self, addr)
+            try:
+                status = c_steps(addr, c_size_t(N_steps))
+            finally:
+                _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
@@ -403,6 +412,50 @@ def _recheck_forces(sim, addr: int) -> None:
     if prepared is not None:
         prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
     _FORCES.pop(addr, None)
+
+
+#: simulation address -> the attached ODEs (forces.ode_signature) its step was last prepared with
+_ODES: dict[int, tuple] = {}
+
+
+def _host_params(addr: int):
+    """The parameters of the step on REBOUND's own accelerations (hbvm_md.rebound.forces), as
+    an array over the context block, or None (not prepared, or the N-body kernel's step)."""
+    prepared = _prepared(addr)
+    if prepared is None or not prepared[2][L.D_HOST]:
+        return None
+    ctx = prepared[2]
+    return doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P]))
+
+
+def _release_odes(addr: int) -> None:
+    """Give the simulation its attached ODEs back: the compiled step hides them from REBOUND
+    (``sim->N_odes = 0``) after each step, so that REBOUND does not step them again with its BS
+    integrator (:func:`hbvm_md.rebound.glue.step_arrays`); the next step puts them back
+    itself, and the end of a run (or the step's preparation) here."""
+    if addr not in _HOST_PATH and addr not in _ODES:
+        return
+    params = _host_params(addr)
+    if params is None or params[P_NODES] == 0 or params[P_ODES_HELD] == 0.0:
+        return
+    sim = _rebound().Simulation.from_address(addr)
+    sim._N_odes = int(params[P_ODES_HELD])
+    params[P_ODES_HELD] = 0.0
+
+
+def _recheck_odes(sim, addr: int) -> None:
+    """An ODE attached or removed between runs (or its functions replaced) changes no word of
+    ``reb_simulation`` that the compiled step checks, as a REBOUNDx force does not
+    (:func:`_recheck_forces`): the step's context is then marked stale, and prepared again."""
+    seen = _ODES.get(addr)
+    if seen is None and not sim._N_odes:
+        return
+    if seen is not None and ode_signature(sim) == seen:
+        return
+    prepared = _prepared(addr)
+    if prepared is not None:
+        prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
+    _ODES.pop(addr, None)
 
 
 def _forget_host_energy(addr: int) -> None:
@@ -790,6 +843,7 @@ def _prepare(sim, p: int) -> None:
     (compensations, gamma) when it is the particles' (a loaded or copied run), else start it
     afresh from the particles."""
     st, sd = _slots(p)
+    _release_odes(ctypes.addressof(sim))     # (hidden by the last step, when a run resyncs)
     method = check_settings(st, sd)
     check_simulation(sim)
     h = sim.dt
@@ -879,6 +933,15 @@ def _prepare(sim, p: int) -> None:
         st[L.SL_RESYNCS] += 1
     if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
         sd[L.SL_EREF] = np.nan
+    if nb is None and scene.nz:
+        # the ODEs' block from their y as the scene holds them (its sigma may be new), their
+        # positions 0 (nothing reads them); their coefficients afresh (the initial guess only)
+        y = doubles(int(st[L.SL_Y]), 4 * dim)
+        zq = slice(3 * N, 3 * N + scene.nz)
+        zp = slice(dim + 3 * N, dim + 3 * N + scene.nz)
+        y[zq] = y[2 * dim:][zq] = 0.0
+        y[zp], y[2 * dim:][zp] = scene.ode_state(), 0.0
+        doubles(int(st[L.SL_GAMMA]), s * u).reshape(s, u)[:, zq] = 0.0
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
@@ -908,6 +971,7 @@ def _prepare(sim, p: int) -> None:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
     _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
+    _ODES[ctypes.addressof(sim)] = ode_signature(sim)
     if sim.extras:
         _warn_operators(sim, _operators(sim))
     (_HOST_PATH.add if nb is None else _HOST_PATH.discard)(ctypes.addressof(sim))
@@ -1100,7 +1164,8 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     header[[L.D_NV, L.D_TGF, L.D_TGC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
             L.R_MEGNO_T0]] = (nv, nf, nc, pvar, _REG["megno_update"], pvar_at,
                               megno_at, t0_at)
-    header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1)
+    header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1,
+                           type(sim)._N_odes.offset // 8 + 1)   # (the step hides the ODEs)
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
     sim_words = int64s(ctypes.addressof(sim), max(words) + 1)
