@@ -569,6 +569,33 @@ class ReboundScene:
                     (ctypes.c_double * n).from_address(int(self.params[at + O_Y])))
         return z * self.sigma
 
+    def adopt_sigma(self, held: np.ndarray) -> bool:
+        """Take each ODE's sigma from ``held``, the ODE block of a state of this scene saved or
+        kept from an earlier preparation (sigma z, as :meth:`ode_state`), when its y gives one
+        power of two held / z for every nonzero component: a loaded, copied or resynced run
+        then goes on as the uninterrupted one, bit for bit (sigma sets the scales of the
+        iteration's stop rule and of the step control).  Returns whether every ODE's sigma
+        was taken so (an ODE whose y is all zeros keeps its own)."""
+        z = self.ode_state() / self.sigma
+        o0 = int(odes_at(self.params))
+        every = True
+        for e in range(int(self.params[P_NODES])):
+            at = o0 + O_WIDTH * e
+            n, col = int(self.params[at + O_LEN]), int(self.params[at + O_COL])
+            zz, hh = z[col:col + n], held[col:col + n]
+            nz = zz != 0.0
+            if not np.any(nz):
+                continue
+            with np.errstate(all="ignore"):
+                r = hh[nz] / zz[nz]
+            mant, _ = np.frexp(r)
+            if np.all(r == r[0]) and r[0] > 0 and mant[0] == 0.5 and np.all(hh[~nz] == 0.0):
+                self.params[at + O_SIGMA] = r[0]
+                self.sigma[col:col + n] = r[0]
+            else:
+                every = False
+        return every
+
     def state(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
         """y = (x, 0, CLOCK t, v, sigma z, CLOCK) (2 dim,) from positions and velocities (N, 3)
         and the attached ODEs' y (:meth:`ode_state`; 0: their positions, which nothing reads)."""

@@ -128,7 +128,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
 
 def odes_release(simi, params):
     """``sim->N_odes`` as it was before the last step hid the ODEs from REBOUND (above)."""
-    if params[P_ODES_HELD] != 0.0:
+    if params[P_NODES] > 0 and params[P_ODES_HELD] != 0.0:
         simi[int(params[P_ODES_WORD])] = int(params[P_ODES_HELD])
         params[P_ODES_HELD] = 0.0
 
@@ -315,6 +315,8 @@ def core_step(r, p):
     simd = carray(float64_pointer(ra), ctx[R_HEAD])
     simi = carray(int64_pointer(ra), ctx[R_HEAD])
     N = ctx[D_N]
+    if ctx[D_HOST] != 0:        # (N_odes is a word the checks below compare)
+        odes_release(simi, carray(float64_pointer(ctx[A_PARAMS]), ctx[D_P]))
     if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
         return RESYNC
     if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]

@@ -934,14 +934,19 @@ def _prepare(sim, p: int) -> None:
     if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
         sd[L.SL_EREF] = np.nan
     if nb is None and scene.nz:
-        # the ODEs' block from their y as the scene holds them (its sigma may be new), their
-        # positions 0 (nothing reads them); their coefficients afresh (the initial guess only)
         y = doubles(int(st[L.SL_Y]), 4 * dim)
         zq = slice(3 * N, 3 * N + scene.nz)
         zp = slice(dim + 3 * N, dim + 3 * N + scene.nz)
-        y[zq] = y[2 * dim:][zq] = 0.0
-        y[zp], y[2 * dim:][zp] = scene.ode_state(), 0.0
-        doubles(int(st[L.SL_GAMMA]), s * u).reshape(s, u)[:, zq] = 0.0
+        if not (keep and scene.adopt_sigma(y[zp].copy())):
+            # the ODEs' block from their y at the scene's sigma, their positions 0 (nothing
+            # reads them), their coefficients afresh (the initial guess only); with the sigma
+            # of a kept state (a resync, or a loaded or copied run with its ODEs attached
+            # again) the compiled step rereads an ODE's y only where it changed, and the run
+            # goes on as the uninterrupted one
+            y[zq] = y[2 * dim:][zq] = 0.0
+            y[zp], y[2 * dim:][zp] = scene.ode_state(), 0.0
+            doubles(int(st[L.SL_GAMMA]), s * u).reshape(s, u)[:, zq] = 0.0
+        binding.params[:] = scene.params       # (the sigma taken: one array when not copied)
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
