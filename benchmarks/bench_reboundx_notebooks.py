@@ -53,6 +53,7 @@ ROOT = os.path.dirname(HERE)
 #: REBOUND's notebooks that touch REBOUND's own forces at the stages (the rest of REBOUND's
 #: notebooks run plain gravity, tested elsewhere)
 REBOUND_NOTEBOOKS = ("Forces", "PoincareMap", "Holmberg", "PrimordialEarth", "EccentricComets",
+                     "IntegratingArbitraryODEs",
                      "Testparticles")
 
 #: notebook -> why it is left out
