@@ -5,7 +5,8 @@ Which scenes take this path
 ---------------------------
 :func:`host_reasons` names what a scene has beyond plain Newtonian point masses: additional
 forces (REBOUNDx's, named, or a user's function), ``softening > 0``, semi-active particles
-(``testparticle_type = 1`` with particles past ``N_active``) or ``gravity = 'none'``.  Such a
+(``testparticle_type = 1`` with particles past ``N_active``), ``gravity = 'none'`` or attached
+ODEs (``sim._odes``).  Such a
 scene is integrated on REBOUND's accelerations, as IAS15 does: every stage of the step writes
 its positions, velocities and time into the particles and ``sim.t``, calls REBOUND's
 ``reb_simulation_update_acceleration`` (gravity in the scene's mode, softening, the additional
@@ -46,9 +47,37 @@ The clock is scaled by CLOCK = 2^-200 (an exact scaling) so that it takes no par
 step's convergence test; its force is 0, so it takes none in the error estimate either; the
 glue resets it to ``sim.t`` before each step.
 
+Attached ODEs
+-------------
+ODEs attached to the simulation (``sim.create_ode``: ``length``, ``y``, ``derivatives(ode, yDot,
+y, t)``, ``needs_nbody``; REBOUNDx's spin ODE with its ``pre_timestep`` and ``post_timestep``)
+are integrated with the bodies, at the step's stages.  The state is then
+y = (x, 0 (nz), tau, v, sigma z (nz), CLOCK): each ODE's state z rides in the momenta, whose
+stage values the step with stage velocities hands the kernel (p0 + h I_s gamma: the Runge-Kutta
+stages of z' = f(t, x, v, z), so the order stays 2s), with a position-like partner that nothing
+reads (set to 0 before each step by the glue, so that it never grows into the iteration's
+scale).  At each stage the kernel writes the bodies and ``sim.t``, then each ODE's ``y`` <- the
+stage's z and its ``post_timestep`` (REBOUNDx's spin ODE writes the spins into the particles'
+"Omega", which its force reads), then calls REBOUND's accelerations, then each ODE's
+``derivatives`` (``needs_nbody`` or not: the particles hold the stage either way), and returns
+sigma z' as the ODE block's "acceleration".
+
+sigma, one power of two per ODE (exact scalings), brings the ODE's largest component to the
+bodies' largest velocity when the step is prepared (1 when either is 0; taken back from a kept or
+saved state, :meth:`ReboundScene.adopt_sigma`): the iteration's stop rule, the step's error
+estimate (body by body: the ODE's components in groups of three, as a body's coordinates) and the
+controller (the largest weighted coefficients over the state) then compare the ODE with the
+bodies as a body moving at its own rate.  An ODE has no energy in general: the energy check is
+off for such a scene (:func:`hamiltonian`).  The glue (:mod:`hbvm_md.rebound.glue`) calls each
+ODE's ``pre_timestep`` and rereads a changed ``y`` before a step, writes ``y`` (and calls
+``post_timestep``) after it, or writes back the state from before a failed step, and hides the
+ODEs from REBOUND's own stepping of them (``sim->N_odes`` = 0 between its steps).
+
 The parameters (float64; every address and offset below 2^53 is exact in a double):
 ``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, velocities,
-then n_pot entries (function, arity, arg1, arg2), then g (N), active (N)]``: the
+n_odes, the clock's column, the word of sim->N_odes, the N_odes the last step hid (0: none),
+then n_pot entries (function, arity, arg1, arg2), then g (N), active (N), then n_odes entries
+of O_WIDTH]``: the
 simulation's address, REBOUND's function, the particle array (the step checks that it has not
 moved), REBOUND's offsets in doubles, the Newtonian G of V (0 for ``gravity = 'none'``), the
 softening squared, REBOUNDx's potential functions with their arguments, whether the kernel is
