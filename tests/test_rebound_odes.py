@@ -237,3 +237,82 @@ def test_tidal_spins_against_dop853_and_ias15():
     ias.integrate(T)
     assert np.max(np.abs(_spins(ias).ravel() - ref[12:])) > 1e3 * np.max(
         np.abs(_spins(sim).ravel() - ref[12:]))
+
+
+def test_ode_and_force_attached_between_runs():
+    """A REBOUNDx force and an ODE attached together between two runs (each marks the step's
+    context stale by a word of its own: one flip must not undo the other) are both taken: the
+    second run is, bit for bit, that of a new simulation built with both at its start."""
+    reboundx = pytest.importorskip("reboundx")
+
+    def attach(sim, keep):
+        rebx = reboundx.Extras(sim)
+        gr = rebx.load_force("gr")
+        rebx.add_force(gr)
+        gr.params["c"] = 10.0
+        keep += [rebx, gr, *_attach(sim)]
+        return keep[2]
+
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.1)
+    sim.move_to_com()
+    HBVMIntegrator(sim, dt=0.125)
+    sim.integrate(1.0)
+    fresh = rebound.Simulation()
+    for p in sim.particles:
+        fresh.add(m=p.m, x=p.x, y=p.y, z=p.z, vx=p.vx, vy=p.vy, vz=p.vz)
+    fresh.t = sim.t
+    HBVMIntegrator(fresh, dt=0.125)
+    k1, k2 = [], []
+    o1, o2 = attach(sim, k1), attach(fresh, k2)
+    sim.integrate(2.0)
+    fresh.integrate(2.0)
+    assert np.array_equal(_state(sim, o1), _state(fresh, o2))
+    assert o1.y[0] != 0.3
+
+
+def test_derivatives_replaced_and_force_added_between_runs():
+    """An ODE's derivatives replaced and a second REBOUNDx force added between runs change no
+    word the step compares but the two it marks stale, each its own (flipping one word twice
+    would undo it, and the step would call the old derivatives): the second run is, bit for
+    bit, that of a new simulation built with the new derivatives and both forces."""
+    reboundx = pytest.importorskip("reboundx")
+
+    def build(sim, late):
+        rebx = reboundx.Extras(sim)
+        gr = rebx.load_force("gr")
+        rebx.add_force(gr)
+        gr.params["c"] = 10.0
+        ode, deriv = _attach(sim)
+        keep = [rebx, gr, ode, deriv]
+        if late:
+            sim.integrate(1.0)
+
+        def damped(ode_, yDot, y, t):
+            deriv(ode_, yDot, y, t)
+            yDot[1] -= 0.3 * y[1]
+        ode.derivatives = damped
+        cf = rebx.load_force("central_force")
+        rebx.add_force(cf)
+        sim.particles[0].params["Acentral"] = 1e-4
+        sim.particles[0].params["gammacentral"] = -1.0
+        keep += [damped, cf]
+        return keep
+
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.1)
+    sim.move_to_com()
+    HBVMIntegrator(sim, dt=0.125)
+    k1 = build(sim, True)
+    fresh = rebound.Simulation()
+    for p in sim.particles:
+        fresh.add(m=p.m, x=p.x, y=p.y, z=p.z, vx=p.vx, vy=p.vy, vz=p.vz)
+    fresh.t = sim.t
+    HBVMIntegrator(fresh, dt=0.125)
+    k2 = build(fresh, False)
+    k2[2].y[0], k2[2].y[1] = k1[2].y[0], k1[2].y[1]
+    sim.integrate(2.0)
+    fresh.integrate(2.0)
+    assert np.array_equal(_state(sim, k1[2]), _state(fresh, k2[2]))

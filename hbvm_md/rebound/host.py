@@ -453,8 +453,8 @@ def _recheck_odes(sim, addr: int) -> None:
     if seen is not None and ode_signature(sim) == seen:
         return
     prepared = _prepared(addr)
-    if prepared is not None:
-        prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
+    if prepared is not None:    # (its own word: a force changed too flips _additional_forces')
+        prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_N_odes")] ^= 1
     _ODES.pop(addr, None)
 
 
