@@ -316,3 +316,21 @@ def test_derivatives_replaced_and_force_added_between_runs():
     sim.integrate(2.0)
     fresh.integrate(2.0)
     assert np.array_equal(_state(sim, k1[2]), _state(fresh, k2[2]))
+
+
+def test_derivatives_that_raise_stop_the_run():
+    """A Python derivatives function that raises (ctypes prints it and returns to C) fails the
+    step it was called in (its yDot is nan), nothing of it committed, and the run raises a
+    RuntimeError naming the user's exception."""
+    sim, ode, deriv = _scene()
+    sim.integrate(1.0)
+
+    def bad(ode_, yDot, y, t):
+        if t > 1.5:
+            raise KeyError("no table beyond t = 1.5")
+        deriv(ode_, yDot, y, t)
+    ode.derivatives = bad
+    with pytest.raises(RuntimeError, match=r"an ODE's derivatives or another\) raised KeyError: "
+                       r"'no table beyond t = 1.5'"):
+        sim.integrate(3.0)
+    assert 1.0 < sim.t < 1.6 and sim._N_odes == 1     # (a step may end past 1.5: its stages not)

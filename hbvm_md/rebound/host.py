@@ -569,8 +569,9 @@ def _after_run(sim, addr: int, status: int, messages_at: int, raised=None) -> No
         _drop_messages(sim, _message(err))
         if raised is not None and isinstance(err, (NonFiniteError, StepSizeError)):
             raise RuntimeError(
-                f"a Python callback of the simulation (sim.additional_forces or another) raised "
-                f"{type(raised).__name__}: {raised}; HBVM's step at t={sim.t!r} evaluated "
+                f"a Python callback of the simulation (sim.additional_forces, an ODE's "
+                f"derivatives or another) raised {type(raised).__name__}: {raised}; HBVM's step at "
+                f"t={sim.t!r} evaluated "
                 "REBOUND's accelerations through it and was not taken (the particles and sim.t "
                 "are as before that step)") from raised
         raise err
