@@ -334,3 +334,48 @@ def test_derivatives_that_raise_stop_the_run():
                        r"'no table beyond t = 1.5'"):
         sim.integrate(3.0)
     assert 1.0 < sim.t < 1.6 and sim._N_odes == 1     # (a step may end past 1.5: its stages not)
+
+
+def _fast_oscillator(scaled):
+    """A star, a planet and an oscillator of frequency 12 driven by the planet's distance, as
+    (x, x') or as (x, x' / 12)."""
+    W = 12.0
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.1)
+    sim.move_to_com()
+    ode = sim.create_ode(length=2, needs_nbody=True)
+
+    def deriv(ode_, yDot, y, t):
+        p0, p1 = sim.particles[0], sim.particles[1]
+        r = ((p1.x - p0.x) ** 2 + (p1.y - p0.y) ** 2 + (p1.z - p0.z) ** 2) ** 0.5
+        if scaled:
+            yDot[0], yDot[1] = W * y[1], -W * y[0] + K * r / W
+        else:
+            yDot[0], yDot[1] = y[1], -W * W * y[0] + K * r
+    ode.derivatives = deriv
+    ode.y[0], ode.y[1] = 0.3, 0.0
+    return sim, ode, deriv
+
+
+def test_fixed_step_refuses_an_unresolved_ode_naming_it():
+    """A fixed step that resolves the bodies but not a fast ODE is refused, the ODE's components
+    named (the ODE is checked as a test particle is: its own estimate against the bodies')."""
+    sim, ode, _ = _fast_oscillator(True)
+    HBVMIntegrator(sim, s=3, k=4, dt=0.1)
+    with pytest.raises(UnresolvedStepError, match=r"does not resolve the attached ODEs: their "
+                       r"components 0 to 2 \(counted over sim._odes in order\)"):
+        sim.integrate(1.0)
+    assert sim.t == 0.0 and ode.y[0] == 0.3
+
+
+@pytest.mark.xfail(strict=True, raises=ConvergenceError,
+                   reason="the fixed-point iteration's stop rule takes the largest increment "
+                          "over the state: an ODE far from normal in its own units (a fast "
+                          "oscillator as (x, x')) makes the increments alternate, which the "
+                          "rule takes for a stall, at steps where (x, x' / omega) converges")
+def test_fast_oscillator_converges_whatever_its_units():
+    for scaled in (True, False):
+        sim, ode, _ = _fast_oscillator(scaled)
+        HBVMIntegrator(sim, s=3, k=4, dt=0.04, energy_tol=None)
+        sim.integrate(1.0)

@@ -706,6 +706,21 @@ def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> Unresol
     _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, 0.0)
     # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
     h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
+    if i >= sim.N:
+        # a group of three of the attached ODEs' components (they follow the particles in the
+        # state, hbvm_md.rebound.forces, "Attached ODEs"), checked as a test particle is
+        j = 3 * (i - sim.N)
+        exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, "")
+        RuntimeError.__init__(exc, (
+            f"HBVM step of size h={h:.6g} at t={t:.17g} does not resolve the attached ODEs: "
+            f"their components {j} to {j + 2} (counted over sim._odes in order) have an error "
+            f"estimate {err:.3e} (the weight of the last Legendre coefficient of their "
+            f"derivative over the step) above {bound:.3g} (the larger of {TP_FLOOR:g} and "
+            f"{TP_FACTOR:g} times the gravitating bodies' estimate): leave out `dt` "
+            "(HBVMIntegrator(sim) takes adaptive steps), or use a smaller sim.dt (about "
+            f"{h_ok:.2g} or less here), or pass energy_tol=None to accept such steps"))
+        exc.particle, exc.encounter = None, None
+        return exc
     enc = _encounter(sim, only=i, s=s)
     where = (f"passes {_name(sim, enc['j'])} {enc['distance']:.3g} away at relative speed "
              f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} "
