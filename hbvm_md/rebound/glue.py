@@ -93,7 +93,11 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     On REBOUND's own accelerations (the context's D_HOST, :mod:`hbvm_md.rebound.forces`) the
     state is (q, clock, v, CLOCK): its clock is set to ``sim.t`` before the step, and the
     stages' positions, velocities and times that the kernel wrote into the particles and
-    ``sim.t`` are replaced by the committed state, or restored when the step fails.
+    ``sim.t`` are replaced by the committed state, or restored when the step fails.  With
+    attached ODEs (:mod:`hbvm_md.rebound.forces`, "Attached ODEs") the state's ODE block is
+    synced from each ODE's ``y`` before the step (:func:`odes_read`) and written back after it
+    (the committed state, or the state before a failed step), and the ODEs are hidden from
+    REBOUND's own stepping of them until the next call (:func:`odes_release`).
 
     With variational particles the tangents advance by the derivative of the step taken
     (:func:`integrators.tangent.tangent_map` from the state before the step, with its accepted
