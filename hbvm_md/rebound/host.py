@@ -453,8 +453,12 @@ def _recheck_odes(sim, addr: int) -> None:
     if seen is not None and ode_signature(sim) == seen:
         return
     prepared = _prepared(addr)
-    if prepared is not None:    # (its own word: a force changed too flips _additional_forces')
-        prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_N_odes")] ^= 1
+    if prepared is not None:
+        # its own word (a force changed too flips _additional_forces'), set to differ from the
+        # simulation's count as it is now (a flip of the old count may equal the new one)
+        sim_words = int64s(addr, int(prepared[2][L.R_HEAD]))
+        j = L.CONFIG_FIELDS.index("_N_odes")
+        prepared[2][L.C_VALUES + j] = sim_words[prepared[2][L.C_WORDS + j]] ^ 1
     _ODES.pop(addr, None)
 
 
