@@ -379,3 +379,30 @@ def test_fast_oscillator_converges_whatever_its_units():
         sim, ode, _ = _fast_oscillator(scaled)
         HBVMIntegrator(sim, s=3, k=4, dt=0.04, energy_tol=None)
         sim.integrate(1.0)
+
+
+def test_derivatives_replaced_in_a_heartbeat():
+    """An ODE's derivatives replaced during a run (in a heartbeat) are taken at the next step
+    (the step is prepared again) rather than the replaced function called: the run matches one
+    whose derivatives were replaced between two runs at the same time."""
+    def run(in_heartbeat):
+        sim, ode, deriv = _scene()
+        HBVMIntegrator(sim, dt=0.125)
+
+        def damped(ode_, yDot, y, t):
+            deriv(ode_, yDot, y, t)
+            yDot[1] -= 0.3 * y[1]
+        if in_heartbeat:
+            def beat(sim_p):
+                if sim.t >= 1.0 and not keep:
+                    keep.append(damped)
+                    ode.derivatives = damped
+            keep = []
+            sim.heartbeat = beat
+            sim.integrate(2.0)
+        else:
+            sim.integrate(1.0)
+            ode.derivatives = damped
+            sim.integrate(2.0)
+        return _state(sim, ode)
+    assert np.max(np.abs(run(True) - run(False))) < 1e-12

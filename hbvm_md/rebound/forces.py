@@ -76,7 +76,7 @@ ODEs from REBOUND's own stepping of them (``sim->N_odes`` = 0 between its steps)
 The parameters (float64; every address and offset below 2^53 is exact in a double):
 ``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, velocities,
 n_odes, the clock's column, the word of sim->N_odes, the N_odes the last step hid (0: none),
-then n_pot entries (function, arity, arg1, arg2), then g (N), active (N), then n_odes entries
+the offset of ``derivatives`` in ``reb_ode``, then n_pot entries (function, arity, arg1, arg2), then g (N), active (N), then n_odes entries
 of O_WIDTH]``: the
 simulation's address, REBOUND's function, the particle array (the step checks that it has not
 moved), REBOUND's offsets in doubles, the Newtonian G of V (0 for ``gravity = 'none'``), the
@@ -103,8 +103,8 @@ from hbvm_md.rebound.cabi import call_void
 CLOCK = 2.0 ** -200
 CLOCK_INV = 2.0 ** 200
 (P_SIM, P_UPDATE, P_PTR, P_N, P_STRIDE, P_IX, P_IVX, P_IAX, P_TWORD, P_G, P_SOFT2,
- P_NPOT, P_VEL, P_NODES, P_CLOCK, P_ODES_WORD, P_ODES_HELD) = range(17)
-P_HEAD = 17
+ P_NPOT, P_VEL, P_NODES, P_CLOCK, P_ODES_WORD, P_ODES_HELD, P_ODE_DERIV_AT) = range(18)
+P_HEAD = 18
 #: one attached ODE's entry in the parameters (after the active flags): the ``reb_ode``'s
 #: address, its length, its ``derivatives``, ``pre_timestep`` and ``post_timestep`` functions
 #: (0: none), its ``y`` and ``yDot`` arrays, its first column in the state's ODE block, and
@@ -558,7 +558,7 @@ class ReboundScene:
         head = [addr, fn, ptr, N, stride, ix, ivx, iax, tword,
                 0.0 if sim.gravity == "none" else sim.G, sim.softening ** 2, len(pots),
                 float(self.velocities), len(odes) // O_WIDTH, self.dim - 1,
-                type(sim)._N_odes.offset // 8, 0.0]
+                type(sim)._N_odes.offset // 8, 0.0, rebound.ode.ODE._derivatives.offset]
         for a in (addr, fn, ptr) + tuple(x for e in pots for x in (e[0], e[2], e[3])):
             if not 0 <= a < 2 ** 53:
                 raise RuntimeError(f"an address (0x{int(a):x}) does not fit a double exactly")

@@ -44,13 +44,13 @@ from hbvm_md.rebound.layout import (
     SL_K, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
-from hbvm_md.rebound.forces import (CLOCK, O_COL, O_LEN, O_SIGMA, O_WIDTH, O_Y, P_N, P_NODES,
-                                    P_ODES_HELD, P_ODES_WORD, call_void2, odes_at, odes_set,
-                                    O_ODE, O_PRE)
+from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, O_SIGMA,
+                                    O_WIDTH, O_Y, P_N, P_NODES, P_ODE_DERIV_AT, P_ODES_HELD,
+                                    P_ODES_WORD, call_void2, odes_at, odes_set)
 from hbvm_md.rebound.particles import (delta2, particles_match, read_tangents, reread_particles,
                                        restore_particles, settings_ok, write_tangents)
 
-GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read")
+GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
 #: built without the simplified Newton iteration (integrators.specialise, "Compile time")
 GLUE_NEWTON = False
@@ -137,6 +137,18 @@ def odes_release(simi, params):
         params[P_ODES_HELD] = 0.0
 
 
+def odes_replaced(params):
+    """Has an ODE's ``derivatives`` been replaced since the step was prepared (in a heartbeat,
+    during a run: the step would call the old function, which Python may have freed)?"""
+    o0 = odes_at(params)
+    for e in range(int(params[P_NODES])):
+        at = o0 + O_WIDTH * e
+        word = carray(int64_pointer(int(params[at + O_ODE]) + int(params[P_ODE_DERIV_AT])), 1)
+        if word[0] != int(params[at + O_DERIV]):
+            return True
+    return False
+
+
 def odes_read(params, y, cy, eref, st):
     """The attached ODEs' state before a step: each ODE's ``pre_timestep`` (REBOUNDx's spins
     from the particles' "Omega"), then, where ``y`` differs from what the last step wrote (a
@@ -180,6 +192,8 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     counters = wk.counters
     V, DG, Vt, DGt, tw, tcw, tcount, TP = tan
     nodes = int(params[P_NODES]) if host_forces else 0
+    if nodes > 0 and odes_replaced(params):
+        return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
     if not settings_ok(st, sd):
         return BAD_SETTINGS
