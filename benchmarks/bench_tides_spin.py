@@ -168,7 +168,8 @@ def main() -> None:
         "The issue's measure, HBVM at least as close to IAS15 at epsilon 1e-14 as IAS15 at 1e-11 "
         f"is (orbit {errors(ias11, ias14)[0]:.1e}, spins {errors(ias11, ias14)[1]:.1e}) in less "
         "time than IAS15 at 1e-11: " + "; ".join(
-            f"{lab}: {'closer' if errors(out[lab], ias14)[k] <= errors(ias11, ias14)[k] else 'farther'}"
+            f"{lab}: "
+            f"{'closer' if errors(out[lab], ias14)[k] <= errors(ias11, ias14)[k] else 'farther'}"
             f" in the {what}" for lab, *_ in RUNS if lab.startswith("HBVM")
             for k, what in ((0, "orbit"), (1, "spins"))) + "."]
     text = "\n".join(lines) + "\n"
