@@ -76,7 +76,7 @@ ODEs from REBOUND's own stepping of them (``sim->N_odes`` = 0 between its steps)
 The parameters (float64; every address and offset below 2^53 is exact in a double):
 ``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, velocities,
 n_odes, the clock's column, the word of sim->N_odes, the N_odes the last step hid (0: none),
-the offset of ``derivatives`` in ``reb_ode``, then n_pot entries (function, arity, arg1,
+the offset of the derivatives field in reb_ode, then n_pot entries (function, arity, arg1,
 arg2), then g (N), active (N), then n_odes entries of O_WIDTH]``: the
 simulation's address, REBOUND's function, the particle array (the step checks that it has not
 moved), REBOUND's offsets in doubles, the Newtonian G of V (0 for ``gravity = 'none'``), the
