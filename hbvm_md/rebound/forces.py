@@ -312,14 +312,21 @@ def rebound_potential(q, params):
     return G * v + u
 
 
+def masses_at(params) -> int:
+    """Where the gravitating masses g start in a :class:`ReboundScene`'s parameters (for
+    :func:`scene_set_masses`: computed here, in Python, so that a compiled caller cached by
+    numba beside another file never holds an old layout; numba's cache of a function follows
+    its own file only)."""
+    return P_HEAD + 4 * int(params[P_NPOT])
+
+
 @jit
-def scene_set_masses(params, masses):
+def scene_set_masses(params, masses, g0):
     """A :class:`ReboundScene`'s parameters <- those of the same scene with the masses (N,),
-    in place: the gravitating masses g (the potential's; REBOUND reads its own masses for the
-    accelerations; the kinetic weights are the step's, updated by the caller).  The caller
-    keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
+    in place: the gravitating masses g, from g0 (:func:`masses_at`; the potential's; REBOUND
+    reads its own masses for the accelerations; the kinetic weights are the step's, updated by
+    the caller).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
     N = int(params[P_N])
-    g0 = P_HEAD + 4 * int(params[P_NPOT])
     for i in range(N):
         if params[g0 + i] > 0.0:
             params[g0 + i] = masses[i]

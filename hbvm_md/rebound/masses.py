@@ -28,7 +28,7 @@ import numpy as np
 
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.memory import doubles, int64s
-from hbvm_md.rebound.forces import scene_set_masses
+from hbvm_md.rebound.forces import masses_at, scene_set_masses
 from integrators.jit import jit
 from systems.nbody import nbody_set_masses
 
@@ -73,14 +73,16 @@ def masses_only(r: int, p: int) -> bool:
         doubles(int(ctx[L.A_MINV]), m),
         doubles(int(ctx[L.A_KINW]), m), doubles(int(st[L.SL_Y]), 4 * m),
         doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_HOST]),
-        int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]))
+        int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]),
+        # (the layout of REBOUND's own accelerations' parameters read here, not compiled in)
+        masses_at(doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P]))) if ctx[L.D_HOST] else 0)
     if done:
         st[L.SL_RESYNCS] += 1
     return done
 
 
 @jit
-def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im):
+def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im, g0):
     """The step's arrays <- REBOUND's particles whose masses (and perhaps positions and
     velocities) changed since the last commit, in place (module docstring).
 
@@ -89,8 +91,9 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
     step's weights; y (4m,): the state and its compensations; eref: the energy reference (and
     EQUIP's alpha and slope); host: the state is (q, clock, v, CLOCK) on REBOUND's own
     accelerations (weights 1, kinetic weights the gravitating masses), else (q, p) of the
-    N-body kernel.  Returns False, changing nothing, when no
-    mass changed, a value is not finite or negative, or a body's mass became or stopped
+    N-body kernel; g0: where the gravitating masses start in params on REBOUND's own
+    accelerations (:func:`hbvm_md.rebound.forces.masses_at`).  Returns False, changing
+    nothing, when no mass changed, a value is not finite or negative, or a body's mass became or stopped
     being zero (the model's structure changes: the host prepares afresh)."""
     N = view.shape[0]
     changed = False
@@ -109,7 +112,7 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
         mass[i] = view[i, im]
     m = y.shape[0] // 4
     if host:
-        scene_set_masses(params, mass)
+        scene_set_masses(params, mass, g0)
     else:
         nbody_set_masses(params, mass)
     for i in range(N):
