@@ -93,8 +93,8 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
     accelerations (weights 1, kinetic weights the gravitating masses), else (q, p) of the
     N-body kernel; g0: where the gravitating masses start in params on REBOUND's own
     accelerations (:func:`hbvm_md.rebound.forces.masses_at`).  Returns False, changing
-    nothing, when no mass changed, a value is not finite or negative, or a body's mass became or stopped
-    being zero (the model's structure changes: the host prepares afresh)."""
+    nothing, when no mass changed, a value is not finite or negative, or a body's mass became
+    or stopped being zero (the model's structure changes: the host prepares afresh)."""
     N = view.shape[0]
     changed = False
     for i in range(N):
