@@ -26,10 +26,11 @@ def check_simulation(sim) -> None:
             problems.append("second-order variational particles are not supported by HBVM; "
                             "use IAS15")
             break
-        if vc.testparticle >= 0:
-            problems.append(f"variational particles of one particle (testparticle="
-                            f"{vc.testparticle}) are not supported by HBVM; add the variation "
-                            "of the whole system with sim.add_variation() (testparticle=-1)")
+        if vc.testparticle >= sim.N:
+            problems.append(f"a variation of particle {vc.testparticle} "
+                            f"(add_variation(testparticle={vc.testparticle})) but the "
+                            f"simulation has {sim.N} particles; add the variation after the "
+                            "particle, with its index")
             break
         if host:
             problems.append(f"variational particles with {', '.join(host)} (HBVM's tangent map "

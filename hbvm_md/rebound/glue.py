@@ -46,7 +46,7 @@ from hbvm_md.rebound.layout import (
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
 from hbvm_md.rebound.forces import CLOCK
 from hbvm_md.rebound.particles import (delta2, particles_match, read_tangents, reread_particles,
-                                       restore_particles, settings_ok, write_tangents)
+                                       restore_particles, settings_ok, var_rows, write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays",)
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
@@ -76,7 +76,9 @@ TP_FACTOR = 10.0
 Rebound = namedtuple("Rebound", ["simd", "simi", "view", "ctx", "r", "pv"])
 #: HBVM's side kept in the host's state block: its int64 and float64 slots (st, sd), the attempt's
 #: result (res), the particles as the last commit wrote them (written: x, v, m), G and N_active as
-#: the host wrote them (host), the variational particles' first rows (vidx) and a sliver step's
+#: the host wrote them (host), the variational sets' first rows in ``particles_var`` and their
+#: particle (vidx (nv, 2): -1 for a set of the whole system, i for REBOUND's
+#: ``add_variation(testparticle=i)``) and a sliver step's
 #: scratch for the tangents' coefficients (DGs)
 Host = namedtuple("Host", ["st", "sd", "res", "written", "host", "vidx", "DGs"])
 
@@ -179,7 +181,9 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     # regular one, whose gamma is kept
     sliver = not np.isnan(hp) and abs(h_done) < TINY_RATIO * abs(hp)
     d2_0 = 0.0
+    megno = False
     if _TANGENTS and nv > 0:
+        megno = (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0
         # the previous d gamma extrapolated as the step's gamma was (a sliver's are not kept)
         E = select_extrapolation(h_done, hp, ext.E1, ext.t, ext.w, ext.buf, ext.zero)
         dg = DG
@@ -196,7 +200,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             sd[SL_CAUSE_ERR] = tcount[2]
             sd[SL_CAUSE_STATUS] = tstatus
             return TANGENT_FAILED + tstatus
-        d2_0 = delta2(pv, N, ix, ivx)
+        if megno:      # (MEGNO's set is the whole system's, REBOUND's first N rows)
+            d2_0 = delta2(pv, N, ix, ivx)
     copy1(y, yt)
     copy1(cy, cyt)
     if not sliver:
@@ -223,7 +228,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         simd[ctx[R_DT]] = h_next
     if _TANGENTS and nv > 0:
         write_tangents(pv, vidx, N, ix, ivx, minv, V)
-        if (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0:
+        if megno:
             t0 = simd[ctx[R_MEGNO_T0]]
             dY = (t_start - t0 + (t_start + h_done - t0)) * 0.5 * (
                 np.log(delta2(pv, N, ix, ivx)) - np.log(d2_0))
@@ -270,11 +275,12 @@ def core_step(r, p):
         return RESYNC                              # the variational particles moved
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
     nv = ctx[D_NV]
-    pv = carray(float64_pointer(ctx[D_PVAR]), (N * nv, ctx[R_STRIDE]))
+    vidx = f2(A_VIDX, nv, 2)
+    pv = carray(float64_pointer(ctx[D_PVAR]), (var_rows(vidx, N), ctx[R_STRIDE]))
     return step_arrays(
         Rebound(simd, simi, view, ctx, ra, pv),
         Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES), f2(A_WRITTEN, N, 7),
-             f(A_HOST, N_HOST), f(A_VIDX, nv), f3(A_DGS, nv, s, m)),
+             f(A_HOST, N_HOST), vidx, f3(A_DGS, nv, s, m)),
         System(False, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
         State(carray(float64_pointer(st[SL_Y]), 2 * m),
               carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),

@@ -1059,9 +1059,11 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
               L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
               L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
     # the tangents of REBOUND's first-order variational particles (checks.check_simulation
-    # refused any other kind): one row per set, starting at var_config[j].index
+    # refused any other kind): one per set, its first row var_config[j].index and its particle
+    # (testparticle: -1 for the whole system's N rows, i for one row of particle i's variation)
     nv = int(sim.N_var_config) if sim.N_var > 0 else 0
-    vidx = np.array([float(sim.var_config[j].index) for j in range(nv)])
+    vidx = np.array([[float(sim.var_config[j].index), float(sim.var_config[j].testparticle)]
+                     for j in range(nv)]).reshape(nv, 2)
     nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m) if nv else (0, 0)
     arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
@@ -1137,11 +1139,13 @@ def _python_step(code, st):
                                  dtype).reshape(shape)
         y = doubles(int(st_[L.SL_Y]), 4 * m)
         view = doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
-        pv = f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
+        vidx = f(L.A_VIDX, (nv, 2))
+        rows = max(int(v0) + (1 if tp >= 0 else N) for v0, tp in vidx) if nv else 0
+        pv = f(L.D_PVAR, (rows, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
         return int(code.step_arrays(
             Rebound(simd, simi, view, ctx, r, pv),
             Host(st_, sd, sd[L.SL_RES:L.SL_RES + L.N_RES], f(L.A_WRITTEN, (N, 7)),
-                   f(L.A_HOST, L.N_HOST), f(L.A_VIDX, nv), f(L.A_DGS, (nv, s, m))),
+                   f(L.A_HOST, L.N_HOST), vidx, f(L.A_DGS, (nv, s, m))),
             R.System(False, f(L.A_MINV, u), f(L.A_KINW, m),
                      f(L.A_PARAMS, int(ctx[L.D_P]))),
             R.State(y[:2 * m], y[2 * m:], doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
