@@ -22,9 +22,11 @@ def check_simulation(sim) -> None:
     host = host_reasons(sim)
     for j in range(int(sim.N_var_config) if sim.N_var > 0 else 0):
         vc = sim.var_config[j]
-        if vc.order != 1:
-            problems.append("second-order variational particles are not supported by HBVM; "
-                            "use IAS15")
+        if vc.order == 2 and not (vc.index_1st_order_a < vc.index
+                                  and vc.index_1st_order_b < vc.index):
+            problems.append("a second-order variation added before its first-order variations; "
+                            "add the first-order ones first (sim.add_variation(order=2, "
+                            "first_order=..., first_order_2=...) after them)")
             break
         if vc.testparticle >= sim.N:
             problems.append(f"a variation of particle {vc.testparticle} "

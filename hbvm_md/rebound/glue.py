@@ -35,7 +35,7 @@ from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP, A_TO,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
@@ -109,7 +109,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     y, cy, gamma, eref, clock = state
     yt, cyt, gammat, ereft, _ = trial
     counters = wk.counters
-    V, DG, Vt, DGt, tw, tcw, tcount, TP = tan
+    V, DG, Vt, DGt, tw, tcw, tcount, TP, TO = tan
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
@@ -145,7 +145,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
         cy[m - 1] = 0.0
     if _TANGENTS and nv > 0:
-        read_tangents(pv, vidx, N, ix, ivx, ctx[R_M], minv, V, DG, host[1], params, TP)
+        read_tangents(pv, vidx, N, ix, ivx, ctx[R_M], minv, V, DG, host[1], params, TP, TO)
     res[2] = 0.0
     # a fixed step's test-particle check may refuse a converged step: its work then comes out
     # of the counters and the clock, as the core takes a failed step's out
@@ -193,7 +193,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             dg = DGs
         tstatus = tangent_map(System(False, minv, kin_w, params), y, cy, gammat, h_done, E,
                               method, newton, 2 * st[SL_MAX_ITER],
-                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount, TP))
+                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount, TP, TO))
         if tstatus != OK:
             sd[SL_H_FAIL] = h_done
             sd[SL_T_FAIL] = t_start
@@ -297,7 +297,7 @@ def core_step(r, p):
         Tangents(f2(A_V, nv, 2 * m), f3(A_DG, nv, s, m), f2(A_VT, nv, 2 * m),
                  f3(A_DGT, nv, s, m), f(A_TW, ctx[D_TGF]),
                  carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
-                 f2(A_TP, nv, 4 * N + 3)))
+                 f2(A_TP, nv, 6 * N + 3), f2(A_TO, nv, 3)))
 
 if TYPE_CHECKING:
     # integrators.specialise compiles this text after the step's (integrators.loop, and

@@ -1069,7 +1069,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
                    L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
                    L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx,
-                   L.A_TP: np.zeros((nv, 4 * N + 3))})
+                   L.A_TP: np.zeros((nv, 6 * N + 3)), L.A_TO: _orders(sim, nv)})
     sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
     head = 8 * L.N_HEADER
     total = head + sum(sizes.values())
@@ -1108,6 +1108,19 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     sim_words = int64s(ctypes.addressof(sim), max(words) + 1)
     header[L.C_VALUES:L.C_VALUES + L.N_CFG] = sim_words[words]
     st[L.SL_CTX] = base
+
+
+def _orders(sim, nv: int) -> np.ndarray:
+    """Each variational set's order and, for a second-order set, the sets of its two first-order
+    variations (REBOUND names their first rows in ``particles_var``: index_1st_order_a/b)."""
+    first = {int(sim.var_config[j].index): j for j in range(nv)}
+    out = np.zeros((nv, 3))
+    for j in range(nv):
+        vc = sim.var_config[j]
+        out[j] = (vc.order, -1, -1)
+        if vc.order == 2:
+            out[j, 1:] = first[int(vc.index_1st_order_a)], first[int(vc.index_1st_order_b)]
+    return out
 
 
 def _python_step(code, st):
@@ -1163,5 +1176,5 @@ def _python_step(code, st):
             R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),
                        f(L.A_DGT, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
                        f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3),
-                       f(L.A_TP, (nv, 4 * N + 3)))))
+                       f(L.A_TP, (nv, 6 * N + 3)), f(L.A_TO, (nv, 3)))))
     return step

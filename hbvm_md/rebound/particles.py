@@ -82,7 +82,7 @@ def settings_ok(st, sd):
 
 
 @jit
-def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
+def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP, TO):
     """V (nv, 2u) <- REBOUND's first-order variational particles (pv: (N_var, stride) doubles
     over ``particles_var``; set v's rows start at vidx[v, 0]): dq = dx and dp = dv / minv
     (the momenta's variation: m dv for a gravitating body, dv for a test particle).
@@ -92,11 +92,14 @@ def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
     particle i with every other particle's variation zero: V[v] holds it at i's entries and
     zeros elsewhere.
 
-    TP (nv, 4N + 3) <- each set's params of the force's derivative: the N-body kernel's first
+    TP (nv, 6N + 3) <- each set's params of the force's derivative: the N-body kernel's first
     3N + 3 ``params`` with N given as -N, then the set's variation of the masses, its
     particles' m (column im), of the gravitating particles (index below na, or all when
     na < 0) as REBOUND's variational equations count them
-    (:func:`systems.nbody.nbody_force_jvp`).  With the momenta's variation
+    (:func:`systems.nbody.nbody_force_jvp`), then for a second-order set (TO (nv, 3): order,
+    first-order sets a and b, :func:`hbvm_md.rebound.host._orders`) a's and b's variations of
+    the masses (its forcing's, :func:`systems.nbody._second_jvp`; zeros for a first-order set).
+    A second-order set's own m is the second variation of the masses.  With the momenta's variation
     taken as m dv (fixed m), a mass varied enters the linearised step through the force only.
     A set of one particle i varies no mass and sees i's gravitating mass as zero: REBOUND
     moves it as a test particle in the field of the others (its variational equations leave
@@ -142,6 +145,11 @@ def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
             TP[v, 2 + N + tp] = 0.0
         for i in range(N):
             TP[v, P + i] = pv[i0 + i, im] if (tp < 0 and (na < 0 or i < na)) else 0.0
+        ia, ib = int(TO[v, 1]), int(TO[v, 2])
+        for i in range(N):
+            # (sets a and b come before: their columns are already read)
+            TP[v, P + N + i] = TP[ia, P + i] if TO[v, 0] == 2 else 0.0
+            TP[v, P + 2 * N + i] = TP[ib, P + i] if TO[v, 0] == 2 else 0.0
 
 
 @jit
