@@ -39,6 +39,16 @@ def check_simulation(sim) -> None:
                             "differentiates its own N-body kernel, not REBOUND's forces); use "
                             "IAS15")
             break
+    masses = np.zeros(sim.N)
+    if sim.N:
+        sim.serialize_particle_data(m=masses)
+    negative = np.flatnonzero(masses < 0)
+    if negative.size:
+        # (REBOUND's own test_variational.py differences its runs across m = 0 with them)
+        problems.append(f"negative masses (particle {negative[0]}: m={float(masses[negative[0]])!r}"
+                        f"{f' and {negative.size - 1} more' if negative.size > 1 else ''}; "
+                        "HBVM's N-body step takes masses >= 0, 0 for a test particle); use "
+                        "IAS15, which integrates them")
     if sim.gravity not in ("basic", "compensated", "none"):
         problems.append(f"gravity={sim.gravity!r} (an approximate or integrator-specific "
                         "gravity; HBVM takes direct steps: use 'basic', 'compensated' or "
