@@ -141,11 +141,15 @@ def _child(path: str, integ: str, out: str, shorten: list, bounds: list | None =
     import matplotlib.axes
     import matplotlib.pyplot as plt
     import rebound
-    if integ == "hbvm":
+    restarts = integ == "hbvm restarts"
+    if integ in ("hbvm", "hbvm restarts"):
         import hbvm_md  # noqa: F401  (registers "hbvm")
-    name = "hbvm" if integ == "hbvm" else "ias15"
+    name = "hbvm" if integ in ("hbvm", "hbvm restarts") else "ias15"
     eps = 1e-11 if integ == "ias15 tight" else None
-    result = dict(plots=[], sims={}, uses=[], status="ok", message="", time=np.nan, mean_dt=[])
+    result = dict(plots=[], sims={}, uses=[], status="ok", message="", time=np.nan, mean_dt=[],
+                  restarts=[])
+    extras = {}                     # id(sim) -> the REBOUNDx Extras the notebook attached
+    calls = {}                      # id(sim) -> its integrate calls so far
     created = []                    # the notebook's simulations, in the order it creates them
     advanced = {}                   # id -> [time advanced, steps] over its integrate calls
 
@@ -189,13 +193,21 @@ def _child(path: str, integ: str, out: str, shorten: list, bounds: list | None =
                 self.integrator.epsilon = 0.0          # (IAS15's fixed steps of sim.dt)
                 self.dt = bounds[i]
         t0, n0 = self.t, self.steps_done
+        calls[id(self)] = calls.get(id(self), 0) + 1
+        saved = None
+        if restarts and calls[id(self)] in RESTART_CALLS and str(self.integrator) == "hbvm" \
+                and id(self) in extras:
+            saved = _save_for_restart(self, extras[id(self)])
         try:
             return reb_integrate(self, *args, **kw)
         finally:
+            if saved is not None:
+                result["restarts"] += _restarted(self, saved, args, kw, reboundx_extras)
             acc = advanced.setdefault(id(self), [0.0, 0])
             acc[0] += abs(self.t - t0)
             acc[1] += self.steps_done - n0
 
+    integrate.__wrapped__ = reb_integrate      # (a restart's run, not counted)
     S.__setattr__, S.__init__, S.integrate = setattr_, init_, integrate
     try:
         import reboundx
@@ -221,6 +233,14 @@ def _child(path: str, integ: str, out: str, shorten: list, bounds: list | None =
             return co(self, n)
 
         E.load_force, E.load_operator = load_force, load_operator
+        e_init = E.__init__
+
+        def extras_init(self, sim, *args, **kw):
+            e_init(self, sim, *args, **kw)
+            if not args and not kw:                   # (the notebook's, not a restart's)
+                extras.setdefault(id(sim), self)
+        E.__init__ = extras_init
+        reboundx_extras = E
         E.create_force, E.create_operator = create_force, create_operator
         del io
     except ImportError:
@@ -298,6 +318,42 @@ def _child(path: str, integ: str, out: str, shorten: list, bounds: list | None =
                          if advanced.get(id(c), [0, 0])[1] > 0 else np.nan for c in created]
     with open(out, "wb") as fh:
         pickle.dump(result, fh)
+
+
+#: the integrate calls (1-based, of each simulation with REBOUNDx attached) before which "hbvm
+#: restarts" saves the run, to continue it restarted next to the notebook's own
+RESTART_CALLS = (2, 10, 50)
+
+
+def _save_for_restart(sim, rebx) -> tuple:
+    """The run before an integrate call: saved to a file with its REBOUNDx effects (REBOUNDx's
+    ``save``), and a ``sim.copy()``."""
+    d = tempfile.mkdtemp()
+    sim.save_to_file(os.path.join(d, "s.bin"), delete_file=True)
+    rebx.save(os.path.join(d, "x.bin"))
+    return d, sim.copy()
+
+
+def _restarted(sim, saved, args, kw, E) -> list:
+    """Continue the saved run (from the file; from the copy, its effects loaded from the file)
+    with the integrate call the notebook made, and compare with the notebook's own, which went
+    on uninterrupted: [(how, t, bit for bit?, largest |difference|)]."""
+    import rebound
+    d, copy = saved
+    out = []
+    for how in ("file", "copy"):
+        back = rebound.Simulation(os.path.join(d, "s.bin")) if how == "file" else copy
+        keep = E(back, os.path.join(d, "x.bin"))
+        rebound.Simulation.integrate.__wrapped__(back, *args, **kw)
+        a, b = np.zeros(7 * sim.N), np.zeros(7 * back.N)
+        for arr, s in ((a, sim), (b, back)):
+            xyz, vxvyvz, m = np.zeros(3 * s.N), np.zeros(3 * s.N), np.zeros(s.N)
+            s.serialize_particle_data(xyz=xyz, vxvyvz=vxvyvz, m=m)
+            arr[:] = np.concatenate([xyz, vxvyvz, m]) if s.N == sim.N else np.nan
+        same = back.t == sim.t and np.array_equal(a, b)
+        out.append((how, sim.t, bool(same), float(np.max(np.abs(a - b)))))
+        del keep
+    return out
 
 
 # -- the parent: three runs per notebook, the table -----------------------------------------------
@@ -417,6 +473,7 @@ def operators(args) -> None:
         runs["hbvm max_dt"] = _run(path, "hbvm", sh, list(mean))
         runs["hbvm max_dt/2"] = _run(path, "hbvm", sh, list(mean / 2))
         runs["ias15 fixed"] = _run(path, "ias15 fixed", sh, list(mean / FINE))
+        runs["hbvm restarts"] = _run(path, "hbvm restarts", sh, list(mean))
         for k, r in runs.items():
             print(f"  {nb} {k}: {r['status']} {r['time']:.2f} s {r['message']}",
                   file=sys.stderr, flush=True)
@@ -430,6 +487,10 @@ def operators(args) -> None:
             cells.append(within)
         t = {k: runs[k]["time"] / runs["ias15"]["time"] if ok else np.nan
              for k in ("hbvm max_dt", "hbvm max_dt/2")}
+        rs = runs["hbvm restarts"].get("restarts", [])
+        same = sum(r[2] for r in rs)
+        cells.append(f"{same} of {len(rs)}" + ("" if same == len(rs) else " (largest "
+                     + _fmt(max(r[3] for r in rs)) + ")"))
         used = "; ".join(_fmt(b) for b in mean if np.isfinite(b))
         uses = ", ".join(runs["ias15"]["uses"]) or "gravity only"
         if sh:
@@ -458,14 +519,19 @@ def operators(args) -> None:
            "max |a - ref| / max |ref|. An operator's splitting error follows the step; IAS15's "
            "steps at 1e-11 are only about twice shorter than at its default, so that reference "
            "carries about half of IAS15's own splitting error, the fixed-step one 1/"
-           f"{FINE} of it. Time: the notebook's code cells, HBVM with `max_dt` (and with half of "
+           f"{FINE} of it. Restarts: a seventh run, HBVM with `max_dt`, saves each simulation "
+           "with REBOUNDx attached before its integrate calls number "
+           f"{', '.join(map(str, RESTART_CALLS))} (`save_to_file` and REBOUNDx's `save`, and "
+           "`sim.copy()`), continues the saved run (loaded from the files; the copy with its "
+           "effects loaded) with the same call, and compares it with the notebook's own run, "
+           "which went on uninterrupted: positions, velocities and masses. Time: the notebook's code cells, HBVM with `max_dt` (and with half of "
            "it) / IAS15 at its defaults, one run each.", "",
            "| notebook | what it uses | max_dt (each simulation) | to IAS15 at 1e-11: HBVM + "
            "max_dt | HBVM + max_dt/2 | IAS15 | HBVM defaults | HBVM + max_dt within IAS15's? | "
            f"to IAS15 fixed at 1/{FINE}: HBVM + max_dt | HBVM + max_dt/2 | IAS15 | "
-           "IAS15 at 1e-11 | HBVM defaults | HBVM + max_dt within IAS15's? | time HBVM + "
-           "max_dt / IAS15 (max_dt/2) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
+           "IAS15 at 1e-11 | HBVM defaults | HBVM + max_dt within IAS15's? | restarts bit for "
+           "bit | time HBVM + max_dt / IAS15 (max_dt/2) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
     path = os.path.join(HERE, "results", "reboundx_operator_notebooks.md")
     with open(path, "w") as fh:
         fh.write("\n".join(out))
