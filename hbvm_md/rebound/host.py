@@ -1148,15 +1148,17 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
               L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
               L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
     # the tangents of REBOUND's first-order variational particles (checks.check_simulation
-    # refused any other kind): one row per set, starting at var_config[j].index
+    # refused any other kind): one per set, its first row var_config[j].index and its particle
+    # (testparticle: -1 for the whole system's N rows, i for one row of particle i's variation)
     nv = int(sim.N_var_config) if sim.N_var > 0 else 0
-    vidx = np.array([float(sim.var_config[j].index) for j in range(nv)])
+    vidx = np.array([[float(sim.var_config[j].index), float(sim.var_config[j].testparticle)]
+                     for j in range(nv)]).reshape(nv, 2)
     nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m) if nv else (0, 0)
     arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
                    L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
                    L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx,
-                   L.A_TP: np.zeros((nv, 4 * N + 3))})
+                   L.A_TP: np.zeros((nv, 6 * N + 3)), L.A_TO: _orders(sim, nv)})
     sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
     head = 8 * L.N_HEADER
     total = head + sum(sizes.values())
@@ -1198,6 +1200,19 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     st[L.SL_CTX] = base
 
 
+def _orders(sim, nv: int) -> np.ndarray:
+    """Each variational set's order and, for a second-order set, the sets of its two first-order
+    variations (REBOUND names their first rows in ``particles_var``: index_1st_order_a/b)."""
+    first = {int(sim.var_config[j].index): j for j in range(nv)}
+    out = np.zeros((nv, 3))
+    for j in range(nv):
+        vc = sim.var_config[j]
+        out[j] = (vc.order, -1, -1)
+        if vc.order == 2:
+            out[j, 1:] = first[int(vc.index_1st_order_a)], first[int(vc.index_1st_order_b)]
+    return out
+
+
 def _python_step(code, st):
     """The glue's step_arrays run as Python on views of the state and context block."""
     def step(r: int, p: int) -> int:
@@ -1227,11 +1242,13 @@ def _python_step(code, st):
                                  dtype).reshape(shape)
         y = doubles(int(st_[L.SL_Y]), 4 * m)
         view = doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
-        pv = f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
+        vidx = f(L.A_VIDX, (nv, 2))
+        rows = max(int(v0) + (1 if tp >= 0 else N) for v0, tp in vidx) if nv else 0
+        pv = f(L.D_PVAR, (rows, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
         return int(code.step_arrays(
             Rebound(simd, simi, view, ctx, r, pv),
             Host(st_, sd, sd[L.SL_RES:L.SL_RES + L.N_RES], f(L.A_WRITTEN, (N, 7)),
-                   f(L.A_HOST, L.N_HOST), f(L.A_VIDX, nv), f(L.A_DGS, (nv, s, m))),
+                   f(L.A_HOST, L.N_HOST), vidx, f(L.A_DGS, (nv, s, m))),
             R.System(False, f(L.A_MINV, u), f(L.A_KINW, m),
                      f(L.A_PARAMS, int(ctx[L.D_P]))),
             R.State(y[:2 * m], y[2 * m:], doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
@@ -1249,5 +1266,5 @@ def _python_step(code, st):
             R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),
                        f(L.A_DGT, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
                        f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3),
-                       f(L.A_TP, (nv, 4 * N + 3)))))
+                       f(L.A_TP, (nv, 6 * N + 3)), f(L.A_TO, (nv, 3)))))
     return step

@@ -15,9 +15,11 @@ What is updated: the masses in the kernel parameters (:func:`systems.nbody.nbody
 :func:`hbvm_md.rebound.forces.scene_set_masses`: each model owns its layout); on the separable
 N-body form the weights 1/m and the kinetic weights of the sources (as
 :class:`integrators.engine.Binding` computes them from ``NBody.masses``); the context's copy of
-the particles; the state from REBOUND's particles (q = x, and p = m v with the new masses, or
-the velocities on REBOUND's own accelerations; the compensations zeroed, as the glue does
-for moved particles).  The reference energy starts afresh, as after any resync: the energy
+the particles; the state as the host's prepare takes a saved or copied run's (kept with its
+compensations when it still holds the particles with the new weights, else read from them:
+q = x, and p = v / (1/m) with the new masses, or the velocities on REBOUND's own
+accelerations, the compensations zeroed, as the glue does for moved particles), so that a
+restart continues bit for bit.  The reference energy starts afresh, as after any resync: the energy
 check then compares each step with its own start, and the energy that the mass change moved
 is not counted as the step's error.  The previous coefficients stay the next step's initial
 guess (the fixed-point iteration converges from them to the same solution).
@@ -115,29 +117,40 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
         scene_set_masses(params, mass, g0)
     else:
         nbody_set_masses(params, mass)
+    # The state as the host's prepare takes a saved or copied run's (host._prepare), so that
+    # a run restarted between a mass change and the next step continues as this one does, bit
+    # for bit: kept with its compensations when it still holds the particles with the new
+    # weights (q = x, p / m = v: sources at rest, test particles), else read afresh as moved
+    # particles are (q = x, p = v / (1/m), the compensations zeroed).  (It used to take p =
+    # m v and zero the compensations always: a restart differed by 1e-14.)
+    keep = True
     for i in range(N):
-        # a source's momentum is m v and its weights 1/m (kin_w > 0 marks a source: a test
-        # particle's momentum is its velocity, weight 1, kinetic weight 0); on REBOUND's own
-        # accelerations the state holds velocities and a source's kinetic weight is its mass
+        # a source's weights are 1/m (kin_w > 0 marks a source: a test particle's momentum is
+        # its velocity, weight 1, kinetic weight 0); on REBOUND's own accelerations the state
+        # holds velocities and a source's kinetic weight is its mass
         source = kin_w[3 * i] > 0.0
         for c in range(3):
             j = 3 * i + c
-            y[j] = view[i, ix + c]
             if host:
                 if source:
                     kin_w[j] = mass[i]
-                y[m + j] = view[i, ivx + c]
             elif source:
                 minv[j] = 1.0 / mass[i]
                 kin_w[j] = minv[j]
-                y[m + j] = view[i, ivx + c] * mass[i]
-            else:
-                y[m + j] = view[i, ivx + c]
+            if y[j] != view[i, ix + c] or y[m + j] * minv[j] != view[i, ivx + c]:
+                keep = False
+    for i in range(N):
+        for c in range(3):
+            j = 3 * i + c
+            if not keep:
+                y[j] = view[i, ix + c]
+                y[m + j] = view[i, ivx + c] / minv[j]
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
         written[i, 6] = mass[i]
-    for j in range(2 * m, 4 * m):
-        y[j] = 0.0                     # the compensations
+    if not keep:
+        for j in range(2 * m, 4 * m):
+            y[j] = 0.0                 # the compensations
     for j in range(eref.shape[0]):
         eref[j] = np.nan
     return True
