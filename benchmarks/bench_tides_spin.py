@@ -21,7 +21,6 @@ HBVM's to IAS15's at epsilon 1e-11.  Writes benchmarks/results/tides_spin.md.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import os
 import time
 import warnings
@@ -29,74 +28,25 @@ import warnings
 import numpy as np
 import rebound
 import reboundx
-from scipy.integrate import solve_ivp
 
 import hbvm_md  # noqa: F401  (registers "hbvm")
 from hbvm_md import HBVMIntegrator
 from hbvm_md.reports.machine import machine
+from hbvm_md.reports.tidal_spin import dop853_reference, state_with_spins as final, tidal_spin_scene
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def scene(integrator: str, ias15_epsilon: float | None = None, **hbvm):
-    sim = rebound.Simulation()
-    sim.units = ("AU", "Msun", "yr")
-    sim.add(m=1.0, r=0.00465)
-    sim.add(m=1e-3, r=0.000477, a=0.04, e=0.2, inc=0.2)
-    sim.move_to_com()
-    sim.integrator = integrator
-    if ias15_epsilon is not None:
-        sim.integrator.epsilon = ias15_epsilon
-    rebx = reboundx.Extras(sim)
-    tides = rebx.load_force("tides_spin")
-    rebx.add_force(tides)
-    for p, om, kk, tau in ((sim.particles[0], (0.0, 0.0, 230.0), 0.07, 1e-6),
-                           (sim.particles[1], (30.0, 0.0, 2000.0), 0.25, 1e-4)):
-        p.params["k2"] = 0.3
-        p.params["tau"] = tau
-        p.params["I"] = kk * p.m * p.r ** 2
-        p.params["Omega"] = list(om)
-    rebx.initialize_spin_ode(tides)
+    sim, rebx = tidal_spin_scene(integrator, ias15_epsilon)
     if hbvm:
         HBVMIntegrator(sim, **hbvm)
     return sim, rebx
 
 
-def spins(sim) -> np.ndarray:
-    return np.ravel([list(p.params["Omega"]) for p in sim.particles if "I" in p.params])
-
-
-def final(sim) -> np.ndarray:
-    xv = np.zeros(6 * sim.N)
-    sim.serialize_particle_data(xyzvxvyvz=xv)
-    return np.concatenate([xv, spins(sim)])
-
-
 def reference(T: float, rtol: float) -> np.ndarray:
     """(x, v, spins) at T by DOP853 on REBOUND's and REBOUNDx's own right-hand side."""
-    sim, rebx = scene("ias15")
-    N = sim.N
-    O = rebound.ode.ODE
-    a = ctypes.cast(sim._odes[0], ctypes.c_void_p).value
-    n = ctypes.c_uint.from_address(a + O.length.offset).value
-    deriv = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.POINTER(ctypes.c_double),
-                             ctypes.POINTER(ctypes.c_double), ctypes.c_double)(
-        ctypes.c_void_p.from_address(a + O._derivatives.offset).value)
-    spinning = [p for p in sim.particles if "I" in p.params]
-    zd = (ctypes.c_double * n)()
-
-    def f(t, Y):
-        sim.set_serialized_particle_data(xyzvxvyvz=Y[:6 * N])
-        for i, p in enumerate(spinning):
-            p.params["Omega"] = list(Y[6 * N + 3 * i:6 * N + 3 * i + 3])
-        sim.t = t
-        rebound.clibrebound.reb_simulation_update_acceleration(ctypes.byref(sim))
-        acc = np.array([[p.ax, p.ay, p.az] for p in sim.particles])
-        deriv(a, zd, (ctypes.c_double * n)(*Y[6 * N:]), t)
-        v = Y[:6 * N].reshape(N, 6)[:, 3:]
-        return np.concatenate([np.concatenate([v, acc], axis=1).ravel(), zd[:]])
-    sol = solve_ivp(f, (0.0, T), final(sim), method="DOP853", rtol=rtol, atol=rtol)
-    return sol.y[:, -1]
+    return dop853_reference(scene("ias15")[0], T, rtol)
 
 
 def errors(got: np.ndarray, ref: np.ndarray, N: int = 2) -> tuple[float, float]:

@@ -10,6 +10,7 @@ scipy_integrate = pytest.importorskip("scipy.integrate")
 
 import hbvm_md  # noqa: E402,F401  (registers "hbvm")
 from hbvm_md import HBVMIntegrator  # noqa: E402
+from hbvm_md.reports.tidal_spin import dop853_reference, spins, tidal_spin_scene  # noqa: E402
 from integrators.errors import ConvergenceError, UnresolvedStepError  # noqa: E402
 
 OMEGA, K = 3.0, 0.5          # the oscillator's frequency and its coupling to the distance
@@ -154,65 +155,9 @@ def test_saved_run_with_its_ode_attached_again_goes_on_bit_for_bit(tmp_path):
 
 
 def _tidal_spin(integrator, epsilon=None):
-    """A star and a close-in planet with REBOUNDx ``tides_spin`` (both bodies' spins evolve:
-    quadrupole and constant time lag tides), in AU, Msun, yr."""
-    reboundx = pytest.importorskip("reboundx")
-    sim = rebound.Simulation()
-    sim.units = ("AU", "Msun", "yr")
-    sim.add(m=1.0, r=0.00465)
-    sim.add(m=1e-3, r=0.000477, a=0.04, e=0.2, inc=0.2)
-    sim.move_to_com()
-    sim.integrator = integrator
-    if epsilon is not None:
-        sim.integrator.epsilon = epsilon
-    rebx = reboundx.Extras(sim)
-    tides = rebx.load_force("tides_spin")
-    rebx.add_force(tides)
-    for p, om, kk, tau in ((sim.particles[0], (0.0, 0.0, 230.0), 0.07, 1e-6),
-                           (sim.particles[1], (30.0, 0.0, 2000.0), 0.25, 1e-4)):
-        p.params["k2"] = 0.3
-        p.params["tau"] = tau
-        p.params["I"] = kk * p.m * p.r ** 2
-        p.params["Omega"] = list(om)
-    rebx.initialize_spin_ode(tides)
-    return sim, rebx
-
-
-def _spins(sim):
-    return np.array([list(p.params["Omega"]) for p in sim.particles])
-
-
-def tidal_reference(sim, T, rtol=1e-13):
-    """The whole tidal scene (bodies and spins) by scipy's DOP853 on REBOUND's and REBOUNDx's
-    own right-hand side: the accelerations of ``reb_simulation_update_acceleration`` with the
-    spins written into the particles' "Omega", the spins' derivatives of the spin ODE's own
-    ``derivatives``; the particles' state in, (x, v (6N), spins (3 per spinning body)) out."""
-    import ctypes
-    N = sim.N
-    O = rebound.ode.ODE
-    a = ctypes.cast(sim._odes[0], ctypes.c_void_p).value
-    n = ctypes.c_uint.from_address(a + O.length.offset).value
-    deriv = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.POINTER(ctypes.c_double),
-                             ctypes.POINTER(ctypes.c_double), ctypes.c_double)(
-        ctypes.c_void_p.from_address(a + O._derivatives.offset).value)
-    spinning = [p for p in sim.particles if "I" in p.params]
-    xv = np.zeros(6 * N)
-    sim.serialize_particle_data(xyzvxvyvz=xv)
-    y0 = np.concatenate([xv, np.ravel([list(p.params["Omega"]) for p in spinning])])
-    zd = (ctypes.c_double * n)()
-
-    def f(t, Y):
-        sim.set_serialized_particle_data(xyzvxvyvz=Y[:6 * N])
-        for i, p in enumerate(spinning):
-            p.params["Omega"] = list(Y[6 * N + 3 * i:6 * N + 3 * i + 3])
-        sim.t = t
-        rebound.clibrebound.reb_simulation_update_acceleration(ctypes.byref(sim))
-        acc = np.array([[p.ax, p.ay, p.az] for p in sim.particles])
-        deriv(a, zd, (ctypes.c_double * n)(*Y[6 * N:]), t)
-        v = Y[:6 * N].reshape(N, 6)[:, 3:]
-        return np.concatenate([np.concatenate([v, acc], axis=1).ravel(), zd[:]])
-    sol = scipy_integrate.solve_ivp(f, (0.0, T), y0, method="DOP853", rtol=rtol, atol=rtol)
-    return sol.y[:, -1]
+    """The star and close-in planet with REBOUNDx ``tides_spin`` (hbvm_md.reports.tidal_spin)."""
+    pytest.importorskip("reboundx")
+    return tidal_spin_scene(integrator, epsilon)
 
 
 def test_tidal_spins_against_dop853_and_ias15():
@@ -224,19 +169,19 @@ def test_tidal_spins_against_dop853_and_ias15():
     REBOUNDx reads and saves them."""
     sim, rebx = _tidal_spin("hbvm")
     T = 2 * sim.particles[1].P
-    ref = tidal_reference(_tidal_spin("hbvm")[0], T)
-    spin0 = _spins(sim)
+    ref = dop853_reference(_tidal_spin("hbvm")[0], T)
+    spin0 = spins(sim)
     sim.integrate(T)
     xv = np.zeros(6 * sim.N)
     sim.serialize_particle_data(xyzvxvyvz=xv)
     assert np.max(np.abs(xv - ref[:12])) < 1e-8
-    assert np.max(np.abs(_spins(sim).ravel() - ref[12:])) < 1e-8
-    assert np.max(np.abs(_spins(sim) - spin0)) > 1.0          # (the planet's spin precesses)
+    assert np.max(np.abs(spins(sim).ravel() - ref[12:])) < 1e-8
+    assert np.max(np.abs(spins(sim) - spin0)) > 1.0          # (the planet's spin precesses)
     assert sim._N_odes == 1
     ias, _ = _tidal_spin("ias15", 1e-14)
     ias.integrate(T)
-    assert np.max(np.abs(_spins(ias).ravel() - ref[12:])) > 1e3 * np.max(
-        np.abs(_spins(sim).ravel() - ref[12:]))
+    assert np.max(np.abs(spins(ias).ravel() - ref[12:])) > 1e3 * np.max(
+        np.abs(spins(sim).ravel() - ref[12:]))
 
 
 def test_ode_and_force_attached_between_runs():
