@@ -108,14 +108,10 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     ``megno_initial_t``), as IAS15 does (its dt_done sum_i w_i t_i (delta'.delta/delta^2)(t_i)
     is a quadrature of the same integral): here the discrete tangent gives ln|delta| exactly
     at both ends, and the integral is taken as (t'_0 + t'_1) / 2 (ln|delta_1| - ln|delta_0|)."""
-    simd, simi, view, ctx, r, pv = rb
-    st, sd, res, written, host, vidx, DGs = hb
-    _, minv, kin_w, params = system
-    host_forces = ctx[D_HOST] != 0
-    y, cy, gamma, eref, clock = state
-    yt, cyt, gammat, ereft, _ = trial
-    counters = wk.counters
-    nodes = int(params[P_NODES]) if host_forces else 0
+    simd, simi, ctx = rb.simd, rb.simi, rb.ctx
+    host = hb.host
+    params = system.params
+    nodes = int(params[P_NODES]) if ctx[D_HOST] != 0 else 0
     if nodes > 0:
         odes_release(simi, params)
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
