@@ -474,9 +474,14 @@ class Binding:
                              "needs the separable form, method HBVM, no test particles and no "
                              f"tangent map (got form={'full' if self.full else 'separable'}, "
                              f"{type(method).__name__}); use form='full' for such a system")
+        # a system whose variables are re-expressed after each committed step (the Keplerian
+        # flows' recentring of systems.flow_composed): its kernel is bound with the step
+        self.recentre = (system.recentre_kernel()
+                         if has_kernels and self.full
+                         and callable(getattr(system, "recentre_kernel", None)) else None)
         self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp,
                                     follow=self.follow, full=self.full, equip=self.equip,
-                                    velocities=self.velocities)
+                                    velocities=self.velocities, recentre=self.recentre)
         self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"

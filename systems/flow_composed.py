@@ -50,7 +50,8 @@ from __future__ import annotations
 import numpy as np
 
 from integrators.jit import jit
-from integrators.kepler_flow import kepler_step, kepler_step_stm, kepler_flow
+from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler_step,
+                                     kepler_step_saved, kepler_step_stm)
 
 from .base import HamiltonianSystem
 
@@ -100,29 +101,28 @@ def _interaction_gradient(x, v, ms, G, m0, gx, gp):
 @jit
 def composed_gradient(Y, params, out):
     """grad H~ at each row of Y (n, 2m), m = 3N + 1 (module docstring): the Keplerian flows
-    over each row's own tau with their state transition matrices, grad H_I there, pulled back
-    by Phi^T; dH~/dtau = dK/dtau, dH~/dp_tau = 1.  A flow that fails (a collision orbit) gives
-    NaN, which the step refuses."""
+    over each row's own tau, grad H_I there, pulled back by Phi^T without forming Phi
+    (:func:`integrators.kepler_flow.kepler_pullback`, from the scalars each flow kept);
+    dH~/dtau = dK/dtau, dH~/dp_tau = 1.  A flow that fails (a collision orbit) gives NaN,
+    which the step refuses."""
     N = int(params[0])
     G = params[1]
     m0 = params[2]
     ms = params[_HEAD:_HEAD + N]
     mu = G * m0
     m = 3 * N + 1
-    x0 = np.empty(3)
-    v0 = np.empty(3)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
-    phi = np.empty((N, 6, 6))
+    sv = np.empty((N, SAVED))
     gx = np.empty((N, 3))
     gp = np.empty(3)
     for r in range(Y.shape[0]):
         tau = Y[r, m - 1]
         for i in range(N):
-            for a in range(3):
-                x0[a] = Y[r, 3 * i + a]
-                v0[a] = Y[r, m + 3 * i + a] / ms[i]
-            kepler_step_stm(x0, v0, mu, tau, x[i], v[i], phi[i])
+            mi = ms[i]
+            (x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2], it) = kepler_step_saved(
+                Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
+                Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, mu, tau, sv, i)
         _interaction_gradient(x, v, ms, G, m0, gx, gp)
         dkdt = 0.0
         for i in range(N):
@@ -134,14 +134,16 @@ def composed_gradient(Y, params, out):
             for a in range(3):
                 dkdt += gx[i, a] * v[i, a] + gp[a] * mi * k * x[i, a]
             # (Q, V = P / m): K's gradient in (Q, V) is Phi^T (gx, m gp); dK/dP = dK/dV / m
-            for a in range(3):
-                cq = 0.0
-                cv = 0.0
-                for b in range(3):
-                    cq += phi[i, b, a] * gx[i, b] + phi[i, 3 + b, a] * mi * gp[b]
-                    cv += phi[i, b, 3 + a] * gx[i, b] + phi[i, 3 + b, 3 + a] * mi * gp[b]
-                out[r, 3 * i + a] = cq
-                out[r, m + 3 * i + a] = cv / mi
+            wx, wy, wz, wu, wv, ww = kepler_pullback(
+                Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
+                Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, sv, i,
+                gx[i, 0], gx[i, 1], gx[i, 2], mi * gp[0], mi * gp[1], mi * gp[2])
+            out[r, 3 * i] = wx
+            out[r, 3 * i + 1] = wy
+            out[r, 3 * i + 2] = wz
+            out[r, m + 3 * i] = wu / mi
+            out[r, m + 3 * i + 1] = wv / mi
+            out[r, m + 3 * i + 2] = ww / mi
         out[r, m - 1] = dkdt
         out[r, 2 * m - 1] = 1.0
 
