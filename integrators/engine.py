@@ -1023,6 +1023,10 @@ class Stepper(Counted):
         when no step down to ``min_dt``, or down to the smallest step that still changes t, is
         accepted."""
         s = self.method.s
+        why = getattr(self.system, "fixed_steps_only", None)
+        if why:        # (a system whose coefficients the controller's estimate cannot read)
+            raise ValueError(f"adaptive steps are not available for {type(self.system).__name__}: "
+                             f"{why}")
         while True:
             snap = self.save_state()
             try:

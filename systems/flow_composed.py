@@ -245,6 +245,12 @@ class FlowComposed(HamiltonianSystem):
     """
 
     polynomial_degree = None
+    # the adaptive controller's estimate (integrators.core.step_error) takes the largest
+    # coefficient over the whole state, which is the clock's rate 1 here: it would accept any
+    # step the resolution check lets through, so adaptive steps are refused by name
+    fixed_steps_only = ("its clock row (tau' = 1) hides the planets from the step-size "
+                        "controller's estimate; use fixed steps (integrate(..., h, steps)), "
+                        "whose own error check (error_bound) still refuses an unresolved step")
 
     def __init__(self, masses, G: float, h: float):
         ms = np.asarray(masses, dtype=float).reshape(-1)
