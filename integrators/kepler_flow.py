@@ -619,33 +619,26 @@ def kepler_pullback(x0, y0, z0, vx, vy, vz, sv, row, gx, gy, gz, gu, gv, gw):
     vg = vx * gx + vy * gy + vz * gz
     xw = x0 * gu + y0 * gv + z0 * gw
     vw = vx * gu + vy * gv + vz * gw
-    # the weights of the gradients of r0, eta0 and beta: the STM's column formulas
-    # (kepler_step_stm) for a unit change of each scalar, dotted with the vector
-    cr = 0.0
-    ce = 0.0
-    cb = 0.0
-    for q in range(3):
-        dr0 = 1.0 if q == 0 else 0.0
-        deta0 = 1.0 if q == 1 else 0.0
-        dbeta = 1.0 if q == 2 else 0.0
-        dzeta0 = -beta * dr0 - r0 * dbeta
-        dX = -ri * (X * dr0 + G2 * deta0 + G3 * dzeta0 + (eta0 * G2b + zeta0 * G3b) * dbeta
-                    - 1.5 * kp * dbeta / beta)
-        dG1 = G0 * dX + G1b * dbeta
-        dG2 = G1 * dX + G2b * dbeta
-        dG3 = G2 * dX + G3b * dbeta
-        dr = dr0 + G1 * deta0 + G2 * dzeta0 + eta0 * dG1 + zeta0 * dG2
-        df = mu * (G2 * dr0 * r0i - dG2) * r0i
-        dg = 1.5 * kp * dbeta / beta - mu * dG3
-        dfd = mu * (G1 * (dr0 * r0i + dr * ri) - dG1) * r0i * ri
-        dgd = mu * (G2 * dr * ri - dG2) * ri
-        c = df * xg + dg * vg + dfd * xw + dgd * vw
-        if q == 0:
-            cr = c
-        elif q == 1:
-            ce = c
-        else:
-            cb = c
+    # the weights cr, ce, cb of the gradients of r0, eta0 and beta: the STM's column formulas
+    # (kepler_step_stm: df, dg, dfd, dgd from dr0, deta0, dbeta through dzeta0, dX, dG_n and
+    # dr) run backwards once (reverse mode), dotted with the vector
+    K = 1.5 * kp / beta if kp != 0.0 else 0.0
+    # c = xg df + vg dg + xw dfd + vw dgd
+    w_dr = mu * ri * ri * (xw * r0i * G1 + vw * G2)
+    w_G1 = -xw * mu * r0i * ri + eta0 * w_dr
+    w_G2 = -xg * mu * r0i - vw * mu * ri + zeta0 * w_dr
+    w_G3 = -vg * mu
+    cr = mu * r0i * r0i * (xg * G2 + xw * ri * G1) + w_dr
+    ce = G1 * w_dr
+    w_z = G2 * w_dr
+    cb = vg * K + G1b * w_G1 + G2b * w_G2 + G3b * w_G3
+    w_X = G0 * w_G1 + G1 * w_G2 + G2 * w_G3
+    cr -= ri * X * w_X
+    ce -= ri * G2 * w_X
+    w_z -= ri * G3 * w_X
+    cb -= ri * (eta0 * G2b + zeta0 * G3b - K) * w_X
+    cr -= beta * w_z
+    cb -= r0 * w_z
     # grad r0 = (x0 / r0, 0), grad eta0 = (v0, x0), grad beta = (-2 mu x0 / r0^3, -2 v0)
     a = cr * r0i - 2.0 * mu * cb * r0i * r0i * r0i
     f1 = 1.0 + fm1
