@@ -305,25 +305,41 @@ class FlowComposed(HamiltonianSystem):
         return np.concatenate([X.ravel(), [tau0], (W * self.planet_masses[:, None]).ravel(), [hk]])
 
     def heliocentric(self, Y):
-        """(Q (N, 3), V (N, 3)) at the state's own time tau: x = phi_tau(X)."""
+        """(Q, V), each (..., N, 3), of states Y (..., 2m) at their own time tau:
+        x = phi_tau(X).  One compiled call when every state has the same tau (the samples of
+        a run: the hook leaves tau at -h/2 after every step)."""
         Y = np.asarray(Y, dtype=float)
+        lead = Y.shape[:-1]
+        Y2 = Y.reshape(-1, Y.shape[-1])
         m = self.dim
-        X = Y[:m - 1].reshape(self.N, 3)
-        V = Y[m:2 * m - 1].reshape(self.N, 3) / self.planet_masses[:, None]
-        return kepler_flow(X, V, self.G * self.m0, float(Y[m - 1]))
+        X = Y2[:, :m - 1].reshape(-1, 3)
+        V = (Y2[:, m:2 * m - 1].reshape(-1, self.N, 3) / self.planet_masses[:, None]).reshape(-1, 3)
+        mu = np.full(X.shape[0], self.G * self.m0)
+        taus = Y2[:, m - 1]
+        if np.all(taus == taus[0]):
+            Q, W = kepler_flow(X, V, mu, float(taus[0]))
+        else:
+            Q, W = np.empty_like(X), np.empty_like(V)
+            for r, tau in enumerate(taus):
+                rows = slice(r * self.N, (r + 1) * self.N)
+                Q[rows], W[rows] = kepler_flow(X[rows], V[rows], mu[rows], float(tau))
+        return Q.reshape(lead + (self.N, 3)), W.reshape(lead + (self.N, 3))
 
-    def physical(self, Y, t: float = 0.0) -> np.ndarray:
-        """The barycentric NBody state (positions, momenta) of Y, at time t since
-        :meth:`extend` (the barycentre moves uniformly)."""
+    def physical(self, Y, t=0.0) -> np.ndarray:
+        """The barycentric NBody states (positions, momenta), (..., 6 (N + 1)), of states Y
+        (..., 2m) at times t since :meth:`extend` (the barycentre moves uniformly)."""
         Q, V = self.heliocentric(Y)
         ms = self.planet_masses[:, None]
         M = self.body_masses.sum()
         xcm, vcm = self._com
-        x0 = -(ms * Q).sum(axis=0) / M           # the star, barycentre at the origin
-        v0 = -(ms * V).sum(axis=0) / self.m0
-        x = np.vstack([x0, Q + x0]) + xcm + vcm * t
-        v = np.vstack([v0, V]) + vcm
-        return np.concatenate([x.ravel(), (v * self.body_masses[:, None]).ravel()])
+        t = np.asarray(t, dtype=float)[..., None, None]
+        x0 = -(ms * Q).sum(axis=-2, keepdims=True) / M       # the star, barycentre at the origin
+        v0 = -(ms * V).sum(axis=-2, keepdims=True) / self.m0
+        x = np.concatenate([x0, Q + x0], axis=-2) + xcm + vcm * t
+        v = np.concatenate([v0, V], axis=-2) + vcm
+        lead = x.shape[:-2]
+        return np.concatenate([x.reshape(lead + (-1,)),
+                               (v * self.body_masses[:, None]).reshape(lead + (-1,))], axis=-1)
 
     def physical_energy(self, Y) -> float:
         """H = H_K + H_I at the physical state of Y (barycentric frame)."""
