@@ -79,6 +79,221 @@ def energy_parts(full, y, kin_w, params):
     return weighted_kinetic(y[m:], kin_w), _potential(y[:m], params)
 
 
+def first_guess(full, vel, y, minv, params, gamma, E, narrow, g, X, F, G, XV):
+    """g <- the initial guess of the step's coefficients: extrapolated from the previous step's
+    gamma (E, :func:`integrators.core.guess`), or, with no previous step (gamma all zero), the
+    right-hand side at y0, evaluated once into g's first row.  Returns the evaluations made."""
+    if all_zero(gamma):
+        u = g.shape[1]
+        if vel:
+            for j in range(u):
+                XV[0, j] = y[j]
+                XV[0, u + j] = y[u + j] * minv[j]
+            _force(XV[:1], params, F[:1])
+        else:
+            for j in range(u):
+                X[0, j] = y[j]
+            evaluate(full, X[:1], params, F[:1], G[:1])
+        for i in range(g.shape[0]):
+            for j in range(u):
+                g[i, j] = F[0, j] if i == 0 else 0.0
+        return 1
+    if narrow:
+        guess_narrow(E, gamma, g)
+    else:
+        guess(E, gamma, g)
+    return 0
+
+
+def stage_field(full, equip, vel, narrowb, polish, yb, cyb, mb, gb, ab, sc, es, method, tab, h,
+                Xb, Fb, G, R, pb):
+    """The stages of the coefficients gb and the right-hand side at them, Fb: the full form's
+    Y = y0 + h I gamma and J grad H, or the separable form's positions (the double integral C2)
+    and forces; with stage velocities (``_STAGE_VELOCITIES``) the separable stages carry
+    (q, v), X of shape (n, 2m); EQUIP moves the stages by its correction before the kernel.
+    ``polish``: with the coefficients' low parts (the compensated evaluation)."""
+    if full:
+        if narrowb:
+            full_stages_narrow(yb, cyb, gb, tab.I, tab.I_lo, h, Xb, polish)
+        else:
+            full_stages(yb, cyb, gb, tab.I, tab.I_lo, h, Xb, R, polish)
+        if equip:
+            eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
+        _force(Xb, pb, G)
+        symplectic(G, Fb)
+    else:
+        if narrowb:
+            stage_positions_narrow(yb, cyb, mb, gb, tab.C2, tab.C2_lo, sc, ab, Xb, polish)
+        else:
+            stage_positions(yb, cyb, mb, gb, tab.C2, tab.C2_lo, sc, ab, Xb, R, polish)
+        if vel:
+            stage_velocities(yb, cyb, mb, gb, tab.I, tab.I_lo, h, Xb, polish)
+        if equip:
+            eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
+        _force(Xb, pb, Fb)
+
+
+def coefficient_update(newton, narrowb, W, Fb, gb, pg, NV, NVinv, NM, R, Rt, Z):
+    """One iteration's new coefficients from the right-hand side at the stages: the fixed point
+    gb <- P_s^T Omega Fb (eq. (hbvm_sys)), or a simplified Newton update from the residual
+    when the host handed Newton matrices (NM not empty).  Returns (increment, size) for the
+    stop rule (:func:`integrators.core.stop_action`)."""
+    if _NEWTON and newton:
+        if narrowb:
+            project_narrow(W, Fb, pg)
+        else:
+            project(W, Fb, pg, R)
+        return newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
+    if narrowb:
+        return project_narrow(W, Fb, gb)
+    return project(W, Fb, gb, R)
+
+
+def polish_coefficients(newton, W, W_lo, Fb, gb, pg, NV, NVinv, NM, R, Rt, Z):
+    """The polish: the coefficients from one compensated projection of the right-hand side
+    (the rounding the step keeps); with Newton matrices, a last Newton update from that
+    compensated residual, since a plain fixed-point polish would amplify the error by
+    h L |X_s| on a stiff problem."""
+    if _NEWTON and newton:
+        project_compensated(W, W_lo, Fb, pg, R)
+        newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
+    else:
+        project_compensated(W, W_lo, Fb, gb, R)
+
+
+def equip_energy_condition(full, narrowb, yb, cyb, mb, kin_w, gb, ab, h, h2, sck, es, method,
+                           Xk, Fk, rho, R, pb, lip, xmax):
+    """EQUIP's energy condition, once gamma has converged (and is polished) for the current
+    alpha: the path through the k points of the line integral's quadrature, projected with the
+    coefficients' low parts (a residual measured before the polish misses them, the same every
+    step, and the energy drifts: 1.8e-13 over 5000 steps of Kepler, s = 4), decides whether
+    alpha conserves H (:func:`integrators.equip_core.update_alpha`'s answer: CONVERGED,
+    UPDATED, REITERATE or no root)."""
+    tn, ts, Wp, Cp = method
+    if full:
+        if narrowb:
+            full_stages_narrow(yb, cyb, gb, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, True)
+        else:
+            full_stages(yb, cyb, gb, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, R, True)
+    else:
+        if narrowb:
+            stage_positions_narrow(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
+                                   sck, ab, Xk, True)
+        else:
+            stage_positions(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
+                            sck, ab, Xk, R, True)
+        eq.path_correction(gb, mb, h2, es[0], Cp[eq.CP_PATH_S], Xk)
+    _force(Xk, pb, Fk)
+    project_compensated(Wp[eq.WP_PATH], Wp[eq.WP_PATH_LO], Fk, rho, R)
+    e_res, e_scale, e_weight = eq.energy_residual(full, yb, mb, kin_w, gb, rho, h, es[0],
+                                                  Cp[eq.CP_X], Cp[eq.CP_X_LO], ts[eq.TS_S0])
+    return eq.update_alpha(es, e_res, e_scale, e_weight * LIPSCHITZ_ULPS * EPS * xmax * lip)
+
+
+def sources_block(params, at, n, s, minv):
+    """The followers' side of the step (module docstring): the sources' own block, in a buffer
+    of its own (``core.follower_size``; the followers' scratch past its offset fo): their state
+    yb, cyb, 1 / m, coefficients gb and scratch ab, stages Xb, Fb and the Lipschitz probe's
+    Xpb, Fpb, and their params pb.  Returns (fb, fo, us, yb, cyb, mb, gb, ab, Xb, Fb, Xpb, Fpb,
+    pb), us the sources' columns."""
+    us = int(params[at + 2])
+    fb = np.empty(follower_size(n, s, us, int(params[at + 1]), int(params[at])))
+    yb, cyb, mb = view1(fb, 0, 2 * us), view1(fb, 2 * us, 2 * us), view1(fb, 4 * us, us)
+    gb, ab = view(fb, 5 * us, s, us), view(fb, 5 * us + s * us, s, us)
+    fo = 5 * us + 2 * s * us
+    Xb, Fb = view(fb, fo, n, us), view(fb, fo + n * us, n, us)
+    Xpb, Fpb = view(fb, fo + 2 * n * us, n, us), view(fb, fo + 3 * n * us, n, us)
+    fo += 4 * n * us
+    if fb.shape[0] < fo:            # (views are not bounds-checked)
+        raise ValueError("internal error: the sources' block is longer than "
+                         "core.follower_size says")
+    pb = view1(params, at + 4 + us + int(params[at]), int(params[at + 3]))
+    for c in range(us):
+        mb[c] = minv[int(params[at + 4 + c])]
+    return fb, fo, us, yb, cyb, mb, gb, ab, Xb, Fb, Xpb, Fpb, pb
+
+
+def gather_sources(y, cy, g, m, params, at, us, yb, cyb, gb):
+    """The sources' state and initial guess (as computed for all: the same) into their block."""
+    for c in range(us):
+        col = int(params[at + 4 + c])
+        yb[c], yb[us + c] = y[col], y[m + col]
+        cyb[c], cyb[us + c] = cy[col], cy[m + col]
+        for i in range(g.shape[0]):
+            gb[i, c] = g[i, col]
+
+
+def solve_followers(y, cy, minv, g, gb, Xb, params, at, us, sc, tab, opts, R, fb, fo):
+    """After the sources have converged: their coefficients back into g, then the followers'
+    stage equations in their field (:func:`integrators.followers.follow`).  Returns follow's
+    (status, iterations, last increment)."""
+    for c in range(us):
+        col = int(params[at + 4 + c])
+        for i in range(g.shape[0]):
+            g[i, col] = gb[i, c]
+    return follow(y, cy, minv, g, Xb, params, at, sc, tab, opts, R,
+                  view1(fb, fo, fb.shape[0] - fo))
+
+
+def resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb, Xb, Fb, Xpb, Fpb, W, tau, h,
+                     params, at, pb, group):
+    """The step judged by its own error (:func:`integrators.core.resolution_error`), before the
+    energy check, which cannot see a step that keeps H but leaves the solution.  The first
+    omitted Legendre coefficient goes into Fpb[0] (the Lipschitz probe's scratch, free by now):
+    from the stage values when k > s, else from one evaluation at y1 (the full form's grad H
+    into Fpb[0], J grad H back over the stage in Xpb[0]).  Returns (estimate, the worst body
+    as the whole state numbers it, evaluations made)."""
+    om = Fpb[0]
+    s = gb.shape[0]
+    nfev = 0
+    if Xb.shape[0] > s:
+        omitted_coefficient(W, tau, Fb, om)
+    else:
+        ub = gb.shape[1]
+        for c in range(ub):
+            col = c
+            if _FOLLOWERS and at >= 0:
+                col = int(params[at + 4 + c])
+            Xpb[0, c] = yt[col] - cyt[col]
+            if vel:
+                Xpb[0, ub + c] = (yt[m + col] - cyt[m + col]) * minv[col]
+        f1 = Xpb[:1] if full else Fpb[:1]
+        evaluate(full, Xpb[:1], pb, f1, Fpb[:1])
+        endpoint_defect(gb, f1[0], om)
+        nfev = 1
+    err, worst = resolution_error(full, yb, mb, gb, om, h, group)
+    if _FOLLOWERS and at >= 0 and worst >= 0 and group > 0:
+        worst = int(params[at + 4 + worst * group]) // group
+    return err, worst, nfev
+
+
+def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
+    """The energy check, a second guard independent of the step's own estimate (etol: see
+    :func:`run`).  Returns (refused, the relative change of H); eref[0] holds the new energy
+    when the step passes."""
+    if not np.isfinite(eref[0]):
+        t0, v0 = energy_parts(full, y, kin_w, params)
+        eref[0] = t0 + v0
+    t1, v1 = energy_parts(full, yt, kin_w, params)
+    scale = abs(t1) + abs(v1)
+    change = abs(t1 + v1 - eref[0])
+    if scale > 0.0:
+        change = change / scale
+    # etol < 0 (a method not exact for H): a change above |etol| is the method's own
+    # quadrature error unless it exceeds FLOW_FRACTION of the energy the step moved
+    # (core.energy_flow, at least the kinetic change |T1 - T0| in the separable form:
+    # checked first, as it costs O(m) where the flow costs O(k s m)); the fraction
+    # depends on s (core.FLOW_FRACTION: a lower order errs more at the same resolution)
+    refuse = not change <= abs(etol)
+    if refuse and etol < 0.0:
+        moved = abs(t1 + v1 - eref[0]) / FLOW_FRACTION[min(g.shape[0], 3) - 1]
+        refuse = not ((not full and moved <= abs(t1 - weighted_kinetic(y[m:], kin_w)))
+                      or moved <= energy_flow(full, y, kin_w, h, g, W, I, G))
+    if not refuse:
+        eref[0] = t1 + v1
+    return refuse, change
+
+
 def run(system, state, h, E, method, newton, opts, wk, samples):
     """``samples.nsteps`` steps of size h from the double-double state (state.y, state.cy), each
     committed in place when it succeeds; samples of (t, y, H) at steps 0, every, 2 every, ...
@@ -97,9 +312,19 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
     the check of a method not exact for H, whose own quadrature error stays far below that
     flow on any step that resolves its path (:data:`integrators.core.FLOW_FRACTION`).
     etol = 0: no check.  eref[0] carries the energy between steps (nan: not known yet).
+    opts.ebound > 0: a step whose own error estimate exceeds it is refused as NOT_RESOLVED
+    (:func:`resolution_check`).
 
-    The step is written inside the loop, not called: a call with this many arrays costs about
-    half a microsecond a step (measured on Kepler, where a step costs one)."""
+    How to read it: the step is the loop over ``istep``; each feature is a function of its
+    own, called where it acts: :func:`first_guess`, the iteration (:func:`stage_field`, the
+    stage velocities among them; :func:`coefficient_update`, Newton or the fixed point;
+    :func:`polish_coefficients`), EQUIP's :func:`equip_energy_condition`, the followers'
+    :func:`sources_block`, :func:`gather_sources` and :func:`solve_followers`, then the
+    commit and the two guards, :func:`resolution_check` and :func:`energy_check`.  These are
+    inlined into this function when compiled (``integrators.specialise.INLINED``): one call
+    level with this many arrays costs tens of nanoseconds an iteration (measured on Kepler,
+    where a step costs one microsecond), inlined it costs nothing, and the floating-point
+    operations are the same, in the same order."""
     _, minv, kin_w, params = system
     if _FULL is None:
         full = system.full
@@ -124,7 +349,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
     tn, ts, Wp, Cp = method
     tab = tableau(method)
     tau, tau_lo, X0, X0_lo = tab.tau, tab.tau_lo, tab.X0, tab.X0_lo
-    W, W_lo, C2, C2_lo, I, I_lo = tab.W, tab.W_lo, tab.C2, tab.C2_lo, tab.I, tab.I_lo
+    W, W_lo, I = tab.W, tab.W_lo, tab.I
     n = tau.shape[0]
     s, u = gamma.shape
     m = minv.shape[0]
@@ -151,7 +376,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
     XV, XVp = carve_velocities(work, work_sizes(n, s, u, m, y.shape[0])[0], n, m, vel)
     # Followers (module docstring): the sources' stage equations are solved as if alone, on
     # their own copies (the "block" the iteration below works on), then each follower's in
-    # their field (follow); without followers the block is the whole system
+    # their field (solve_followers); without followers the block is the whole system
     at = -1
     if _FOLLOWERS and not (full or equip or vel or NM.shape[0] > 0):
         at = _followers(params)
@@ -160,20 +385,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
     fo = 0
     us = 0
     if _FOLLOWERS and at >= 0:
-        us = int(params[at + 2])
-        fb = np.empty(follower_size(n, s, us, int(params[at + 1]), int(params[at])))
-        yb, cyb, mb = view1(fb, 0, 2 * us), view1(fb, 2 * us, 2 * us), view1(fb, 4 * us, us)
-        gb, ab = view(fb, 5 * us, s, us), view(fb, 5 * us + s * us, s, us)
-        fo = 5 * us + 2 * s * us
-        Xb, Fb = view(fb, fo, n, us), view(fb, fo + n * us, n, us)
-        Xpb, Fpb = view(fb, fo + 2 * n * us, n, us), view(fb, fo + 3 * n * us, n, us)
-        fo += 4 * n * us
-        if fb.shape[0] < fo:            # (views are not bounds-checked)
-            raise ValueError("internal error: the sources' block is longer than "
-                             "core.follower_size says")
-        pb = view1(params, at + 4 + us + int(params[at]), int(params[at + 3]))
-        for c in range(us):
-            mb[c] = minv[int(params[at + 4 + c])]
+        fb, fo, us, yb, cyb, mb, gb, ab, Xb, Fb, Xpb, Fpb, pb = sources_block(params, at, n, s,
+                                                                              minv)
     if vel:              # the kernel reads (q, v) at the stages; the probe compares them too
         Xb, Xpb = XV, XVp
     narrowb = gb.shape[1] < NARROW
@@ -194,33 +407,10 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             eq.start(es, eref)
             step_constants(h, Cp[eq.CP_VEC, :, 0], Cp[eq.CP_VEC, :, 1], htk, htk_lo)
         energy_ok = not equip
-        if all_zero(gamma):
-            # no previous step: start from the right-hand side at y0, evaluated once
-            u = g.shape[1]
-            if vel:
-                for j in range(u):
-                    XV[0, j] = y[j]
-                    XV[0, u + j] = y[u + j] * minv[j]
-                _force(XV[:1], params, F[:1])
-            else:
-                for j in range(u):
-                    X[0, j] = y[j]
-                evaluate(full, X[:1], params, F[:1], G[:1])
-            counters[C_NFEV] += 1
-            for i in range(g.shape[0]):
-                for j in range(u):
-                    g[i, j] = F[0, j] if i == 0 else 0.0
-        elif narrow:
-            guess_narrow(E, gamma, g)
-        else:
-            guess(E, gamma, g)
-        if _FOLLOWERS and at >= 0:          # the sources' block (their guess as computed for all: the same)
-            for c in range(us):
-                col = int(params[at + 4 + c])
-                yb[c], yb[us + c] = y[col], y[m + col]
-                cyb[c], cyb[us + c] = cy[col], cy[m + col]
-                for i in range(s):
-                    gb[i, c] = g[i, col]
+        counters[C_NFEV] += first_guess(full, vel, y, minv, params, gamma, E, narrow, g, X, F, G,
+                                        XV)
+        if _FOLLOWERS and at >= 0:
+            gather_sources(y, cy, g, m, params, at, us, yb, cyb, gb)
         # the iteration: fixed point g <- P_s^T Omega f(stages(g)) (eq. (hbvm_sys)), or simplified
         # Newton when NM is not empty; the same stop rule either way (core.stop_action), then one
         # compensated evaluation (the polish) whose rounding is what the step keeps; only the polish
@@ -234,9 +424,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         # HBVM(12, 6), h = 0.5).  Iterating the full form with the low parts and the compensated
         # projection removes it (the rest, 0.5e-18, is the stop rule's truncation) but made its
         # step 27 % dearer (Kepler's Poincare transform, HBVM(6, 3)): left as a known weakness
-        # (tests/test_conservation.py).  It is written
-        # here, with the kernel called directly and the arrays passed one by one, because one more
-        # call level or a tuple argument costs tens of nanoseconds an iteration (measured).
+        # (tests/test_conservation.py).
         n = Xb.shape[0]
         newton = NM.shape[0] > 0
         hist[0] = np.inf
@@ -253,25 +441,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         it0 = 0                # EQUIP: the iterations before the last change of alpha
         while polish or it - it0 < max_iter:
             it += 1
-            if full:
-                if narrowb:
-                    full_stages_narrow(yb, cyb, gb, I, I_lo, h, Xb, polish)
-                else:
-                    full_stages(yb, cyb, gb, I, I_lo, h, Xb, R, polish)
-                if equip:
-                    eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
-                _force(Xb, pb, G)
-                symplectic(G, Fb)
-            else:
-                if narrowb:
-                    stage_positions_narrow(yb, cyb, mb, gb, C2, C2_lo, sc, ab, Xb, polish)
-                else:
-                    stage_positions(yb, cyb, mb, gb, C2, C2_lo, sc, ab, Xb, R, polish)
-                if vel:
-                    stage_velocities(yb, cyb, mb, gb, I, I_lo, h, Xb, polish)
-                if equip:
-                    eq.stage_correction(full, yb, mb, gb, ab, sc, es[0], method, Xb)
-                _force(Xb, pb, Fb)
+            stage_field(full, equip, vel, narrowb, polish, yb, cyb, mb, gb, ab, sc, es, method,
+                        tab, h, Xb, Fb, G, R, pb)
             counters[C_NFEV] += n
             if it <= 3:          # the force's Lipschitz constant, for the round-off floor
                 if it > 1:
@@ -280,44 +451,15 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     copy2(Xpb, Xb)
                     copy2(Fpb, Fb)
             if polish:
-                if _NEWTON and newton:      # a last Newton update from the compensated residual: a plain
-                    # fixed-point polish would amplify the error by h L |X_s| (stiff problems)
-                    project_compensated(W, W_lo, Fb, pg, R)
-                    newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
-                else:
-                    project_compensated(W, W_lo, Fb, gb, R)
+                polish_coefficients(newton, W, W_lo, Fb, gb, pg, NV, NVinv, NM, R, Rt, Z)
                 if energy_ok:
                     status = OK
                     break
                 if not equip:      # (never reached: HBVM's energy_ok is True; this test lets
                     break          # numba leave EQUIP's energy condition out of HBVM's step)
-                # EQUIP: gamma has converged for this alpha (and is polished: a residual
-                # measured before the polish misses the coefficients' low parts, the same
-                # every step, and the energy drifts: 1.8e-13 over 5000 steps of Kepler, s = 4);
-                # the energy condition along the path through the k points of the line
-                # integral's quadrature decides.  The path and its projection with the
-                # coefficients' low parts, for the same reason
-                if full:
-                    if narrowb:
-                        full_stages_narrow(yb, cyb, gb, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, True)
-                    else:
-                        full_stages(yb, cyb, gb, Cp[eq.CP_PATH_I], Cp[eq.CP_PATH_I_LO], h, Xk, R, True)
-                else:
-                    if narrowb:
-                        stage_positions_narrow(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
-                                               sck, ab, Xk, True)
-                    else:
-                        stage_positions(yb, cyb, mb, gb, Cp[eq.CP_PATH_C2], Cp[eq.CP_PATH_C2_LO],
-                                        sck, ab, Xk, R, True)
-                    eq.path_correction(gb, mb, h2, es[0], Cp[eq.CP_PATH_S], Xk)
-                _force(Xk, pb, Fk)
+                answer = equip_energy_condition(full, narrowb, yb, cyb, mb, kin_w, gb, ab, h, h2,
+                                                sck, es, method, Xk, Fk, rho, R, pb, lip, xmax)
                 counters[C_NFEV] += K
-                project_compensated(Wp[eq.WP_PATH], Wp[eq.WP_PATH_LO], Fk, rho, R)
-                e_res, e_scale, e_weight = eq.energy_residual(full, yb, mb, kin_w, gb, rho, h, es[0],
-                                                              Cp[eq.CP_X], Cp[eq.CP_X_LO],
-                                                              ts[eq.TS_S0])
-                answer = eq.update_alpha(es, e_res, e_scale,
-                                         e_weight * LIPSCHITZ_ULPS * EPS * xmax * lip)
                 if answer == eq.CONVERGED:      # polish once more (gamma as it is)
                     energy_ok = True
                 elif answer == eq.UPDATED or answer == eq.REITERATE:
@@ -334,17 +476,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                     status = eq.NO_ENERGY_ROOT      # no alpha near the last conserves H
                     break
                 continue
-            if _NEWTON and newton:
-                if narrowb:
-                    project_narrow(W, Fb, pg)
-                else:
-                    project(W, Fb, pg, R)
-                delta, scale = newton_update(gb, pg, NV, NVinv, NM, Rt, Z)
-            else:
-                if narrowb:
-                    delta, scale = project_narrow(W, Fb, gb)
-                else:
-                    delta, scale = project(W, Fb, gb, R)
+            delta, scale = coefficient_update(newton, narrowb, W, Fb, gb, pg, NV, NVinv, NM, R,
+                                              Rt, Z)
             counters[C_LAST] = delta
             hstate = abs(h) * delta / yscale if yscale > 0.0 else np.inf
             action = stop_action(delta, scale, Fb, LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
@@ -355,12 +488,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                 status = -action
                 break
         if _FOLLOWERS and at >= 0 and status == OK:
-            for c in range(us):
-                col = int(params[at + 4 + c])
-                for i in range(s):
-                    g[i, col] = gb[i, c]
-            status, itf, dlast = follow(y, cy, minv, g, Xb, params, at, sc, tab, opts, R,
-                                        view1(fb, fo, fb.shape[0] - fo))
+            status, itf, dlast = solve_followers(y, cy, minv, g, gb, Xb, params, at, us, sc, tab,
+                                                 opts, R, fb, fo)
             if status != OK:
                 counters[C_LAST] = dlast
             if itf > it:            # the counts are the longest block's (the step's depth)
@@ -383,58 +512,19 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         if not all_finite(yt):
             return fail(counters, NOT_FINITE, work_iter, work_nfev, work_newton)
         if ebound > 0.0:
-            # the step judged by its own error (core.resolution_error), before the energy
-            # check, which cannot see a step that keeps H but leaves the solution; the first
-            # omitted Legendre coefficient into Fpb[0] (the Lipschitz probe's scratch, free
-            # now): from the stage values when k > s, else from one evaluation at y1
-            om = Fpb[0]
-            nb = Xb.shape[0]
-            if nb > s:
-                omitted_coefficient(W, tau, Fb, om)
-            else:
-                ub = gb.shape[1]
-                for c in range(ub):
-                    col = c
-                    if _FOLLOWERS and at >= 0:
-                        col = int(params[at + 4 + c])
-                    Xpb[0, c] = yt[col] - cyt[col]
-                    if vel:
-                        Xpb[0, ub + c] = (yt[m + col] - cyt[m + col]) * minv[col]
-                # (the full form's grad H into Fpb[0], J grad H back over the stage in Xpb[0])
-                f1 = Xpb[:1] if full else Fpb[:1]
-                evaluate(full, Xpb[:1], pb, f1, Fpb[:1])
-                endpoint_defect(gb, f1[0], om)
-                counters[C_NFEV] += 1
-            err, worst = resolution_error(full, yb, mb, gb, om, h, group)
+            err, worst, nfev = resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb, Xb, Fb,
+                                                Xpb, Fpb, W, tau, h, params, at, pb, group)
+            counters[C_NFEV] += nfev
             counters[C_ERR] = err
             counters[C_WORST] = worst
-            if _FOLLOWERS and at >= 0 and worst >= 0 and group > 0:   # as the whole state
-                counters[C_WORST] = int(params[at + 4 + worst * group]) // group   # numbers it
             if not err <= ebound:
                 return fail(counters, NOT_RESOLVED, work_iter, work_nfev, work_newton)
         if etol != 0.0:
-            if not np.isfinite(eref[0]):
-                t0, v0 = energy_parts(full, y, kin_w, params)
-                eref[0] = t0 + v0
-            t1, v1 = energy_parts(full, yt, kin_w, params)
-            scale = abs(t1) + abs(v1)
-            change = abs(t1 + v1 - eref[0])
-            if scale > 0.0:
-                change = change / scale
-            # etol < 0 (a method not exact for H): a change above |etol| is the method's own
-            # quadrature error unless it exceeds FLOW_FRACTION of the energy the step moved
-            # (core.energy_flow, at least the kinetic change |T1 - T0| in the separable form:
-            # checked first, as it costs O(m) where the flow costs O(k s m)); the fraction
-            # depends on s (core.FLOW_FRACTION: a lower order errs more at the same resolution)
-            refuse = not change <= abs(etol)
-            if refuse and etol < 0.0:
-                moved = abs(t1 + v1 - eref[0]) / FLOW_FRACTION[min(s, 3) - 1]
-                refuse = not ((not full and moved <= abs(t1 - weighted_kinetic(y[m:], kin_w)))
-                              or moved <= energy_flow(full, y, kin_w, h, g, W, I, G))
-            if refuse:
+            refused, change = energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W,
+                                           I, G)
+            if refused:
                 counters[C_CHANGE] = change
                 return fail(counters, UNRESOLVED, work_iter, work_nfev, work_newton)
-            eref[0] = t1 + v1
         copy1(y, yt)
         copy1(cy, cyt)
         copy2(gamma, g)

@@ -57,8 +57,12 @@ import numba
 from . import (absent, core, equip_core, followers, jit as _jitmod, loop, pointers as _pointersmod,
                records as _recordsmod, tangent)
 
-LOOP_FUNCTIONS = ("tableau", "evaluate", "energy_parts", "run",
-                  "advance", "attempt")
+# the step's features, each a function of its own (integrators.loop.run's docstring), inlined
+STEP_PARTS = ("first_guess", "stage_field", "coefficient_update", "polish_coefficients",
+              "equip_energy_condition", "sources_block", "gather_sources", "solve_followers",
+              "resolution_check", "energy_check")
+LOOP_FUNCTIONS = ("tableau", "evaluate", "energy_parts") + STEP_PARTS + ("run", "advance",
+                                                                          "attempt")
 # the followers' step (integrators.followers), appended for a system with followers
 FOLLOWER_FUNCTIONS = ("follower_stages", "gather_followers", "follow")
 _FOLLOWERS_PATH = Path(followers.__file__)
@@ -73,7 +77,7 @@ _TANGENT_PATH = Path(tangent.__file__)
 # then one compiled function (glue.core_step), an engine's step one (advance, run or
 # run_variational); each also compiles as its own entry point when called from Python (the
 # engine's Stepper calls run, for one step too, so that advance is not a second one)
-INLINED = ("tableau", "advance", "attempt", "step_arrays")
+INLINED = ("tableau", "advance", "attempt", "step_arrays") + STEP_PARTS
 # the full form's pieces of integrators.core, bound to integrators.absent in a separable step
 FULL_FUNCTIONS = ("full_stages", "full_stages_narrow", "symplectic", "commit_full")
 # what a host's glue calls for variational particles, bound to integrators.absent without
