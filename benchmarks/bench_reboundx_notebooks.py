@@ -32,6 +32,19 @@ difference of two runs is the largest over those arrays of max |a - b| / max |b|
 the array's scale).  Time: the notebook's code cells (the process start, the imports and the
 loading of HBVM's compiled code excluded: a warm-up integration runs first), HBVM / IAS15, on a
 loaded machine.  Writes benchmarks/results/reboundx_notebooks.md.
+
+``--operators`` (REBOUNDx's operator notebooks, :data:`OPERATOR_NOTEBOOKS`, or those given with
+``--only``): each notebook runs a fourth time, ``hbvm max_dt``: HBVM with
+``sim.integrator.max_dt`` set, for each simulation the notebook creates, to IAS15's mean step
+on that simulation in the ``ias15`` run (its time advanced over its steps, summed over its
+``integrate`` calls; simulations are matched by the order the notebook creates them), and a
+fifth with half that bound.  The table gives each run's distance from two references: ``ias15
+tight`` (IAS15 at epsilon 1e-11: IAS15's own distance from it is the yardstick), and ``ias15
+fixed``, IAS15 at fixed steps of 1/FINE of its mean step on each simulation (an operator's
+splitting error follows the step, and at epsilon 1e-11 IAS15's steps are only about twice
+shorter than at its default, so that reference carries half of IAS15's splitting error; at
+1/FINE of the step it carries 1/FINE of it), and the times of HBVM with the bounds over IAS15's.
+Writes benchmarks/results/reboundx_operator_notebooks.md.
 """
 from __future__ import annotations
 
@@ -53,6 +66,7 @@ ROOT = os.path.dirname(HERE)
 #: REBOUND's notebooks that touch REBOUND's own forces at the stages (the rest of REBOUND's
 #: notebooks run plain gravity, tested elsewhere)
 REBOUND_NOTEBOOKS = ("Forces", "PoincareMap", "Holmberg", "PrimordialEarth", "EccentricComets",
+                     "IntegratingArbitraryODEs",
                      "Testparticles")
 
 #: notebook -> why it is left out
@@ -89,9 +103,18 @@ SHORTEN: dict[str, list[tuple[str, str]]] = {
                         ("np.linspace(0.,1000.,1000)", "np.linspace(0.,100.,1000)")],
     "EccentricComets": [("tmax = 1e4", "tmax = 1e3")],
     "Testparticles": [("N_testparticle = 1000", "N_testparticle = 200")],
+    # (not a shortening: the notebook tightens its BS integrator's own tolerances, fields that
+    # neither HBVM nor IAS15 has; both keep their defaults)
+    "IntegratingArbitraryODEs": [("sim.integrator.eps_rel = 1e-8", "pass"),
+                                 ("sim.integrator.eps_abs = 1e-8", "pass")],
 }
 
 TIMEOUT = 900.0
+
+#: REBOUNDx's notebooks whose effects are operators (applied once per step, after it)
+OPERATOR_NOTEBOOKS = ("EccAndIncDamping", "ModifyMass", "GeneralRelativity", "IntegrateForce")
+#: the fine reference of ``--operators``: IAS15 at fixed steps of 1/FINE of its mean step
+FINE = 16
 
 
 # -- the child: one notebook, one integrator ------------------------------------------------------
@@ -108,10 +131,13 @@ def _cells(path: str) -> list[str]:
     return out
 
 
-def _child(path: str, integ: str, out: str, shorten: list) -> None:
+def _child(path: str, integ: str, out: str, shorten: list, bounds: list | None = None) -> None:
     """Run the notebook at ``path`` with ``integ`` ("hbvm", "ias15", "ias15 tight") and pickle
     what it plotted, its simulations' final positions, the forces and operators it loaded, its
-    time and its status to ``out``."""
+    time, its status and each simulation's mean step (``mean_dt``, in the order the notebook
+    created them) to ``out``.  ``bounds``: with "hbvm", the ``max_dt`` of each simulation in
+    that order (NaN: none), set before each of its ``integrate`` calls; with "ias15 fixed",
+    IAS15's fixed step (``epsilon = 0``, ``sim.dt``) of each simulation."""
     import random
     import warnings
 
@@ -120,11 +146,17 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
     import matplotlib.axes
     import matplotlib.pyplot as plt
     import rebound
-    if integ == "hbvm":
+    restarts = integ == "hbvm restarts"
+    if integ in ("hbvm", "hbvm restarts"):
         import hbvm_md  # noqa: F401  (registers "hbvm")
-    name = "hbvm" if integ == "hbvm" else "ias15"
+    name = "hbvm" if integ in ("hbvm", "hbvm restarts") else "ias15"
     eps = 1e-11 if integ == "ias15 tight" else None
-    result = dict(plots=[], sims={}, uses=[], status="ok", message="", time=np.nan)
+    result = dict(plots=[], sims={}, uses=[], status="ok", message="", time=np.nan, mean_dt=[],
+                  restarts=[])
+    extras = {}                     # id(sim) -> the REBOUNDx Extras the notebook attached
+    calls = {}                      # id(sim) -> its integrate calls so far
+    created = []                    # the notebook's simulations, in the order it creates them
+    advanced = {}                   # id -> [time advanced, steps] over its integrate calls
 
     def from_notebook() -> bool:
         f = sys._getframe(2)
@@ -148,13 +180,40 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
 
     def init_(self, *args, **kw):
         reb_init(self, *args, **kw)
+        created.append(self)
         if not args and not kw:
             reb_setattr(self, "rand_seed", 1234)
             reb_setattr(self, "integrator", name)
             if eps is not None:
                 self.integrator.epsilon = eps
 
-    S.__setattr__, S.__init__ = setattr_, init_
+    reb_integrate = S.integrate
+
+    def integrate(self, *args, **kw):
+        i = next((j for j, c in enumerate(created) if c is self), -1)
+        if bounds is not None and 0 <= i < len(bounds) and np.isfinite(bounds[i]):
+            if str(self.integrator) == "hbvm":
+                self.integrator.max_dt = bounds[i]
+            elif integ == "ias15 fixed" and str(self.integrator) == "ias15":
+                self.integrator.epsilon = 0.0          # (IAS15's fixed steps of sim.dt)
+                self.dt = bounds[i]
+        t0, n0 = self.t, self.steps_done
+        calls[id(self)] = calls.get(id(self), 0) + 1
+        saved = None
+        if restarts and calls[id(self)] in RESTART_CALLS and str(self.integrator) == "hbvm" \
+                and id(self) in extras:
+            saved = _save_for_restart(self, extras[id(self)])
+        try:
+            return reb_integrate(self, *args, **kw)
+        finally:
+            if saved is not None:
+                result["restarts"] += _restarted(self, saved, args, kw, reboundx_extras)
+            acc = advanced.setdefault(id(self), [0.0, 0])
+            acc[0] += abs(self.t - t0)
+            acc[1] += self.steps_done - n0
+
+    integrate.__wrapped__ = reb_integrate      # (a restart's run, not counted)
+    S.__setattr__, S.__init__, S.integrate = setattr_, init_, integrate
     try:
         import reboundx
         E = reboundx.extras.Extras
@@ -179,6 +238,14 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
             return co(self, n)
 
         E.load_force, E.load_operator = load_force, load_operator
+        e_init = E.__init__
+
+        def extras_init(self, sim, *args, **kw):
+            e_init(self, sim, *args, **kw)
+            if not args and not kw:                   # (the notebook's, not a restart's)
+                extras.setdefault(id(sim), self)
+        E.__init__ = extras_init
+        reboundx_extras = E
         E.create_force, E.create_operator = create_force, create_operator
         del io
     except ImportError:
@@ -219,6 +286,8 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
             warnings.simplefilter("ignore")
             w.integrate(1.0)
     result["uses"].clear()
+    created.clear()
+    advanced.clear()
 
     import __main__                     # (a notebook's Pool pickles its functions by name)
     ns = __main__.__dict__
@@ -250,12 +319,50 @@ def _child(path: str, integ: str, out: str, shorten: list) -> None:
             v.serialize_particle_data(xyz=xyz)
             result["sims"][k] = xyz
     result["uses"] = sorted(set(result["uses"]))
+    result["mean_dt"] = [advanced[id(c)][0] / advanced[id(c)][1]
+                         if advanced.get(id(c), [0, 0])[1] > 0 else np.nan for c in created]
     with open(out, "wb") as fh:
         pickle.dump(result, fh)
 
 
+#: the integrate calls (1-based, of each simulation with REBOUNDx attached) before which "hbvm
+#: restarts" saves the run, to continue it restarted next to the notebook's own
+RESTART_CALLS = (2, 10, 50)
+
+
+def _save_for_restart(sim, rebx) -> tuple:
+    """The run before an integrate call: saved to a file with its REBOUNDx effects (REBOUNDx's
+    ``save``), and a ``sim.copy()``."""
+    d = tempfile.mkdtemp()
+    sim.save_to_file(os.path.join(d, "s.bin"), delete_file=True)
+    rebx.save(os.path.join(d, "x.bin"))
+    return d, sim.copy()
+
+
+def _restarted(sim, saved, args, kw, E) -> list:
+    """Continue the saved run (from the file; from the copy, its effects loaded from the file)
+    with the integrate call the notebook made, and compare with the notebook's own, which went
+    on uninterrupted: [(how, t, bit for bit?, largest |difference|)]."""
+    import rebound
+    d, copy = saved
+    out = []
+    for how in ("file", "copy"):
+        back = rebound.Simulation(os.path.join(d, "s.bin")) if how == "file" else copy
+        keep = E(back, os.path.join(d, "x.bin"))
+        rebound.Simulation.integrate.__wrapped__(back, *args, **kw)
+        a, b = np.zeros(7 * sim.N), np.zeros(7 * back.N)
+        for arr, s in ((a, sim), (b, back)):
+            xyz, vxvyvz, m = np.zeros(3 * s.N), np.zeros(3 * s.N), np.zeros(s.N)
+            s.serialize_particle_data(xyz=xyz, vxvyvz=vxvyvz, m=m)
+            arr[:] = np.concatenate([xyz, vxvyvz, m]) if s.N == sim.N else np.nan
+        same = back.t == sim.t and np.array_equal(a, b)
+        out.append((how, sim.t, bool(same), float(np.max(np.abs(a - b)))))
+        del keep
+    return out
+
+
 # -- the parent: three runs per notebook, the table -----------------------------------------------
-def _run(path: str, integ: str, shorten: list) -> dict:
+def _run(path: str, integ: str, shorten: list, bounds: list | None = None) -> dict:
     with tempfile.TemporaryDirectory() as d:
         for f in os.listdir(os.path.dirname(path)):           # (data files the notebook reads)
             if f.endswith((".txt", ".bin", ".csv", ".dat")):
@@ -265,8 +372,9 @@ def _run(path: str, integ: str, shorten: list) -> dict:
         env = dict(os.environ, MPLBACKEND="Agg",
                    PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]))
         code = ("import sys, json; sys.path.insert(0, %r); import bench_reboundx_notebooks as b; "
-                "b._child(%r, %r, %r, json.loads(%r))" % (HERE, os.path.abspath(path), integ,
-                                                          out, json.dumps(shorten)))
+                "b._child(%r, %r, %r, json.loads(%r), json.loads(%r))" % (
+                    HERE, os.path.abspath(path), integ, out, json.dumps(shorten),
+                    json.dumps(bounds)))
         try:
             p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                                text=True, timeout=TIMEOUT)
@@ -350,6 +458,91 @@ def _fmt(x: float) -> str:
     return "-" if not np.isfinite(x) else ("0" if x == 0 else f"{x:.1e}")
 
 
+def operators(args) -> None:
+    """The ``--operators`` mode (module docstring): six runs per notebook, the distances from
+    the two references, the table."""
+    if not args.reboundx:
+        raise SystemExit("--operators needs --reboundx (REBOUNDx's ipython_examples folder)")
+    names = args.only or list(OPERATOR_NOTEBOOKS)
+    rows = []
+    load = os.getloadavg()
+    compared = {"ias15 tight": ("hbvm max_dt", "hbvm max_dt/2", "ias15", "hbvm"),
+                "ias15 fixed": ("hbvm max_dt", "hbvm max_dt/2", "ias15", "ias15 tight", "hbvm")}
+    for nb in names:
+        path = os.path.join(args.reboundx, nb + ".ipynb")
+        sh = SHORTEN.get(nb, [])
+        runs = {}
+        for integ in ("ias15", "ias15 tight", "hbvm"):
+            runs[integ] = _run(path, integ, sh)
+        mean = np.array(runs["ias15"]["mean_dt"], dtype=float)
+        runs["hbvm max_dt"] = _run(path, "hbvm", sh, list(mean))
+        runs["hbvm max_dt/2"] = _run(path, "hbvm", sh, list(mean / 2))
+        runs["ias15 fixed"] = _run(path, "ias15 fixed", sh, list(mean / FINE))
+        runs["hbvm restarts"] = _run(path, "hbvm restarts", sh, list(mean))
+        for k, r in runs.items():
+            print(f"  {nb} {k}: {r['status']} {r['time']:.2f} s {r['message']}",
+                  file=sys.stderr, flush=True)
+        ok = all(r["status"] == "ok" for r in runs.values())
+        cells = []
+        for ref, of in compared.items():
+            d = {k: difference(runs[k], runs[ref]) for k in of}
+            cells += [_fmt(d[k][0]) + (f" ({d[k][1]})" if d[k][1] else "") for k in of]
+            within = "yes" if d["hbvm max_dt"][0] <= d["ias15"][0] else "no"
+            within += ("; /2: " + ("yes" if d["hbvm max_dt/2"][0] <= d["ias15"][0] else "no"))
+            cells.append(within)
+        t = {k: runs[k]["time"] / runs["ias15"]["time"] if ok else np.nan
+             for k in ("hbvm max_dt", "hbvm max_dt/2")}
+        rs = runs["hbvm restarts"].get("restarts", [])
+        same = sum(r[2] for r in rs)
+        cells.append(f"{same} of {len(rs)}" + ("" if same == len(rs) else " (largest "
+                     + _fmt(max(r[3] for r in rs)) + ")"))
+        used = "; ".join(_fmt(b) for b in mean if np.isfinite(b))
+        uses = ", ".join(runs["ias15"]["uses"]) or "gravity only"
+        if sh:
+            uses += "; shortened: " + "; ".join(f"`{o}` -> `{n}`" for o, n in sh)
+        note = "" if ok else " (" + "; ".join(f"{k}: {r['status']} {r['message']}"
+                                              for k, r in runs.items() if r["status"] != "ok") + ")"
+        rows.append(f"| {nb} | {uses} | {used} | " + " | ".join(cells) + " | "
+                    + " / ".join(f"{x:.2f}" if np.isfinite(x) else "-" for x in t.values())
+                    + " |" + note)
+        print(rows[-1], flush=True)
+    import rebound
+    import reboundx
+    from hbvm_md.reports.machine import machine
+    out = ["# REBOUNDx's operator notebooks: HBVM with `max_dt` against IAS15", "",
+           f"{machine()}, load average at the start {load[0]:.1f}, {load[1]:.1f}, "
+           f"{load[2]:.1f} (1, 5, 15 min); REBOUND {rebound.__version__}, REBOUNDx "
+           f"{reboundx.__version__}. Generated by `python benchmarks/bench_reboundx_notebooks.py "
+           "--reboundx REBOUNDX/ipython_examples --operators` on "
+           f"{time.strftime('%Y-%m-%d')}. Each notebook runs as written (shortened as listed) "
+           "in a fresh process, six times: IAS15 at its defaults; IAS15 at epsilon 1e-11 and "
+           f"IAS15 at fixed steps of 1/{FINE} of its mean step on each simulation (the two "
+           "references); HBVM at its defaults; HBVM with `sim.integrator.max_dt` set for each "
+           "simulation to IAS15's mean step on it (its time advanced over its steps in the "
+           "first run: the column max_dt), and to half of it. Distance: the largest over the "
+           "arrays the notebook plots and the final positions of its simulations of "
+           "max |a - ref| / max |ref|. An operator's splitting error follows the step; IAS15's "
+           "steps at 1e-11 are only about twice shorter than at its default, so that reference "
+           "carries about half of IAS15's own splitting error, the fixed-step one 1/"
+           f"{FINE} of it. Restarts: a seventh run, HBVM with `max_dt`, saves each simulation "
+           "with REBOUNDx attached before its integrate calls number "
+           f"{', '.join(map(str, RESTART_CALLS))} (`save_to_file` and REBOUNDx's `save`, and "
+           "`sim.copy()`), continues the saved run (loaded from the files; the copy with its "
+           "effects loaded) with the same call, and compares it with the notebook's own run, "
+           "which went on uninterrupted: positions, velocities and masses. Time: the notebook's code cells, HBVM with `max_dt` (and with half of "
+           "it) / IAS15 at its defaults, one run each.", "",
+           "| notebook | what it uses | max_dt (each simulation) | to IAS15 at 1e-11: HBVM + "
+           "max_dt | HBVM + max_dt/2 | IAS15 | HBVM defaults | HBVM + max_dt within IAS15's? | "
+           f"to IAS15 fixed at 1/{FINE}: HBVM + max_dt | HBVM + max_dt/2 | IAS15 | "
+           "IAS15 at 1e-11 | HBVM defaults | HBVM + max_dt within IAS15's? | restarts bit for "
+           "bit | time HBVM + max_dt / IAS15 (max_dt/2) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
+    path = os.path.join(HERE, "results", "reboundx_operator_notebooks.md")
+    with open(path, "w") as fh:
+        fh.write("\n".join(out))
+    print(f"wrote {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reboundx", help="REBOUNDx's ipython_examples folder")
@@ -360,8 +553,14 @@ def main() -> None:
     ap.add_argument("--no-run", action="store_true",
                     help="with --load: list the notebooks not loaded as not run")
     ap.add_argument("--timeout", type=float, default=TIMEOUT, help="seconds a run may take")
+    ap.add_argument("--operators", action="store_true",
+                    help="REBOUNDx's operator notebooks: HBVM with max_dt at IAS15's mean step, "
+                         "HBVM and IAS15, each against IAS15 at 1e-11 (module docstring)")
     args = ap.parse_args()
     globals()["TIMEOUT"] = args.timeout
+    if args.operators:
+        operators(args)
+        return
     if not (args.reboundx or args.rebound):
         ap.error("give --reboundx and/or --rebound (see the module docstring)")
     rows = []

@@ -87,7 +87,7 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
 
 # -- REBOUND's tangents (hbvm_md.rebound.glue), likewise ----------------------------------
 @jit
-def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
+def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP, TO):
     if V.shape[0] > 0:
         _not_compiled()
 

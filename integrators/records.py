@@ -64,8 +64,10 @@ Adaptive = namedtuple("Adaptive", ["epsilon", "min_dt", "res"])
 StepConstants = namedtuple("StepConstants", ["h", "ht", "ht_lo", "h2", "h2_lo"])
 Block = namedtuple("Block", ["y", "cy", "minv", "a", "X", "F"])
 #: P (nv, p): each tangent's own params for the jvp kernel (p = 0: the system's), e.g. the N-body
-#: params followed by a variation of the masses (:func:`systems.nbody.nbody_force_jvp`)
-Tangents = namedtuple("Tangents", ["V", "DG", "Vt", "DGt", "tw", "tcw", "tcount", "P"])
+#: params followed by a variation of the masses (:func:`systems.nbody.nbody_force_jvp`); O (nv, 3):
+#: each tangent's order and, for a second-order one (order 2), the indices of its two
+#: first-order tangents, earlier in V (order 0 or 1: a first-order tangent)
+Tangents = namedtuple("Tangents", ["V", "DG", "Vt", "DGt", "tw", "tcw", "tcount", "P", "O"])
 Variational = namedtuple("Variational", ["max_iter", "y0", "cy0", "gsave", "snap", "mg", "wv",
                                          "out_v", "out_m"])
 

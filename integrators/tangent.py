@@ -41,7 +41,7 @@ from integrators.core import (DIVERGED, EPS, NARROW, NOT_FINITE, OK, ROUNDOFF_UL
                               copy2, full_stages, full_stages_narrow, guess, guess_narrow, max_abs,
                               max_abs2, newton_update, project, project_narrow, stage_positions,
                               stage_positions_narrow, step_constants, symplectic, work_sizes)
-from integrators.pointers import view1
+from integrators.pointers import view, view1
 from integrators.records import StepConstants
 
 _force_jvp = None    # bound by integrators.specialise
@@ -90,9 +90,11 @@ def tangent_converged(delta, scale, dF, hstate, previous):
 def tangent_sizes(n, s, u, m, d):
     """(float, complex) lengths of the tangent map's work buffers: the step's own
     (``core.work_sizes``, cut by ``core.carve``: its X holds the converged stages, Xp, F, G the
-    tangent's stages and derivatives, g its d gamma, yt, cyt the new tangent) and d zeros."""
+    tangent's stages and derivatives, g its d gamma, yt, cyt the new tangent), d zeros, and
+    a second-order tangent's scratch: the stages of its two first-order tangents (2n, u) and
+    its forcing (n, u)."""
     nf, nc = work_sizes(n, s, u, m, d)
-    return nf + d, nc
+    return nf + d + 3 * n * u, nc
 
 
 def stages(full, narrow, y, cy, minv, g, tab, sc, a, X, R, exact):
@@ -116,7 +118,10 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     records (:mod:`integrators.records`): ``tan`` holds V, DG, Vt, DGt, tw, tcw, tcount and P
     (nv, p): each tangent's params for the jvp kernel, or p = 0 for the system's (a parameter
     varied along the tangent, as a mass of REBOUND's variational particles: the kernel's
-    derivative along it is part of the linearised stage equations).
+    derivative along it is part of the linearised stage equations), and O (nv, 3): each
+    tangent's order, and a second-order one's two first-order tangents (earlier rows of V),
+    whose forcing the kernel computes when handed 2n rows of directions (separable form only:
+    :func:`systems.nbody.nbody_force_jvp`).
 
     DG (nv, s, u): each tangent's coefficients d gamma of the previous step (zero: none), the
     initial guess extrapolated with E, and replaced by this step's.  (NV, NVinv, NM): the
@@ -126,7 +131,7 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     tangent's iterations.  Returns OK, or DIVERGED / NOT_FINITE with V and DG unchanged."""
     full, minv, _, params = system
     NV, NVinv, NM = newton
-    V, DG, Vt, DGt, tw, tcw, tcount, P = tan
+    V, DG, Vt, DGt, tw, tcw, tcount, P, O = tan
     tab = tableau(method)
     tau, tau_lo, X0, X0_lo, W = tab.tau, tab.tau_lo, tab.X0, tab.X0_lo, tab.W
     n = tau.shape[0]
@@ -140,9 +145,15 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
     if tw.shape[0] < tangent_sizes(n, s, u, m, d)[0]:    # (views are not bounds-checked)
         raise ValueError("internal error: the tangent map's work buffer is shorter than "
                          "tangent_sizes says")
-    zero = view1(tw, work_sizes(n, s, u, m, d)[0], d)
+    off = work_sizes(n, s, u, m, d)[0]
+    zero = view1(tw, off, d)
     for j in range(d):
         zero[j] = 0.0
+    # a second-order tangent's scratch: its first-order tangents' stages, stacked, and forcing
+    pair = view(tw, off + d, 2 * n, u)
+    dXa = view(tw, off + d, n, u)
+    dXb = view(tw, off + d + n * u, n, u)
+    S = view(tw, off + d + 2 * n * u, n, u)
     h2, h2_lo = step_constants(h, tau, tau_lo, ht, ht_lo)
     sc = StepConstants(h, ht, ht_lo, h2, h2_lo)
     # the stages at the converged coefficients (as the step's last, compensated evaluation)
@@ -152,6 +163,22 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
         # a tangent's own params (a variation of a parameter the force depends on, e.g. a mass:
         # the jvp then adds the force's derivative along it, the same at every iteration)
         pv = params if P.shape[1] == 0 else P[v]
+        # A second-order tangent (the second derivative of the step along two first-order
+        # tangents a, b, as REBOUND's second-order variational particles): differentiating the
+        # fixed point twice gives the first-order equation for its d gamma plus a constant
+        # forcing, the force's second derivative along the stages of a and b (the stage map and
+        # the commit are affine, so nothing else): those stages come from a's and b's tangents
+        # before the step and their coefficients of this step (DGt, mapped above).
+        second = O[v, 0] == 2
+        if second:
+            ia, ib = int(O[v, 1]), int(O[v, 2])
+            if full or not (0 <= ia < v and 0 <= ib < v):
+                raise ValueError("internal error: a second-order tangent needs the separable "
+                                 "form and its first-order tangents before it")
+            stages(full, narrow, V[ia], zero, minv, DGt[ia], tab, sc, a, dXa, R, False)
+            stages(full, narrow, V[ib], zero, minv, DGt[ib], tab, sc, a, dXb, R, False)
+            _force_jvp(X, pair, pv, S)
+            tcount[1] += n
         if narrow:
             guess_narrow(E, DG[v], dg)
         else:
@@ -166,6 +193,10 @@ def tangent_map(system, y0, cy0, gamma, h, E, method, newton, max_iter, tan):
             stages(full, narrow, dy, zero, minv, dg, tab, sc, a, dX, R, False)
             evaluate_jvp(full, X, dX, pv, dF, dG)
             tcount[1] += n
+            if second:
+                for i in range(n):
+                    for j in range(u):
+                        dF[i, j] += S[i, j]
             if _NEWTON and newton:
                 if narrow:
                     project_narrow(W, dF, pg)

@@ -240,6 +240,7 @@ class VariationalStepper(Stepper):
         self._tw, self._tcw = np.empty(nf), np.empty(nc, dtype=complex)
         self._tcount = np.zeros(3)
         self._no_params = np.zeros((nv, 0))         # (Tangents.P: the system's params)
+        self._orders = np.zeros((nv, 3))            # (Tangents.O: all first-order)
         self._wv = np.ones(d) if b.full else np.concatenate([np.ones(d // 2), b.minv])
         self.megno = Megno(self.t, self._V[0], self._wv)
         # scratch of run_variational (the state before a step, to take it back)
@@ -400,7 +401,7 @@ class VariationalStepper(Stepper):
     def _tangents(self) -> Tangents:
         """The tangent map's arrays (:class:`integrators.records.Tangents`)."""
         return Tangents(self._V, self._DG, self._Vt, self._DGt, self._tw, self._tcw,
-                        self._tcount, self._no_params)
+                        self._tcount, self._no_params, self._orders)
 
     def _tangent_fail(self, status: int, h: float, solver: str) -> None:
         self.status = "failed"

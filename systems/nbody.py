@@ -573,6 +573,9 @@ def nbody_force_jvp(Q, dQ, params, out):
     g_i.  As in the force kernel a test particle (g = 0) acts on nobody: a pair is visited only
     when a source is in it (a source's row and test particles' rows against the sources), so
     the cost is O(n N_s N) for N_s sources."""
+    if dQ.shape[0] == 2 * Q.shape[0]:
+        _second_jvp(Q, dQ, params, out)
+        return
     G = params[0]
     N = abs(int(params[1]))
     for r in range(Q.shape[0]):
@@ -610,6 +613,65 @@ def nbody_force_jvp(Q, dQ, params, out):
                 out[r, 3 * j + 2] -= cj * tz
     if params[1] < 0.0:
         _mass_jvp(Q, params, out)
+
+
+@jit
+def _second_jvp(Q, dQ, params, out):
+    """The second derivative of :func:`nbody_forces` along a pair of directions, row by row:
+    out[r] = F''(Q[r])[dQ[r], dQ[n + r]] (dQ: (2n, 3N), the two directions stacked; n rows
+    of Q), with the derivatives along the pair's variations of the gravitating masses, dg_a
+    and dg_b at 4N + 3 and 5N + 3 of params (zeros, or absent: none): the forcing of a
+    second-order tangent (:func:`integrators.tangent.tangent_map`; REBOUND's second-order
+    variational equations).
+
+    With d = q_j - q_i and e = dq_j - dq_i, the pull on i from j is G w_i g_j f(d), f(d) =
+    d / r^3, f'(d)[e] = e / r^3 - 3 d (d.e) / r^5 and f''(d)[ea, eb] = -3 (ea (d.eb) + eb (d.ea)
+    + d (ea.eb)) / r^5 + 15 d (d.ea)(d.eb) / r^7; the masses' terms are dg_a f'(d)[eb] +
+    dg_b f'(d)[ea]; j feels the opposite with w_j and i's masses."""
+    G = params[0]
+    N = abs(int(params[1]))
+    n = Q.shape[0]
+    masses = params.shape[0] >= 6 * N + 3
+    A = 4 * N + 3
+    B = 5 * N + 3
+    for r in range(n):
+        for a in range(3 * N):
+            out[r, a] = 0.0
+        for i in range(N):
+            for j in range(i + 1, N):
+                gi, gj = params[2 + N + i], params[2 + N + j]
+                dai = dbi = daj = dbj = 0.0
+                if masses:
+                    dai, dbi, daj, dbj = params[A + i], params[B + i], params[A + j], params[B + j]
+                if gi == 0.0 and gj == 0.0 and dai == 0.0 and dbi == 0.0 and daj == 0.0 \
+                        and dbj == 0.0:
+                    continue
+                d0 = Q[r, 3 * j] - Q[r, 3 * i]
+                d1 = Q[r, 3 * j + 1] - Q[r, 3 * i + 1]
+                d2 = Q[r, 3 * j + 2] - Q[r, 3 * i + 2]
+                a0 = dQ[r, 3 * j] - dQ[r, 3 * i]
+                a1 = dQ[r, 3 * j + 1] - dQ[r, 3 * i + 1]
+                a2 = dQ[r, 3 * j + 2] - dQ[r, 3 * i + 2]
+                b0 = dQ[n + r, 3 * j] - dQ[n + r, 3 * i]
+                b1 = dQ[n + r, 3 * j + 1] - dQ[n + r, 3 * i + 1]
+                b2 = dQ[n + r, 3 * j + 2] - dQ[n + r, 3 * i + 2]
+                r2 = d0 * d0 + d1 * d1 + d2 * d2
+                inv3 = 1.0 / (r2 * np.sqrt(r2))
+                inv5 = inv3 / r2
+                inv7 = inv5 / r2
+                da = d0 * a0 + d1 * a1 + d2 * a2
+                db = d0 * b0 + d1 * b1 + d2 * b2
+                ab = a0 * b0 + a1 * b1 + a2 * b2
+                k2 = 15.0 * inv7 * da * db - 3.0 * inv5 * ab
+                for c in range(3):
+                    dc = d0 if c == 0 else (d1 if c == 1 else d2)
+                    ac = a0 if c == 0 else (a1 if c == 1 else a2)
+                    bc = b0 if c == 0 else (b1 if c == 1 else b2)
+                    f2 = k2 * dc - 3.0 * inv5 * (ac * db + bc * da)
+                    f1a = ac * inv3 - 3.0 * inv5 * dc * da
+                    f1b = bc * inv3 - 3.0 * inv5 * dc * db
+                    out[r, 3 * i + c] += G * params[2 + i] * (gj * f2 + daj * f1b + dbj * f1a)
+                    out[r, 3 * j + c] -= G * params[2 + j] * (gi * f2 + dai * f1b + dbi * f1a)
 
 
 @jit

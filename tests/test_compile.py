@@ -157,7 +157,7 @@ def test_the_stand_ins_refuse_to_be_reached():
                                      np.zeros((0, 1, 1), complex)), 1,
                               Tangents(np.zeros((0, 2)), np.zeros((0, 1, 1)), np.zeros((0, 2)),
                                        np.zeros((0, 1, 1)), np.zeros(1), np.zeros(1, complex),
-                                       np.zeros(3), np.zeros((0, 0)))) == 0
+                                       np.zeros(3), np.zeros((0, 0)), np.zeros((0, 3)))) == 0
 
 
 def test_a_cold_compile_says_so_in_one_line(tmp_path, monkeypatch, caplog):

@@ -136,11 +136,12 @@ def test_particles_added_between_calls():
 # (softening, testparticle_type = 1, gravity = 'none' and additional forces were refused here;
 # they now run on REBOUND's own accelerations: tests/test_rebound_forces.py)
 @pytest.mark.parametrize("setting, match", [
-    (lambda s: s.create_ode(length=2), "user ODEs attached"),
+    (lambda s: s.create_ode(length=2), r"a user ODE \(sim._odes\[0\], length 2\) has no "
+     r"derivatives function; set ode.derivatives"),
     (lambda s: (setattr(s, "softening", 0.01), s.add_variation()),
      "variational particles with softening"),
-    (lambda s: s.add_variation(order=2, first_order=s.add_variation()),
-     "second-order variational particles are not supported by HBVM; use IAS15"),
+    (lambda s: s.add_variation(testparticle=s.N),
+     "particles; add the variation after the particle, with its index"),
 ])
 def test_refusals_at_attach_and_first_step(setting, match):
     sim = outer_solar_system().to_rebound()
@@ -180,8 +181,8 @@ def test_settings_changed_between_runs_are_checked_again():
     with pytest.raises(ValueError, match="sim.dt"):
         sim.integrate(400.0)
     sim.dt = 100.0
-    sim.add_variation(order=2, first_order=sim.add_variation())   # (was testparticle_type=1)
-    with pytest.raises(ValueError, match="second-order variational"):
+    sim.add_variation(testparticle=sim.N)   # (was a second-order variation, now carried)
+    with pytest.raises(ValueError, match="add the variation after the particle"):
         sim.integrate(400.0)
     assert sim.t == 300.0
 

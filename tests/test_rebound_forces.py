@@ -438,34 +438,8 @@ def test_stochastic_forces_are_refused_naming_them():
     assert sim.t == 0.0
 
 
-def test_spin_odes_are_refused_naming_the_reboundx_effect():
-    """REBOUNDx ``tides_spin`` evolves the spins as an ODE attached to the simulation, which
-    REBOUND steps with BS after each step of IAS15 (split): HBVM refuses it naming the effect,
-    the reason and the fixes (it said "1 user ODEs attached ... BS only"); a user's own ODE is
-    named as such."""
-    sim = rebound.Simulation()
-    sim.units = ("AU", "Msun", "yr")
-    sim.add(m=2, r=1e-2)
-    sim.add(m=3e-3, r=5e-4, a=0.03)
-    sim.move_to_com()
-    sim.integrator = "hbvm"
-    rebx = reboundx.Extras(sim)
-    sf = rebx.load_force("tides_spin")
-    rebx.add_force(sf)
-    for p, omega, k in ((sim.particles[0], [0, 0, 2e3], 0.1), (sim.particles[1], [0, 0, 1e4], 0.25)):
-        p.params["Omega"] = omega
-        p.params["I"] = k * p.m * p.r ** 2
-        p.params["k2"] = 0.1
-    rebx.initialize_spin_ode(sf)
-    with pytest.raises(ValueError, match=r"REBOUNDx 'tides_spin''s ODE \(its bodies' spins\) "
-                       r"attached: REBOUND steps attached ODEs with its BS integrator after each "
-                       r"step of any integrator but BS.*use integrator 'ias15'.* or 'bs'"):
-        sim.integrate(1e-3)
-    ode = sim.create_ode(length=1)
-    with pytest.raises(ValueError, match=r"REBOUNDx 'tides_spin''s ODE \(its bodies' spins\) "
-                       r"and 1 user ODEs attached: "):
-        sim.integrate(1e-3)
-    del ode
+# (REBOUNDx's tides_spin and a user's ODEs were refused here; they now run with the bodies at
+# HBVM's stages: tests/test_rebound_odes.py)
 
 
 def test_rebound_forces_h_does_not_drift_with_many_nodes():

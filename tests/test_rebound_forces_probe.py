@@ -81,7 +81,8 @@ def test_python_force_that_raises_stops_the_run_unchanged(settings):
     sim.integrate(2.0)
     before, t0 = _xv(sim), sim.t
     with pytest.raises(RuntimeError, match=r"a Python callback of the simulation "
-                       r"\(sim.additional_forces or another\) raised KeyError: 'no drag table "
+                       r"\(sim.additional_forces, an ODE's derivatives or another\) raised "
+                       r"KeyError: 'no drag table "
                        r"past t = 2'; HBVM's step at t=2.0 .* was not taken") as info:
         sim.integrate(3.0)
     assert isinstance(info.value.__cause__, KeyError)

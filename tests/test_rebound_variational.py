@@ -200,3 +200,110 @@ def test_a_varied_mass_is_the_central_difference_of_two_runs(body, elements):
     err = np.max(np.abs(tangent - fd)) / np.max(np.abs(fd))
     assert err < 1e-8, err                       # (measured 3e-11 to 1.4e-10)
     assert var.particles[body].m == 1.0          # (REBOUND's, carried through unchanged)
+
+
+def test_a_variation_of_one_test_particle_is_the_central_difference_of_two_runs():
+    """``sim.add_variation(testparticle=1)`` (REBOUND's variation of one particle: one
+    variational particle, the others' variations zero) of a massless planet is the derivative
+    of the fixed-step map along its start, as the whole system's variation is; a set of the
+    whole system beside it is unchanged by it.  It used to be refused."""
+    masses = np.array([1.0, 0.0, 1e-3])
+    sim = _three_bodies(masses)
+    start = [(p.xyz, p.vxyz) for p in sim.particles]
+    one = sim.add_variation(testparticle=1)
+    whole = sim.add_variation()
+    one.particles[0].x = whole.particles[1].x = 1.0
+    one.particles[0].vy = whole.particles[1].vy = 0.5
+    sim.integrate(1.4)
+    assert sim.N_var == 1 + 3
+    eps = 1e-6
+    runs = []
+    for sign in (1, -1):
+        moved = [(list(x), list(v)) for x, v in start]
+        moved[1][0][0] += sign * eps
+        moved[1][1][1] += sign * 0.5 * eps
+        runs.append(_three_bodies(masses, moved))
+        runs[-1].integrate(1.4)
+    fd = (_xv(runs[0].particles) - _xv(runs[1].particles)) / (2 * eps)
+    err = np.max(np.abs(_xv(one.particles)[0] - fd[1])) / np.max(np.abs(fd[1]))
+    assert err < 1e-8, err                       # (measured 7e-11)
+    assert np.array_equal(_xv(one.particles)[0], _xv(whole.particles)[1])
+    assert not np.any(_xv(whole.particles)[[0, 2]])
+
+
+def test_a_variation_of_one_massive_particle_is_ias15s():
+    """Of a massive planet, REBOUND's variation of one particle moves it in the field of the
+    others with its own pull on them left out (not the system's derivative): HBVM's agrees
+    with IAS15's, varied in an orbital element, beside a whole-system set after it."""
+    out = []
+    for integrator in ("ias15", "hbvm"):
+        sim = _three_bodies(np.array([1.0, 1e-3, 1e-3]))
+        sim.integrator = integrator
+        one = sim.add_variation(testparticle=1)
+        one.vary(1, "e")
+        whole = sim.add_variation()
+        whole.vary(1, "e")
+        sim.integrate(1.4)
+        out.append((_xv(one.particles)[0], _xv(whole.particles)[1]))
+    (ias_one, ias_whole), (hb_one, hb_whole) = out
+    # (measured 2.6e-15 and 2.5e-15)
+    assert np.max(np.abs(hb_one - ias_one)) / np.max(np.abs(ias_one)) < 1e-11
+    assert np.max(np.abs(hb_whole - ias_whole)) / np.max(np.abs(ias_whole)) < 1e-11
+    # (REBOUND's definition differs from the whole system's derivative by the planet's pull:
+    # 1.4e-3 here, so the comparison above tells the two apart)
+    assert np.max(np.abs(ias_one - ias_whole)) > 1e-4 * np.max(np.abs(ias_whole))
+
+
+
+def _planets(integrator="hbvm", **change):
+    """A star, a planet (or a massless particle) with the elements ``change`` moves, and a second
+    planet: the scene of REBOUND's test_variational.py, at fixed steps for HBVM."""
+    elements = dict(m=1e-3, a=1.0, e=0.1, inc=0.02, omega=0.56, f=0.4)
+    for k, dv in change.items():
+        elements[k] += dv
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(**elements)
+    sim.add(primary=sim.particles[0], m=1e-3, a=1.76, f=2.0)
+    if integrator == "hbvm":
+        HBVMIntegrator(sim, s=6, k=8, dt=0.05, adaptive=False)
+    else:
+        sim.integrator = integrator
+    return sim
+
+
+@pytest.mark.parametrize("v1, v2, tp", [("e", "m", False), ("a", "omega", False),
+                                        ("e", "f", True)])
+def test_a_second_order_variation_is_the_central_difference_of_first_order_ones(v1, v2, tp):
+    """REBOUND's second-order variational particles (``add_variation(order=2, first_order=a,
+    first_order_2=b)``, and of one particle) are the second derivative of the fixed-step map: the
+    central difference, along the second parameter, of the first-order variation along the
+    first (a mass among them: its cross terms); and they agree with IAS15's.  They used to be
+    refused."""
+    kw = {"testparticle": 1} if tp else {}
+    massless = {"m": -1e-3} if tp else {}
+    out = {}
+    for integrator in ("hbvm", "ias15"):
+        sim = _planets(integrator, **massless)
+        a, b = sim.add_variation(**kw), sim.add_variation(**kw)
+        ab = sim.add_variation(order=2, first_order=a, first_order_2=b, **kw)
+        a.vary(1, v1)
+        b.vary(1, v2)
+        ab.vary(1, v1, v2)
+        sim.integrate(1.4)
+        out[integrator] = _xv(ab.particles)
+    eps = 1e-6
+    first = []
+    for sign in (1, -1):
+        sim = _planets(**{**massless, v2: massless.get(v2, 0.0) + sign * eps})
+        a = sim.add_variation(**kw)
+        a.vary(1, v1)
+        sim.integrate(1.4)
+        first.append(_xv(a.particles))
+    fd = (first[0] - first[1]) / (2 * eps)
+    hb, ias = out["hbvm"], out["ias15"]
+    assert hb.shape == fd.shape
+    scale = np.max(np.abs(fd))
+    # (measured 2.6e-10 to 1.6e-9: the difference's own error; IAS15 7e-16 to 1.2e-15)
+    assert np.max(np.abs(hb - fd)) / scale < 1e-8, np.max(np.abs(hb - fd)) / scale
+    assert np.max(np.abs(hb - ias)) / scale < 1e-12, np.max(np.abs(hb - ias)) / scale

@@ -14,28 +14,41 @@ def check_simulation(sim) -> None:
     fix.  Collisions are REBOUND's: it finds and resolves them after each step.
 
     Additional forces (REBOUNDx's or a user's), softening, semi-active particles
-    (``testparticle_type = 1``) and ``gravity = 'none'`` are honoured: such a scene runs on
-    REBOUND's own accelerations at the stages (:mod:`hbvm_md.rebound.forces`)."""
-    from hbvm_md.rebound.forces import (NOT_OF_THE_STATE, host_reasons, ode_owners,
-                                        random_forces)
+    (``testparticle_type = 1``), ``gravity = 'none'`` and attached ODEs (``sim.create_ode``,
+    REBOUNDx's spins) are honoured: such a scene runs on REBOUND's own accelerations at the
+    stages, the ODEs integrated with the bodies (:mod:`hbvm_md.rebound.forces`)."""
+    from hbvm_md.rebound.forces import NOT_OF_THE_STATE, host_reasons, random_forces
     problems = []
     host = host_reasons(sim)
     for j in range(int(sim.N_var_config) if sim.N_var > 0 else 0):
         vc = sim.var_config[j]
-        if vc.order != 1:
-            problems.append("second-order variational particles are not supported by HBVM; "
-                            "use IAS15")
+        if vc.order == 2 and not (vc.index_1st_order_a < vc.index
+                                  and vc.index_1st_order_b < vc.index):
+            problems.append("a second-order variation added before its first-order variations; "
+                            "add the first-order ones first (sim.add_variation(order=2, "
+                            "first_order=..., first_order_2=...) after them)")
             break
-        if vc.testparticle >= 0:
-            problems.append(f"variational particles of one particle (testparticle="
-                            f"{vc.testparticle}) are not supported by HBVM; add the variation "
-                            "of the whole system with sim.add_variation() (testparticle=-1)")
+        if vc.testparticle >= sim.N:
+            problems.append(f"a variation of particle {vc.testparticle} "
+                            f"(add_variation(testparticle={vc.testparticle})) but the "
+                            f"simulation has {sim.N} particles; add the variation after the "
+                            "particle, with its index")
             break
         if host:
             problems.append(f"variational particles with {', '.join(host)} (HBVM's tangent map "
                             "differentiates its own N-body kernel, not REBOUND's forces); use "
                             "IAS15")
             break
+    masses = np.zeros(sim.N)
+    if sim.N:
+        sim.serialize_particle_data(m=masses)
+    negative = np.flatnonzero(masses < 0)
+    if negative.size:
+        # (REBOUND's own test_variational.py differences its runs across m = 0 with them)
+        problems.append(f"negative masses (particle {negative[0]}: m={float(masses[negative[0]])!r}"
+                        f"{f' and {negative.size - 1} more' if negative.size > 1 else ''}; "
+                        "HBVM's N-body step takes masses >= 0, 0 for a test particle); use "
+                        "IAS15, which integrates them")
     if sim.gravity not in ("basic", "compensated", "none"):
         problems.append(f"gravity={sim.gravity!r} (an approximate or integrator-specific "
                         "gravity; HBVM takes direct steps: use 'basic', 'compensated' or "
@@ -53,17 +66,12 @@ def check_simulation(sim) -> None:
             "steps shrink without end; IAS15 accepts its last iterate, WHFast takes one kick "
             "a step); use integrator 'ias15' or 'whfast'")
     if sim._N_odes > 0:
+        from hbvm_md.rebound.forces import ode_owners, ode_signature
         owners = ode_owners(sim)
-        users = owners.count(None)
-        what = [o for o in owners if o] + ([f"{users} user ODEs"] if users else [])
-        problems.append(
-            f"{' and '.join(what)} attached: REBOUND steps "
-            "attached ODEs with its BS integrator after each step of any integrator but BS, "
-            "split from the N-body step (IAS15 runs such a scene so, at its short steps); at "
-            "HBVM's long steps that splitting error is large (measured on REBOUNDx's "
-            "SpinsIntro scene: the planet's spin 1.3e-3 off after 400 orbits, IAS15's 7e-5), "
-            "so HBVM refuses them; use integrator 'ias15' (the ODEs split at its steps) or "
-            "'bs' (the ODEs and the N-body step integrated together)")
+        for j, (_, n, _, deriv, *_) in enumerate(ode_signature(sim)):
+            if not deriv:
+                problems.append(f"{owners[j] or 'a user ODE'} (sim._odes[{j}], length {n}) has "
+                                "no derivatives function; set ode.derivatives before integrating")
     if problems:
         raise ValueError("HBVM cannot honour this simulation: " + "; ".join(problems))
 

@@ -5,7 +5,8 @@ Which scenes take this path
 ---------------------------
 :func:`host_reasons` names what a scene has beyond plain Newtonian point masses: additional
 forces (REBOUNDx's, named, or a user's function), ``softening > 0``, semi-active particles
-(``testparticle_type = 1`` with particles past ``N_active``) or ``gravity = 'none'``.  Such a
+(``testparticle_type = 1`` with particles past ``N_active``), ``gravity = 'none'`` or attached
+ODEs (``sim._odes``).  Such a
 scene is integrated on REBOUND's accelerations, as IAS15 does: every stage of the step writes
 its positions, velocities and time into the particles and ``sim.t``, calls REBOUND's
 ``reb_simulation_update_acceleration`` (gravity in the scene's mode, softening, the additional
@@ -46,9 +47,37 @@ The clock is scaled by CLOCK = 2^-200 (an exact scaling) so that it takes no par
 step's convergence test; its force is 0, so it takes none in the error estimate either; the
 glue resets it to ``sim.t`` before each step.
 
+Attached ODEs
+-------------
+ODEs attached to the simulation (``sim.create_ode``: ``length``, ``y``, ``derivatives(ode, yDot,
+y, t)``, ``needs_nbody``; REBOUNDx's spin ODE with its ``pre_timestep`` and ``post_timestep``)
+are integrated with the bodies, at the step's stages.  The state is then
+y = (x, 0 (nz), tau, v, sigma z (nz), CLOCK): each ODE's state z rides in the momenta, whose
+stage values the step with stage velocities hands the kernel (p0 + h I_s gamma: the Runge-Kutta
+stages of z' = f(t, x, v, z), so the order stays 2s), with a position-like partner that nothing
+reads (set to 0 before each step by the glue, so that it never grows into the iteration's
+scale).  At each stage the kernel writes the bodies and ``sim.t``, then each ODE's ``y`` <- the
+stage's z and its ``post_timestep`` (REBOUNDx's spin ODE writes the spins into the particles'
+"Omega", which its force reads), then calls REBOUND's accelerations, then each ODE's
+``derivatives`` (``needs_nbody`` or not: the particles hold the stage either way), and returns
+sigma z' as the ODE block's "acceleration".
+
+sigma, one power of two per ODE (exact scalings), brings the ODE's largest component to the
+bodies' largest velocity when the step is prepared (1 when either is 0; taken back from a kept or
+saved state, :meth:`ReboundScene.adopt_sigma`): the iteration's stop rule, the step's error
+estimate (body by body: the ODE's components in groups of three, as a body's coordinates) and the
+controller (the largest weighted coefficients over the state) then compare the ODE with the
+bodies as a body moving at its own rate.  An ODE has no energy in general: the energy check is
+off for such a scene (:func:`hamiltonian`).  The glue (:mod:`hbvm_md.rebound.glue`) calls each
+ODE's ``pre_timestep`` and rereads a changed ``y`` before a step, writes ``y`` (and calls
+``post_timestep``) after it, or writes back the state from before a failed step, and hides the
+ODEs from REBOUND's own stepping of them (``sim->N_odes`` = 0 between its steps).
+
 The parameters (float64; every address and offset below 2^53 is exact in a double):
 ``[sim, update_acceleration, particles, N, stride, x, vx, ax, t, G_V, b^2, n_pot, velocities,
-then n_pot entries (function, arity, arg1, arg2), then g (N), active (N)]``: the
+n_odes, the clock's column, the word of sim->N_odes, the N_odes the last step hid (0: none),
+the offset of the derivatives field in reb_ode, then n_pot entries (function, arity, arg1,
+arg2), then g (N), active (N), then n_odes entries of O_WIDTH]``: the
 simulation's address, REBOUND's function, the particle array (the step checks that it has not
 moved), REBOUND's offsets in doubles, the Newtonian G of V (0 for ``gravity = 'none'``), the
 softening squared, REBOUNDx's potential functions with their arguments, whether the kernel is
@@ -74,8 +103,14 @@ from hbvm_md.rebound.cabi import call_void
 CLOCK = 2.0 ** -200
 CLOCK_INV = 2.0 ** 200
 (P_SIM, P_UPDATE, P_PTR, P_N, P_STRIDE, P_IX, P_IVX, P_IAX, P_TWORD, P_G, P_SOFT2,
- P_NPOT, P_VEL) = range(13)
-P_HEAD = 13
+ P_NPOT, P_VEL, P_NODES, P_CLOCK, P_ODES_WORD, P_ODES_HELD, P_ODE_DERIV_AT) = range(18)
+P_HEAD = 18
+#: one attached ODE's entry in the parameters (after the active flags): the ``reb_ode``'s
+#: address, its length, its ``derivatives``, ``pre_timestep`` and ``post_timestep`` functions
+#: (0: none), its ``y`` and ``yDot`` arrays, its first column in the state's ODE block, and
+#: sigma, the power of two by which the state holds it (module docstring, "Attached ODEs")
+(O_ODE, O_LEN, O_DERIV, O_PRE, O_POST, O_Y, O_YDOT, O_COL, O_SIGMA) = range(9)
+O_WIDTH = 9
 #: REBOUNDx forces whose accelerations are -grad of a potential it exports: name ->
 #: (C function, its arity: 1 takes the extras, 2 the extras and the force)
 POTENTIALS = {"gr_potential": ("rebx_gr_potential_potential", 2),
@@ -113,6 +148,68 @@ def call_double2(typingctx, fn, a, b):
     return types.float64(fn, a, b), codegen
 
 
+@intrinsic
+def call_void2(typingctx, fn, a, b):
+    """``((void (*)(void*, void*)) fn)((void*) a, (void*) b)``: an ODE's ``pre_timestep`` or
+    ``post_timestep`` (``ode``, ``y``)."""
+    if not all(isinstance(x, types.Integer) for x in (fn, a, b)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i8p])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
+                     [builder.inttoptr(args[1], i8p), builder.inttoptr(args[2], i8p)])
+        return context.get_dummy_value()
+    return types.none(fn, a, b), codegen
+
+
+@intrinsic
+def call_derivatives(typingctx, fn, ode, ydot, y, t):
+    """``((void (*)(void*, double*, double*, double)) fn)(ode, yDot, y, t)``: an attached ODE's
+    ``derivatives``."""
+    if not (all(isinstance(x, types.Integer) for x in (fn, ode, ydot, y))
+            and isinstance(t, types.Float)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        from llvmlite import ir
+        i8p = ir.IntType(8).as_pointer()
+        f64 = ir.DoubleType()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, f64.as_pointer(), f64.as_pointer(), f64])
+        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
+                     [builder.inttoptr(args[1], i8p),
+                      builder.inttoptr(args[2], f64.as_pointer()),
+                      builder.inttoptr(args[3], f64.as_pointer()), args[4]])
+        return context.get_dummy_value()
+    return types.none(fn, ode, ydot, y, t), codegen
+
+
+@jit
+def odes_at(params):
+    """Where the attached ODEs' entries start in the parameters (:data:`O_WIDTH` each)."""
+    return P_HEAD + 4 * int(params[P_NPOT]) + 2 * int(params[P_N])
+
+
+@jit
+def odes_set(params, z, cz, low):
+    """Each attached ODE's ``y`` <- its part of the state's ODE block z (sigma z: the ODE's
+    columns from its O_COL; less cz when ``low``, the state's low parts), then its
+    ``post_timestep`` when it has one (REBOUNDx's spin ODE writes the spins into the particles'
+    "Omega", which its force reads)."""
+    o0 = odes_at(params)
+    for e in range(int(params[P_NODES])):
+        at = o0 + O_WIDTH * e
+        n, col, sig = int(params[at + O_LEN]), int(params[at + O_COL]), params[at + O_SIGMA]
+        y = carray(float64_pointer(int(params[at + O_Y])), n)
+        for i in range(n):
+            zi = z[col + i] - cz[col + i] if low else z[col + i]
+            y[i] = zi / sig             # (exact: sigma is a power of two)
+        if params[at + O_POST] != 0.0:
+            call_void2(int(params[at + O_POST]), int(params[at + O_ODE]), int(params[at + O_Y]))
+
+
 @jit
 def _write_positions(x, params, view, simd):
     """The particles' x and ``sim.t`` <- the stage x (>= m,) (positions, then the clock)."""
@@ -121,7 +218,7 @@ def _write_positions(x, params, view, simd):
     for i in range(N):
         for c in range(3):
             view[i, ix + c] = x[3 * i + c]
-    simd[int(params[P_TWORD])] = x[3 * N] * CLOCK_INV
+    simd[int(params[P_TWORD])] = x[int(params[P_CLOCK])] * CLOCK_INV
 
 
 @jit
@@ -148,11 +245,31 @@ def rebound_accelerations(X, params, out):
             for i in range(N):
                 for c in range(3):
                     view[i, ivx + c] = X[r, m + 3 * i + c]
+        nodes = int(params[P_NODES])
+        if nodes > 0:           # the stage's ODE states, where the forces may read them
+            odes_set(params, X[r, m + 3 * N:], X[r, m + 3 * N:], False)
         call_void(fn, sim)
         for i in range(N):
             for c in range(3):
                 out[r, 3 * i + c] = view[i, iax + c]
-        out[r, 3 * N] = 0.0
+        for j in range(3 * N, m):       # the clock's acceleration is 0
+            out[r, j] = 0.0
+        if nodes > 0:
+            # each ODE's derivatives with the bodies, the time and every ODE at the stage;
+            # yDot is filled with nan first, so that a Python derivatives function that raises
+            # (ctypes prints it and returns) fails the step instead of leaving stale numbers
+            t = simd[int(params[P_TWORD])]
+            o0 = odes_at(params)
+            for e in range(nodes):
+                at = o0 + O_WIDTH * e
+                n, col, sig = int(params[at + O_LEN]), int(params[at + O_COL]), params[at + O_SIGMA]
+                yd = carray(float64_pointer(int(params[at + O_YDOT])), n)
+                for i in range(n):
+                    yd[i] = np.nan
+                call_derivatives(int(params[at + O_DERIV]), int(params[at + O_ODE]),
+                                 int(params[at + O_YDOT]), int(params[at + O_Y]), t)
+                for i in range(n):
+                    out[r, 3 * N + col + i] = yd[i] * sig
 
 
 @jit
@@ -195,14 +312,21 @@ def rebound_potential(q, params):
     return G * v + u
 
 
+def masses_at(params) -> int:
+    """Where the gravitating masses g start in a :class:`ReboundScene`'s parameters (for
+    :func:`scene_set_masses`: computed here, in Python, so that a compiled caller cached by
+    numba beside another file never holds an old layout; numba's cache of a function follows
+    its own file only)."""
+    return P_HEAD + 4 * int(params[P_NPOT])
+
+
 @jit
-def scene_set_masses(params, masses):
+def scene_set_masses(params, masses, g0):
     """A :class:`ReboundScene`'s parameters <- those of the same scene with the masses (N,),
-    in place: the gravitating masses g (the potential's; REBOUND reads its own masses for the
-    accelerations; the kinetic weights are the step's, updated by the caller).  The caller
-    keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
+    in place: the gravitating masses g, from g0 (:func:`masses_at`; the potential's; REBOUND
+    reads its own masses for the accelerations; the kinetic weights are the step's, updated by
+    the caller).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
     N = int(params[P_N])
-    g0 = P_HEAD + 4 * int(params[P_NPOT])
     for i in range(N):
         if params[g0 + i] > 0.0:
             params[g0 + i] = masses[i]
@@ -298,12 +422,74 @@ def host_reasons(sim) -> list[str]:
         out.append("testparticle_type=1")
     if sim.gravity == "none":
         out.append("gravity='none'")
+    if sim._N_odes > 0:
+        out.append("attached ODEs")
     return out
+
+
+def ode_list(sim) -> list[int]:
+    """The addresses of the ``reb_ode`` structs attached to ``sim`` (``sim._odes``)."""
+    return [ctypes.cast(sim._odes[i], ctypes.c_void_p).value for i in range(int(sim._N_odes))]
+
+
+def ode_signature(sim) -> tuple:
+    """What the step's parameters hold of the attached ODEs (address, length, functions and
+    arrays of each): a run whose ODEs differ from the prepared ones prepares the step again."""
+    import rebound
+    O = rebound.ode.ODE
+    out = []
+    for a in ode_list(sim):
+        words = tuple(ctypes.c_void_p.from_address(a + getattr(O, f).offset).value or 0
+                      for f in ("y", "_derivatives", "_pre_timestep", "_post_timestep", "_yDot"))
+        out.append((a, ctypes.c_uint.from_address(a + O.length.offset).value) + words)
+    return tuple(out)
+
+
+def sync_odes_in(sim) -> None:
+    """Each attached ODE's ``pre_timestep`` (REBOUNDx's spin ODE reads the spins from the
+    particles' "Omega" into its ``y``: the state the step starts from), as REBOUND's BS
+    integrator calls it before a step."""
+    for a, n, y, deriv, pre, post, ydot in ode_signature(sim):
+        if pre:
+            ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p)(pre)(a, y)
+
+
+def ode_entries(sim, vscale: float) -> tuple[list[float], int]:
+    """(the parameters' ODE entries (:data:`O_WIDTH` each), the ODE block's width).  Each ODE
+    is held in the state as sigma z, sigma the power of two nearest ``vscale`` / max |z| (1
+    when either is 0): the module docstring, "Attached ODEs".  ``sim``'s ODEs are synced in
+    first (:func:`sync_odes_in`)."""
+    sync_odes_in(sim)
+    out, col = [], 0
+    for a, n, y, deriv, pre, post, ydot in ode_signature(sim):
+        if not deriv:           # (checks.check_simulation names it first)
+            raise ValueError(f"an ODE attached to the simulation (length {n}) has no "
+                             "derivatives function; set ode.derivatives before integrating")
+        if not y or not ydot:
+            raise ValueError(f"an ODE attached to the simulation (length {n}) has no y array")
+        z = np.ctypeslib.as_array((ctypes.c_double * n).from_address(y)) if n else np.zeros(0)
+        if not np.all(np.isfinite(z)):
+            raise ValueError(f"an ODE attached to the simulation (length {n}) holds non-finite "
+                             f"values in ode.y: {z.tolist()}; set its initial state")
+        zmax = float(np.max(np.abs(z))) if n else 0.0
+        sigma = 1.0
+        if zmax > 0.0 and vscale > 0.0:
+            sigma = 2.0 ** round(math.log2(vscale / zmax))
+            sigma = min(max(sigma, 2.0 ** -500), 2.0 ** 500)
+        for v in (a, deriv, pre, post, y, ydot):
+            if not 0 <= v < 2 ** 53:
+                raise RuntimeError(f"an address (0x{int(v):x}) does not fit a double exactly")
+        out += [float(a), float(n), float(deriv), float(pre), float(post), float(y), float(ydot),
+                float(col), sigma]
+        col += n
+    return out, col
 
 
 def hamiltonian(sim) -> bool:
     """Does the scene conserve the H of the module docstring: no added force, or only REBOUNDx
     forces whose potential REBOUNDx exports (:data:`POTENTIALS`)?"""
+    if sim._N_odes > 0:         # (an attached ODE has no energy in general)
+        return False
     if not sim._additional_forces:
         return True
     rebx = reboundx_forces(sim)
@@ -359,25 +545,34 @@ class ReboundScene:
         na = sim.N_active
         act = np.arange(N) < (N if na < 0 or na >= N else na)
         semi = sim.testparticle_type == 1
-        self.N, self.dim = N, 3 * N + 1
+        v = np.zeros(3 * N)
+        sim.serialize_particle_data(vxvyvz=v)
+        vmax = float(np.max(np.abs(v))) if np.all(np.isfinite(v)) else 0.0
+        odes, nz = ode_entries(sim, vmax)
+        self.N, self.nz, self.dim = N, nz, 3 * N + nz + 1
         self.gravitating = (m > 0) & (act | semi)
         self.masses = np.ones(self.dim)
-        self.kinetic_weights = np.append(np.repeat(np.where(self.gravitating, m, 0.0), 3), 0.0)
+        self.kinetic_weights = np.concatenate(
+            [np.repeat(np.where(self.gravitating, m, 0.0), 3), np.zeros(nz + 1)])
         self.hamiltonian = hamiltonian(sim)
-        self.velocities = velocity_dependent(sim)
+        # (an ODE's stages are the momenta's: the step with stage velocities hands them over)
+        self.velocities = velocity_dependent(sim) or len(odes) > 0
+        self.sigma = np.repeat(odes[O_SIGMA::O_WIDTH], odes[O_LEN::O_WIDTH]).astype(float)
         pots = _potential_entries(sim) if self.hamiltonian else []
         fn = ctypes.cast(rebound.clibrebound.reb_simulation_update_acceleration,
                          ctypes.c_void_p).value
         addr = ctypes.addressof(sim)
         head = [addr, fn, ptr, N, stride, ix, ivx, iax, tword,
                 0.0 if sim.gravity == "none" else sim.G, sim.softening ** 2, len(pots),
-                float(self.velocities)]
+                float(self.velocities), len(odes) // O_WIDTH, self.dim - 1,
+                type(sim)._N_odes.offset // 8, 0.0, rebound.ode.ODE._derivatives.offset]
         for a in (addr, fn, ptr) + tuple(x for e in pots for x in (e[0], e[2], e[3])):
             if not 0 <= a < 2 ** 53:
                 raise RuntimeError(f"an address (0x{int(a):x}) does not fit a double exactly")
         self.params = np.concatenate([np.array(head, dtype=float),
                                       np.array(pots, dtype=float).reshape(-1),
-                                      np.where(self.gravitating, m, 0.0), act.astype(float)])
+                                      np.where(self.gravitating, m, 0.0), act.astype(float),
+                                      np.array(odes, dtype=float)])
 
     def separable_kernels(self):
         return rebound_accelerations, rebound_potential, self.params
@@ -397,10 +592,51 @@ class ReboundScene:
         """V(q) + U(q) (module docstring)."""
         return float(rebound_potential(np.asarray(q, float), self.params))
 
+    def ode_state(self) -> np.ndarray:
+        """The attached ODEs' state as the step holds it, sigma z (nz,), read from their ``y``
+        (synced in when the scene was built)."""
+        z = np.zeros(self.nz)
+        o0 = int(odes_at(self.params))
+        for e in range(int(self.params[P_NODES])):
+            at = o0 + O_WIDTH * e
+            n, col = int(self.params[at + O_LEN]), int(self.params[at + O_COL])
+            if n:
+                z[col:col + n] = np.ctypeslib.as_array(
+                    (ctypes.c_double * n).from_address(int(self.params[at + O_Y])))
+        return z * self.sigma
+
+    def adopt_sigma(self, held: np.ndarray) -> bool:
+        """Take each ODE's sigma from ``held``, the ODE block of a state of this scene saved or
+        kept from an earlier preparation (sigma z, as :meth:`ode_state`), when its y gives one
+        power of two held / z for every nonzero component: a loaded, copied or resynced run
+        then goes on as the uninterrupted one, bit for bit (sigma sets the scales of the
+        iteration's stop rule and of the step control).  Returns whether every ODE's sigma
+        was taken so (an ODE whose y is all zeros keeps its own)."""
+        z = self.ode_state() / self.sigma
+        o0 = int(odes_at(self.params))
+        every = True
+        for e in range(int(self.params[P_NODES])):
+            at = o0 + O_WIDTH * e
+            n, col = int(self.params[at + O_LEN]), int(self.params[at + O_COL])
+            zz, hh = z[col:col + n], held[col:col + n]
+            nz = zz != 0.0
+            if not np.any(nz):
+                continue
+            with np.errstate(all="ignore"):
+                r = hh[nz] / zz[nz]
+            mant, _ = np.frexp(r)
+            if np.all(r == r[0]) and r[0] > 0 and mant[0] == 0.5 and np.all(hh[~nz] == 0.0):
+                self.params[at + O_SIGMA] = r[0]
+                self.sigma[col:col + n] = r[0]
+            else:
+                every = False
+        return every
+
     def state(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
-        """y = (x, CLOCK t, v, CLOCK) (2 dim,) from positions and velocities (N, 3)."""
-        q = np.append(np.asarray(x, float).reshape(-1), t * CLOCK)
-        p = np.append(np.asarray(v, float).reshape(-1), CLOCK)
+        """y = (x, 0, CLOCK t, v, sigma z, CLOCK) (2 dim,) from positions and velocities (N, 3)
+        and the attached ODEs' y (:meth:`ode_state`; 0: their positions, which nothing reads)."""
+        q = np.concatenate([np.asarray(x, float).reshape(-1), np.zeros(self.nz), [t * CLOCK]])
+        p = np.concatenate([np.asarray(v, float).reshape(-1), self.ode_state(), [CLOCK]])
         return np.concatenate([q, p])
 
 

@@ -35,7 +35,7 @@ from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP, A_TO,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
@@ -44,11 +44,13 @@ from hbvm_md.rebound.layout import (
     SL_K, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
     SL_RESYNCS, SL_S,
     SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
-from hbvm_md.rebound.forces import CLOCK
+from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, O_SIGMA,
+                                    O_WIDTH, O_Y, P_N, P_NODES, P_ODE_DERIV_AT, P_ODES_HELD,
+                                    P_ODES_WORD, call_void2, odes_at, odes_set)
 from hbvm_md.rebound.particles import (delta2, particles_match, read_tangents, reread_particles,
-                                       restore_particles, settings_ok, write_tangents)
+                                       restore_particles, settings_ok, var_rows, write_tangents)
 
-GLUE_FUNCTIONS = ("step_arrays",)
+GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
 #: built without the simplified Newton iteration (integrators.specialise, "Compile time")
 GLUE_NEWTON = False
@@ -76,7 +78,9 @@ TP_FACTOR = 10.0
 Rebound = namedtuple("Rebound", ["simd", "simi", "view", "ctx", "r", "pv"])
 #: HBVM's side kept in the host's state block: its int64 and float64 slots (st, sd), the attempt's
 #: result (res), the particles as the last commit wrote them (written: x, v, m), G and N_active as
-#: the host wrote them (host), the variational particles' first rows (vidx) and a sliver step's
+#: the host wrote them (host), the variational sets' first rows in ``particles_var`` and their
+#: particle (vidx (nv, 2): -1 for a set of the whole system, i for REBOUND's
+#: ``add_variation(testparticle=i)``) and a sliver step's
 #: scratch for the tangents' coefficients (DGs)
 Host = namedtuple("Host", ["st", "sd", "res", "written", "host", "vidx", "DGs"])
 
@@ -91,7 +95,11 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     On REBOUND's own accelerations (the context's D_HOST, :mod:`hbvm_md.rebound.forces`) the
     state is (q, clock, v, CLOCK): its clock is set to ``sim.t`` before the step, and the
     stages' positions, velocities and times that the kernel wrote into the particles and
-    ``sim.t`` are replaced by the committed state, or restored when the step fails.
+    ``sim.t`` are replaced by the committed state, or restored when the step fails.  With
+    attached ODEs (:mod:`hbvm_md.rebound.forces`, "Attached ODEs") the state's ODE block is
+    synced from each ODE's ``y`` before the step (:func:`odes_read`) and written back after it
+    (the committed state, or the state before a failed step), and the ODEs are hidden from
+    REBOUND's own stepping of them until the next call (:func:`odes_release`).
 
     With variational particles the tangents advance by the derivative of the step taken
     (:func:`integrators.tangent.tangent_map` from the state before the step, with its accepted
@@ -107,8 +115,85 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     y, cy, gamma, eref, clock = state
     yt, cyt, gammat, ereft, _ = trial
     counters = wk.counters
-    V, DG, Vt, DGt, tw, tcw, tcount, TP = tan
+    nodes = int(params[P_NODES]) if host_forces else 0
+    if nodes > 0:
+        odes_release(simi, params)
     if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
+        return RESYNC
+    status = _step(rb, hb, system, state, trial, method, newton, wk, ext, tan)
+    if nodes > 0 and status != RESYNC:
+        # REBOUND steps the attached ODEs with its BS integrator after any other integrator's
+        # step (from t - dt_last_done, with the bodies at the step's end): HBVM has stepped
+        # them with the bodies, so the simulation shows no ODE until the step's next call or
+        # the end of the run puts them back (odes_release; hbvm_md.rebound.host)
+        params[P_ODES_HELD] = simi[int(params[P_ODES_WORD])]
+        simi[int(params[P_ODES_WORD])] = 0
+    return status
+
+
+def odes_release(simi, params):
+    """``sim->N_odes`` as it was before the last step hid the ODEs from REBOUND (above)."""
+    if params[P_NODES] > 0 and params[P_ODES_HELD] != 0.0:
+        simi[int(params[P_ODES_WORD])] = int(params[P_ODES_HELD])
+        params[P_ODES_HELD] = 0.0
+
+
+def odes_replaced(params):
+    """Has an ODE's ``derivatives`` been replaced since the step was prepared (in a heartbeat,
+    during a run: the step would call the old function, which Python may have freed)?"""
+    o0 = odes_at(params)
+    for e in range(int(params[P_NODES])):
+        at = o0 + O_WIDTH * e
+        word = carray(int64_pointer(int(params[at + O_ODE]) + int(params[P_ODE_DERIV_AT])), 1)
+        if word[0] != int(params[at + O_DERIV]):
+            return True
+    return False
+
+
+def odes_read(params, y, cy, eref, st):
+    """The attached ODEs' state before a step: each ODE's ``pre_timestep`` (REBOUNDx's spins
+    from the particles' "Omega"), then, where ``y`` differs from what the last step wrote (a
+    user's change between runs), the state's ODE block reread from it, as moved particles are
+    (compensations zeroed, the reference energy afresh).  The ODE block's positions (nothing
+    reads them: module docstring of hbvm_md.rebound.forces) are set to 0, so that they never
+    grow into the iteration's scale."""
+    N = int(params[P_N])
+    m = y.shape[0] // 2
+    o0 = odes_at(params)
+    moved = False
+    for e in range(int(params[P_NODES])):
+        at = o0 + O_WIDTH * e
+        n, col, sig = int(params[at + O_LEN]), int(params[at + O_COL]), params[at + O_SIGMA]
+        if params[at + O_PRE] != 0.0:
+            call_void2(int(params[at + O_PRE]), int(params[at + O_ODE]), int(params[at + O_Y]))
+        z = carray(float64_pointer(int(params[at + O_Y])), n)
+        for i in range(n):
+            j = m + 3 * N + col + i
+            if z[i] != y[j] / sig:
+                y[j] = z[i] * sig
+                cy[j] = 0.0
+                moved = True
+            y[3 * N + col + i] = 0.0
+            cy[3 * N + col + i] = 0.0
+    if moved:
+        for i in range(eref.shape[0]):
+            eref[i] = np.nan
+        st[SL_RESYNCS] += 1
+    return moved
+
+
+def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
+    """:func:`step_arrays` past its first checks."""
+    simd, simi, view, ctx, r, pv = rb
+    st, sd, res, written, host, vidx, DGs = hb
+    _, minv, kin_w, params = system
+    host_forces = ctx[D_HOST] != 0
+    y, cy, gamma, eref, clock = state
+    yt, cyt, gammat, ereft, _ = trial
+    counters = wk.counters
+    V, DG, Vt, DGt, tw, tcw, tcount, TP, TO = tan
+    nodes = int(params[P_NODES]) if host_forces else 0
+    if nodes > 0 and odes_replaced(params):
         return RESYNC
     ix, ivx = ctx[R_X], ctx[R_VX]
     if not settings_ok(st, sd):
@@ -142,8 +227,10 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     if host_forces:
         y[m - 1] = t_start * CLOCK                 # (exact: CLOCK is a power of two)
         cy[m - 1] = 0.0
+    if nodes > 0:
+        odes_read(params, y, cy, eref, st)
     if _TANGENTS and nv > 0:
-        read_tangents(pv, vidx, N, ix, ivx, ctx[R_M], minv, V, DG, host[1], params, TP)
+        read_tangents(pv, vidx, N, ix, ivx, ctx[R_M], minv, V, DG, host[1], params, TP, TO)
     res[2] = 0.0
     # a fixed step's test-particle check may refuse a converged step: its work then comes out
     # of the counters and the clock, as the core takes a failed step's out
@@ -168,6 +255,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         if host_forces:
             restore_particles(view, written, ix, ivx)
             simd[ctx[R_T]] = t_start
+        if nodes > 0:       # (each ODE's y, and what its post_timestep writes, as before)
+            odes_set(params, y[m + 3 * int(params[P_N]):], cy, False)
         sd[SL_H_FAIL] = res[0]
         sd[SL_T_FAIL] = t_start
         sd[SL_CAUSE_ERR] = res[3]
@@ -179,7 +268,9 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     # regular one, whose gamma is kept
     sliver = not np.isnan(hp) and abs(h_done) < TINY_RATIO * abs(hp)
     d2_0 = 0.0
+    megno = False
     if _TANGENTS and nv > 0:
+        megno = (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0
         # the previous d gamma extrapolated as the step's gamma was (a sliver's are not kept)
         E = select_extrapolation(h_done, hp, ext.E1, ext.t, ext.w, ext.buf, ext.zero)
         dg = DG
@@ -189,14 +280,15 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             dg = DGs
         tstatus = tangent_map(System(False, minv, kin_w, params), y, cy, gammat, h_done, E,
                               method, newton, 2 * st[SL_MAX_ITER],
-                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount, TP))
+                              Tangents(V, dg, Vt, DGt, tw, tcw, tcount, TP, TO))
         if tstatus != OK:
             sd[SL_H_FAIL] = h_done
             sd[SL_T_FAIL] = t_start
             sd[SL_CAUSE_ERR] = tcount[2]
             sd[SL_CAUSE_STATUS] = tstatus
             return TANGENT_FAILED + tstatus
-        d2_0 = delta2(pv, N, ix, ivx)
+        if megno:      # (MEGNO's set is the whole system's, REBOUND's first N rows)
+            d2_0 = delta2(pv, N, ix, ivx)
     copy1(y, yt)
     copy1(cy, cyt)
     if not sliver:
@@ -214,6 +306,8 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             view[i, ivx + c] = y[m + 3 * i + c] * minv[3 * i + c]
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
+    if nodes > 0:
+        odes_set(params, y[m + 3 * int(params[P_N]):], cy, False)
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
     simd[ctx[R_DTL]] = h_done
     if adaptive:
@@ -223,7 +317,7 @@ def step_arrays(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         simd[ctx[R_DT]] = h_next
     if _TANGENTS and nv > 0:
         write_tangents(pv, vidx, N, ix, ivx, minv, V)
-        if (simi[ctx[R_MEGNO_ON] // 8] >> (8 * (ctx[R_MEGNO_ON] % 8))) & 0xFFFFFFFF != 0:
+        if megno:
             t0 = simd[ctx[R_MEGNO_T0]]
             dY = (t_start - t0 + (t_start + h_done - t0)) * 0.5 * (
                 np.log(delta2(pv, N, ix, ivx)) - np.log(d2_0))
@@ -243,6 +337,8 @@ def core_step(r, p):
     simd = carray(float64_pointer(ra), ctx[R_HEAD])
     simi = carray(int64_pointer(ra), ctx[R_HEAD])
     N = ctx[D_N]
+    if ctx[D_HOST] != 0:        # (N_odes is a word the checks below compare)
+        odes_release(simi, carray(float64_pointer(ctx[A_PARAMS]), ctx[D_P]))
     if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
         return RESYNC
     if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
@@ -270,11 +366,12 @@ def core_step(r, p):
         return RESYNC                              # the variational particles moved
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
     nv = ctx[D_NV]
-    pv = carray(float64_pointer(ctx[D_PVAR]), (N * nv, ctx[R_STRIDE]))
+    vidx = f2(A_VIDX, nv, 2)
+    pv = carray(float64_pointer(ctx[D_PVAR]), (var_rows(vidx, N), ctx[R_STRIDE]))
     return step_arrays(
         Rebound(simd, simi, view, ctx, ra, pv),
         Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES), f2(A_WRITTEN, N, 7),
-             f(A_HOST, N_HOST), f(A_VIDX, nv), f3(A_DGS, nv, s, m)),
+             f(A_HOST, N_HOST), vidx, f3(A_DGS, nv, s, m)),
         System(False, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
         State(carray(float64_pointer(st[SL_Y]), 2 * m),
               carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
@@ -291,7 +388,7 @@ def core_step(r, p):
         Tangents(f2(A_V, nv, 2 * m), f3(A_DG, nv, s, m), f2(A_VT, nv, 2 * m),
                  f3(A_DGT, nv, s, m), f(A_TW, ctx[D_TGF]),
                  carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
-                 f2(A_TP, nv, 4 * N + 3)))
+                 f2(A_TP, nv, 6 * N + 3), f2(A_TO, nv, 3)))
 
 if TYPE_CHECKING:
     # integrators.specialise compiles this text after the step's (integrators.loop, and

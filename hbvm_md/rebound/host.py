@@ -25,7 +25,8 @@ from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
-from hbvm_md.rebound.forces import ReboundScene, host_reasons, reboundx_forces
+from hbvm_md.rebound.forces import (P_NODES, P_ODES_HELD, ReboundScene, host_reasons,
+                                    ode_signature, reboundx_forces)
 from hbvm_md.rebound.glue import Host, Rebound
 from hbvm_md.rebound.masses import masses_only, same_model
 from integrators import records as R
@@ -238,7 +239,11 @@ def _install_runs(rebound) -> None:
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
-            status = c_integrate(addr, c_double(tmax))
+            _recheck_odes(self, addr)
+            try:
+                status = c_integrate(addr, c_double(tmax))
+            finally:
+                _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)  # (as REBOUND)
 
     def steps(self, N_steps):
@@ -253,7 +258,11 @@ def _install_runs(rebound) -> None:
                 _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr)
-            status = c_steps(addr, c_size_t(N_steps))
+            _recheck_odes(self, addr)
+            try:
+                status = c_steps(addr, c_size_t(N_steps))
+            finally:
+                _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
@@ -405,6 +414,54 @@ def _recheck_forces(sim, addr: int) -> None:
     _FORCES.pop(addr, None)
 
 
+#: simulation address -> the attached ODEs (forces.ode_signature) its step was last prepared with
+_ODES: dict[int, tuple] = {}
+
+
+def _host_params(addr: int):
+    """The parameters of the step on REBOUND's own accelerations (hbvm_md.rebound.forces), as
+    an array over the context block, or None (not prepared, or the N-body kernel's step)."""
+    prepared = _prepared(addr)
+    if prepared is None or not prepared[2][L.D_HOST]:
+        return None
+    ctx = prepared[2]
+    return doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P]))
+
+
+def _release_odes(addr: int) -> None:
+    """Give the simulation its attached ODEs back: the compiled step hides them from REBOUND
+    (``sim->N_odes = 0``) after each step, so that REBOUND does not step them again with its BS
+    integrator (:func:`hbvm_md.rebound.glue.step_arrays`); the next step puts them back
+    itself, and the end of a run (or the step's preparation) here."""
+    if addr not in _HOST_PATH and addr not in _ODES:
+        return
+    params = _host_params(addr)
+    if params is None or params[P_NODES] == 0 or params[P_ODES_HELD] == 0.0:
+        return
+    sim = _rebound().Simulation.from_address(addr)
+    sim._N_odes = int(params[P_ODES_HELD])
+    params[P_ODES_HELD] = 0.0
+
+
+def _recheck_odes(sim, addr: int) -> None:
+    """An ODE attached or removed between runs (or its functions replaced) changes no word of
+    ``reb_simulation`` that the compiled step checks, as a REBOUNDx force does not
+    (:func:`_recheck_forces`): the step's context is then marked stale, and prepared again."""
+    seen = _ODES.get(addr)
+    if seen is None and not sim._N_odes:
+        return
+    if seen is not None and ode_signature(sim) == seen:
+        return
+    prepared = _prepared(addr)
+    if prepared is not None:
+        # its own word (a force changed too flips _additional_forces'), set to differ from the
+        # simulation's count as it is now (a flip of the old count may equal the new one)
+        sim_words = int64s(addr, int(prepared[2][L.R_HEAD]))
+        j = L.CONFIG_FIELDS.index("_N_odes")
+        prepared[2][L.C_VALUES + j] = sim_words[prepared[2][L.C_WORDS + j]] ^ 1
+    _ODES.pop(addr, None)
+
+
 def _forget_host_energy(addr: int) -> None:
     """On REBOUND's own accelerations the H the energy check guards holds the added forces'
     potentials, whose parameters (REBOUNDx ``gr_potential``'s ``c``, ``J2``, ``Acentral``: in
@@ -516,8 +573,9 @@ def _after_run(sim, addr: int, status: int, messages_at: int, raised=None) -> No
         _drop_messages(sim, _message(err))
         if raised is not None and isinstance(err, (NonFiniteError, StepSizeError)):
             raise RuntimeError(
-                f"a Python callback of the simulation (sim.additional_forces or another) raised "
-                f"{type(raised).__name__}: {raised}; HBVM's step at t={sim.t!r} evaluated "
+                f"a Python callback of the simulation (sim.additional_forces, an ODE's "
+                f"derivatives or another) raised {type(raised).__name__}: {raised}; HBVM's step at "
+                f"t={sim.t!r} evaluated "
                 "REBOUND's accelerations through it and was not taken (the particles and sim.t "
                 "are as before that step)") from raised
         raise err
@@ -652,6 +710,21 @@ def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> Unresol
     _, _, bound = test_particle_error(gammat, minv, kin_w, TP_FLOOR, TP_FACTOR, 0.0)
     # the estimate grows like h^(s-1): the step at which it would meet the bound, with a margin
     h_ok = 0.5 * abs(h) * (bound / err) ** (1.0 / (s - 1)) if err > 0 else abs(h)
+    if i >= sim.N:
+        # a group of three of the attached ODEs' components (they follow the particles in the
+        # state, hbvm_md.rebound.forces, "Attached ODEs"), checked as a test particle is
+        j = 3 * (i - sim.N)
+        exc = UnresolvedStepError(h, err, bound, int(counters[C_LASTIT]), t, "")
+        RuntimeError.__init__(exc, (
+            f"HBVM step of size h={h:.6g} at t={t:.17g} does not resolve the attached ODEs: "
+            f"their components {j} to {j + 2} (counted over sim._odes in order) have an error "
+            f"estimate {err:.3e} (the weight of the last Legendre coefficient of their "
+            f"derivative over the step) above {bound:.3g} (the larger of {TP_FLOOR:g} and "
+            f"{TP_FACTOR:g} times the gravitating bodies' estimate): leave out `dt` "
+            "(HBVMIntegrator(sim) takes adaptive steps), or use a smaller sim.dt (about "
+            f"{h_ok:.2g} or less here), or pass energy_tol=None to accept such steps"))
+        exc.particle, exc.encounter = None, None
+        return exc
     enc = _encounter(sim, only=i, s=s)
     where = (f"passes {_name(sim, enc['j'])} {enc['distance']:.3g} away at relative speed "
              f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} "
@@ -790,6 +863,7 @@ def _prepare(sim, p: int) -> None:
     (compensations, gamma) when it is the particles' (a loaded or copied run), else start it
     afresh from the particles."""
     st, sd = _slots(p)
+    _release_odes(ctypes.addressof(sim))     # (hidden by the last step, when a run resyncs)
     method = check_settings(st, sd)
     check_simulation(sim)
     h = sim.dt
@@ -879,6 +953,20 @@ def _prepare(sim, p: int) -> None:
         st[L.SL_RESYNCS] += 1
     if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
         sd[L.SL_EREF] = np.nan
+    if nb is None and scene.nz:
+        y = doubles(int(st[L.SL_Y]), 4 * dim)
+        zq = slice(3 * N, 3 * N + scene.nz)
+        zp = slice(dim + 3 * N, dim + 3 * N + scene.nz)
+        if not (keep and scene.adopt_sigma(y[zp].copy())):
+            # the ODEs' block from their y at the scene's sigma, their positions 0 (nothing
+            # reads them), their coefficients afresh (the initial guess only); with the sigma
+            # of a kept state (a resync, or a loaded or copied run with its ODEs attached
+            # again) the compiled step rereads an ODE's y only where it changed, and the run
+            # goes on as the uninterrupted one
+            y[zq] = y[2 * dim:][zq] = 0.0
+            y[zp], y[2 * dim:][zp] = scene.ode_state(), 0.0
+            doubles(int(st[L.SL_GAMMA]), s * u).reshape(s, u)[:, zq] = 0.0
+        binding.params[:] = scene.params       # (the sigma taken: one array when not copied)
     if c.size != N_COUNTERS:
         _array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     # |T| + |V| of the gravitating bodies is the energy check's scale.  It is zero only for at
@@ -908,6 +996,7 @@ def _prepare(sim, p: int) -> None:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
     _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
+    _ODES[ctypes.addressof(sim)] = ode_signature(sim)
     if sim.extras:
         _warn_operators(sim, _operators(sim))
     (_HOST_PATH.add if nb is None else _HOST_PATH.discard)(ctypes.addressof(sim))
@@ -1059,15 +1148,17 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
               L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
               L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
     # the tangents of REBOUND's first-order variational particles (checks.check_simulation
-    # refused any other kind): one row per set, starting at var_config[j].index
+    # refused any other kind): one per set, its first row var_config[j].index and its particle
+    # (testparticle: -1 for the whole system's N rows, i for one row of particle i's variation)
     nv = int(sim.N_var_config) if sim.N_var > 0 else 0
-    vidx = np.array([float(sim.var_config[j].index) for j in range(nv)])
+    vidx = np.array([[float(sim.var_config[j].index), float(sim.var_config[j].testparticle)]
+                     for j in range(nv)]).reshape(nv, 2)
     nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m) if nv else (0, 0)
     arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
                    L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
                    L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
                    L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx,
-                   L.A_TP: np.zeros((nv, 4 * N + 3))})
+                   L.A_TP: np.zeros((nv, 6 * N + 3)), L.A_TO: _orders(sim, nv)})
     sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
     head = 8 * L.N_HEADER
     total = head + sum(sizes.values())
@@ -1100,12 +1191,26 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     header[[L.D_NV, L.D_TGF, L.D_TGC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
             L.R_MEGNO_T0]] = (nv, nf, nc, pvar, _REG["megno_update"], pvar_at,
                               megno_at, t0_at)
-    header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1)
+    header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1,
+                           type(sim)._N_odes.offset // 8 + 1)   # (the step hides the ODEs)
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
     sim_words = int64s(ctypes.addressof(sim), max(words) + 1)
     header[L.C_VALUES:L.C_VALUES + L.N_CFG] = sim_words[words]
     st[L.SL_CTX] = base
+
+
+def _orders(sim, nv: int) -> np.ndarray:
+    """Each variational set's order and, for a second-order set, the sets of its two first-order
+    variations (REBOUND names their first rows in ``particles_var``: index_1st_order_a/b)."""
+    first = {int(sim.var_config[j].index): j for j in range(nv)}
+    out = np.zeros((nv, 3))
+    for j in range(nv):
+        vc = sim.var_config[j]
+        out[j] = (vc.order, -1, -1)
+        if vc.order == 2:
+            out[j, 1:] = first[int(vc.index_1st_order_a)], first[int(vc.index_1st_order_b)]
+    return out
 
 
 def _python_step(code, st):
@@ -1137,11 +1242,13 @@ def _python_step(code, st):
                                  dtype).reshape(shape)
         y = doubles(int(st_[L.SL_Y]), 4 * m)
         view = doubles(int(ctx[L.D_PTR]), N * int(ctx[L.R_STRIDE])).reshape(N, -1)
-        pv = f(L.D_PVAR, (N * nv, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
+        vidx = f(L.A_VIDX, (nv, 2))
+        rows = max(int(v0) + (1 if tp >= 0 else N) for v0, tp in vidx) if nv else 0
+        pv = f(L.D_PVAR, (rows, int(ctx[L.R_STRIDE]))) if nv else np.zeros((0, 1))
         return int(code.step_arrays(
             Rebound(simd, simi, view, ctx, r, pv),
             Host(st_, sd, sd[L.SL_RES:L.SL_RES + L.N_RES], f(L.A_WRITTEN, (N, 7)),
-                   f(L.A_HOST, L.N_HOST), f(L.A_VIDX, nv), f(L.A_DGS, (nv, s, m))),
+                   f(L.A_HOST, L.N_HOST), vidx, f(L.A_DGS, (nv, s, m))),
             R.System(False, f(L.A_MINV, u), f(L.A_KINW, m),
                      f(L.A_PARAMS, int(ctx[L.D_P]))),
             R.State(y[:2 * m], y[2 * m:], doubles(int(st_[L.SL_GAMMA]), s * u).reshape(s, u),
@@ -1159,5 +1266,5 @@ def _python_step(code, st):
             R.Tangents(f(L.A_V, (nv, 2 * m)), f(L.A_DG, (nv, s, m)), f(L.A_VT, (nv, 2 * m)),
                        f(L.A_DGT, (nv, s, m)), f(L.A_TW, int(ctx[L.D_TGF])),
                        f(L.A_TCW, int(ctx[L.D_TGC]), complex), f(L.A_TCOUNT, 3),
-                       f(L.A_TP, (nv, 4 * N + 3)))))
+                       f(L.A_TP, (nv, 6 * N + 3)), f(L.A_TO, (nv, 3)))))
     return step

@@ -139,7 +139,9 @@ D_HOST = R_MEGNO_T0 + 1
 #: each variational set's params of the force's derivative (nv, 4 D_N + 3): the kernel's, then
 #: the set's variation of the masses (:func:`hbvm_md.rebound.particles.read_tangents`)
 A_TP = D_HOST + 1
-N_HEADER = A_TP + 1
+#: each variational set's order and, for a second-order set, its two first-order sets (nv, 3)
+A_TO = A_TP + 1
+N_HEADER = A_TO + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")

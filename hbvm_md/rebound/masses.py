@@ -15,9 +15,11 @@ What is updated: the masses in the kernel parameters (:func:`systems.nbody.nbody
 :func:`hbvm_md.rebound.forces.scene_set_masses`: each model owns its layout); on the separable
 N-body form the weights 1/m and the kinetic weights of the sources (as
 :class:`integrators.engine.Binding` computes them from ``NBody.masses``); the context's copy of
-the particles; the state from REBOUND's particles (q = x, and p = m v with the new masses, or
-the velocities on REBOUND's own accelerations; the compensations zeroed, as the glue does
-for moved particles).  The reference energy starts afresh, as after any resync: the energy
+the particles; the state as the host's prepare takes a saved or copied run's (kept with its
+compensations when it still holds the particles with the new weights, else read from them:
+q = x, and p = v / (1/m) with the new masses, or the velocities on REBOUND's own
+accelerations, the compensations zeroed, as the glue does for moved particles), so that a
+restart continues bit for bit.  The reference energy starts afresh, as after any resync: the energy
 check then compares each step with its own start, and the energy that the mass change moved
 is not counted as the step's error.  The previous coefficients stay the next step's initial
 guess (the fixed-point iteration converges from them to the same solution).
@@ -28,7 +30,7 @@ import numpy as np
 
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.memory import doubles, int64s
-from hbvm_md.rebound.forces import scene_set_masses
+from hbvm_md.rebound.forces import masses_at, scene_set_masses
 from integrators.jit import jit
 from systems.nbody import nbody_set_masses
 
@@ -73,14 +75,16 @@ def masses_only(r: int, p: int) -> bool:
         doubles(int(ctx[L.A_MINV]), m),
         doubles(int(ctx[L.A_KINW]), m), doubles(int(st[L.SL_Y]), 4 * m),
         doubles(p + 8 * L.SL_EREF, L.N_EREF), bool(ctx[L.D_HOST]),
-        int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]))
+        int(ctx[L.R_X]), int(ctx[L.R_VX]), int(ctx[L.R_M]),
+        # (the layout of REBOUND's own accelerations' parameters read here, not compiled in)
+        masses_at(doubles(int(ctx[L.A_PARAMS]), int(ctx[L.D_P]))) if ctx[L.D_HOST] else 0)
     if done:
         st[L.SL_RESYNCS] += 1
     return done
 
 
 @jit
-def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im):
+def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im, g0):
     """The step's arrays <- REBOUND's particles whose masses (and perhaps positions and
     velocities) changed since the last commit, in place (module docstring).
 
@@ -89,9 +93,10 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
     step's weights; y (4m,): the state and its compensations; eref: the energy reference (and
     EQUIP's alpha and slope); host: the state is (q, clock, v, CLOCK) on REBOUND's own
     accelerations (weights 1, kinetic weights the gravitating masses), else (q, p) of the
-    N-body kernel.  Returns False, changing nothing, when no
-    mass changed, a value is not finite or negative, or a body's mass became or stopped
-    being zero (the model's structure changes: the host prepares afresh)."""
+    N-body kernel; g0: where the gravitating masses start in params on REBOUND's own
+    accelerations (:func:`hbvm_md.rebound.forces.masses_at`).  Returns False, changing
+    nothing, when no mass changed, a value is not finite or negative, or a body's mass became
+    or stopped being zero (the model's structure changes: the host prepares afresh)."""
     N = view.shape[0]
     changed = False
     for i in range(N):
@@ -109,32 +114,43 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
         mass[i] = view[i, im]
     m = y.shape[0] // 4
     if host:
-        scene_set_masses(params, mass)
+        scene_set_masses(params, mass, g0)
     else:
         nbody_set_masses(params, mass)
+    # The state as the host's prepare takes a saved or copied run's (host._prepare), so that
+    # a run restarted between a mass change and the next step continues as this one does, bit
+    # for bit: kept with its compensations when it still holds the particles with the new
+    # weights (q = x, p / m = v: sources at rest, test particles), else read afresh as moved
+    # particles are (q = x, p = v / (1/m), the compensations zeroed).  (It used to take p =
+    # m v and zero the compensations always: a restart differed by 1e-14.)
+    keep = True
     for i in range(N):
-        # a source's momentum is m v and its weights 1/m (kin_w > 0 marks a source: a test
-        # particle's momentum is its velocity, weight 1, kinetic weight 0); on REBOUND's own
-        # accelerations the state holds velocities and a source's kinetic weight is its mass
+        # a source's weights are 1/m (kin_w > 0 marks a source: a test particle's momentum is
+        # its velocity, weight 1, kinetic weight 0); on REBOUND's own accelerations the state
+        # holds velocities and a source's kinetic weight is its mass
         source = kin_w[3 * i] > 0.0
         for c in range(3):
             j = 3 * i + c
-            y[j] = view[i, ix + c]
             if host:
                 if source:
                     kin_w[j] = mass[i]
-                y[m + j] = view[i, ivx + c]
             elif source:
                 minv[j] = 1.0 / mass[i]
                 kin_w[j] = minv[j]
-                y[m + j] = view[i, ivx + c] * mass[i]
-            else:
-                y[m + j] = view[i, ivx + c]
+            if y[j] != view[i, ix + c] or y[m + j] * minv[j] != view[i, ivx + c]:
+                keep = False
+    for i in range(N):
+        for c in range(3):
+            j = 3 * i + c
+            if not keep:
+                y[j] = view[i, ix + c]
+                y[m + j] = view[i, ivx + c] / minv[j]
             written[i, c] = view[i, ix + c]
             written[i, 3 + c] = view[i, ivx + c]
         written[i, 6] = mass[i]
-    for j in range(2 * m, 4 * m):
-        y[j] = 0.0                     # the compensations
+    if not keep:
+        for j in range(2 * m, 4 * m):
+            y[j] = 0.0                 # the compensations
     for j in range(eref.shape[0]):
         eref[j] = np.nan
     return True

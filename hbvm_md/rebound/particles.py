@@ -82,28 +82,49 @@ def settings_ok(st, sd):
 
 
 @jit
-def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
+def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP, TO):
     """V (nv, 2u) <- REBOUND's first-order variational particles (pv: (N_var, stride) doubles
-    over ``particles_var``; set v's rows vidx[v] .. vidx[v] + N): dq = dx and dp = dv / minv
+    over ``particles_var``; set v's rows start at vidx[v, 0]): dq = dx and dp = dv / minv
     (the momenta's variation: m dv for a gravitating body, dv for a test particle).
 
-    TP (nv, 4N + 3) <- each set's params of the force's derivative: the N-body kernel's first
+    A set of the whole system (vidx[v, 1] < 0) has N rows.  A set of one particle i =
+    vidx[v, 1] (REBOUND's ``add_variation(testparticle=i)``) has one row, the variation of
+    particle i with every other particle's variation zero: V[v] holds it at i's entries and
+    zeros elsewhere.
+
+    TP (nv, 6N + 3) <- each set's params of the force's derivative: the N-body kernel's first
     3N + 3 ``params`` with N given as -N, then the set's variation of the masses, its
     particles' m (column im), of the gravitating particles (index below na, or all when
     na < 0) as REBOUND's variational equations count them
-    (:func:`systems.nbody.nbody_force_jvp`).  With the momenta's variation
+    (:func:`systems.nbody.nbody_force_jvp`), then for a second-order set (TO (nv, 3): order,
+    first-order sets a and b, :func:`hbvm_md.rebound.host._orders`) a's and b's variations of
+    the masses (its forcing's, :func:`systems.nbody._second_jvp`; zeros for a first-order set).
+    A second-order set's own m is the second variation of the masses.  With the momenta's variation
     taken as m dv (fixed m), a mass varied enters the linearised step through the force only.
+    A set of one particle i varies no mass and sees i's gravitating mass as zero: REBOUND
+    moves it as a test particle in the field of the others (its variational equations leave
+    out i's pull on them and any mass variation), and with i's pull gone the others'
+    variations stay exactly zero through the step.
 
     V holds the tangents as the last step wrote them: a set that differs (edited by the user,
     rescaled by REBOUND) gets its previous coefficients DG[v] (the tangent map's initial
     guess, which belongs to the tangent it was computed for) zeroed."""
     m = minv.shape[0]
     for v in range(V.shape[0]):
-        i0 = int(vidx[v])
+        i0 = int(vidx[v, 0])
+        tp = int(vidx[v, 1])
         same = True
         for i in range(N):
+            if tp >= 0 and i != tp:
+                for c in range(3):
+                    if V[v, 3 * i + c] != 0.0 or V[v, m + 3 * i + c] != 0.0:
+                        same = False
+                    V[v, 3 * i + c] = 0.0
+                    V[v, m + 3 * i + c] = 0.0
+                continue
+            row = i0 + (0 if tp >= 0 else i)
             for c in range(3):
-                dx, dv = pv[i0 + i, ix + c], pv[i0 + i, ivx + c]
+                dx, dv = pv[row, ix + c], pv[row, ivx + c]
                 # (as write_tangents wrote them)
                 if dx != V[v, 3 * i + c] or dv != V[v, m + 3 * i + c] * minv[3 * i + c]:
                     same = False
@@ -115,24 +136,48 @@ def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP):
                     DG[v, j, u] = 0.0
     P = 3 * N + 3
     for v in range(V.shape[0]):
-        i0 = int(vidx[v])
+        i0 = int(vidx[v, 0])
+        tp = int(vidx[v, 1])
         for a in range(P):
             TP[v, a] = params[a]
         TP[v, 1] = -N
+        if tp >= 0:
+            TP[v, 2 + N + tp] = 0.0
         for i in range(N):
-            TP[v, P + i] = pv[i0 + i, im] if (na < 0 or i < na) else 0.0
+            TP[v, P + i] = pv[i0 + i, im] if (tp < 0 and (na < 0 or i < na)) else 0.0
+        ia, ib = int(TO[v, 1]), int(TO[v, 2])
+        for i in range(N):
+            # (sets a and b come before: their columns are already read)
+            TP[v, P + N + i] = TP[ia, P + i] if TO[v, 0] == 2 else 0.0
+            TP[v, P + 2 * N + i] = TP[ib, P + i] if TO[v, 0] == 2 else 0.0
 
 
 @jit
 def write_tangents(pv, vidx, N, ix, ivx, minv, V):
-    """REBOUND's variational particles <- V (the inverse of :func:`read_tangents`)."""
+    """REBOUND's variational particles <- V (the inverse of :func:`read_tangents`; a set of
+    one particle gets that particle's entries)."""
     m = minv.shape[0]
     for v in range(V.shape[0]):
-        i0 = int(vidx[v])
+        i0 = int(vidx[v, 0])
+        tp = int(vidx[v, 1])
         for i in range(N):
+            if tp >= 0 and i != tp:
+                continue
+            row = i0 + (0 if tp >= 0 else i)
             for c in range(3):
-                pv[i0 + i, ix + c] = V[v, 3 * i + c]
-                pv[i0 + i, ivx + c] = V[v, m + 3 * i + c] * minv[3 * i + c]
+                pv[row, ix + c] = V[v, 3 * i + c]
+                pv[row, ivx + c] = V[v, m + 3 * i + c] * minv[3 * i + c]
+
+
+@jit
+def var_rows(vidx, N):
+    """The rows of ``particles_var`` the sets in vidx span (:func:`read_tangents`)."""
+    rows = 0
+    for v in range(vidx.shape[0]):
+        end = int(vidx[v, 0]) + (1 if vidx[v, 1] >= 0 else N)
+        if end > rows:
+            rows = end
+    return rows
 
 
 @jit
