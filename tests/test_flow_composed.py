@@ -110,7 +110,7 @@ def test_close_encounter_is_refused():
         with pytest.raises(UnresolvedStepError, match="does not resolve the motion of body"):
             for _ in range(int(4 / h)):
                 st.step(h)
-        assert 1.0 < st.t < 1.6              # refused at the encounter, not before
+        assert 0.9 < st.t < 1.6              # refused at the encounter (t ~ pi/2), not before
     # the same steps far from any encounter pass
     fc, r = composed(two_planets(1e-3), 6, 8, 0.5, 16)
     assert r.y.shape[0] == 2
