@@ -33,7 +33,7 @@ __all__ = ["CONVERGED", "CP_B1", "CP_B2", "CP_PATH_C2", "CP_PATH_C2_LO", "CP_PAT
            "follow", "full_stages", "full_stages_narrow", "symplectic", "commit_full",
            "tangent_map", "read_tangents", "write_tangents", "delta2", "start", "finish",
            "stage_correction", "path_correction", "energy_residual", "update_alpha",
-           "commit_correction", "newton_update"]
+           "commit_correction", "newton_update", "recentre"]
 
 
 @jit
@@ -47,6 +47,13 @@ def _not_compiled():
 def follow(y, cy, minv, g, Xs, params, at, sc, tab, opts, R, fb):
     _not_compiled()
     return OK, 0, 0.0
+
+
+# -- the recentring hook (integrators.loop._recentre), for a system without one -------------
+@jit
+def recentre(y, cy, gamma, h, params):
+    _not_compiled()
+    return 0
 
 
 # -- the full form (integrators.core), for a separable binding ----------------------------

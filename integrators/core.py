@@ -1142,6 +1142,45 @@ def body_motion(y, minv, g, h, j0, j1):
 
 
 @jit
+def full_blocks_error(g, om, group):
+    """:func:`resolution_error` of the full form for a state made of bodies (``group`` > 0
+    coordinates each, in q and in p alike; a last shorter group is a block too): each body's
+    block of q and of p judged by itself, d = max over the blocks of |om_b| / max_j |gamma_j,b|,
+    so that a block whose terms are small beside the others' (a planet's momenta beside its
+    positions, both beside a clock whose rate is 1: :mod:`systems.flow_composed`) is still
+    seen.  A block whose coefficients are below eps times the largest anywhere is judged
+    against that (round-off, not motion).  Returns (d^((2s+1)/s), the worst block's body)."""
+    s, u = g.shape
+    m = u // 2
+    keep_all = 0.0
+    for j in range(u):
+        for l in range(s):
+            if abs(g[l, j]) > keep_all:
+                keep_all = abs(g[l, j])
+    floor = EPS * keep_all
+    d = 0.0
+    worst = -1
+    for half in range(2):
+        b = 0
+        for j0 in range(half * m, (half + 1) * m, group):
+            top = 0.0
+            keep = floor
+            for j in range(j0, min(j0 + group, (half + 1) * m)):
+                if abs(om[j]) > top:
+                    top = abs(om[j])
+                for l in range(s):
+                    if abs(g[l, j]) > keep:
+                        keep = abs(g[l, j])
+            if top > 0.0:
+                e = top / keep if keep > 0.0 else np.inf
+                if e > d or worst < 0:
+                    d = e
+                    worst = b
+            b += 1
+    return d ** ((2.0 * s + 1.0) / s), worst
+
+
+@jit
 def resolution_error(full, y, minv, g, om, h, group):
     """The step's own estimate of its relative local error, from its coefficients g (s, u) and
     the first omitted one om (:func:`omitted_coefficient`, :func:`endpoint_defect`); returns
@@ -1156,7 +1195,8 @@ def resolution_error(full, y, minv, g, om, h, group):
     independent of the energy, and not fooled by a force that passes through zero (an atom
     crossing its equilibrium: its velocity is largest there).  Full form (no bodies):
     d = max |om| / max |gamma_j| over the whole state, the first omitted term of y' against
-    the largest kept.  0 for a body at rest
+    the largest kept (with ``group`` > 0, body by body: :func:`full_blocks_error`).  0 for a
+    body at rest
     in no force.  With omega the motion's local frequency, d ~ (omega h)^(s+1) (full form:
     (omega h)^s, y' itself keeps s terms) while the step's local error (order 2s) is
     ~ (omega h)^(2s+1): the estimate returned is d^((2s+1)/(s+1)) (full form: d^((2s+1)/s)),
@@ -1164,6 +1204,8 @@ def resolution_error(full, y, minv, g, om, h, group):
     one bound, :data:`ERROR_BOUND`, serves every method)."""
     s, u = g.shape
     worst = -1
+    if full and group > 0:
+        return full_blocks_error(g, om, group)
     if full:
         top = 0.0
         keep = 0.0

@@ -474,9 +474,14 @@ class Binding:
                              "needs the separable form, method HBVM, no test particles and no "
                              f"tangent map (got form={'full' if self.full else 'separable'}, "
                              f"{type(method).__name__}); use form='full' for such a system")
+        # a system whose variables are re-expressed after each committed step (the Keplerian
+        # flows' recentring of systems.flow_composed): its kernel is bound with the step
+        self.recentre = (system.recentre_kernel()
+                         if has_kernels and self.full
+                         and callable(getattr(system, "recentre_kernel", None)) else None)
         self.step_code = specialise(force, potential, python=fast is False, glue=glue, jvp=jvp,
                                     follow=self.follow, full=self.full, equip=self.equip,
-                                    velocities=self.velocities)
+                                    velocities=self.velocities, recentre=self.recentre)
         self.force, self.potential = force, potential    # (the tangent map rebinds them)
         self.kind = self.step_code.kind
         self.name = f"{self.kind}-{'full' if self.full else 'separable'}"
@@ -1018,6 +1023,10 @@ class Stepper(Counted):
         when no step down to ``min_dt``, or down to the smallest step that still changes t, is
         accepted."""
         s = self.method.s
+        why = getattr(self.system, "fixed_steps_only", None)
+        if why:        # (a system whose coefficients the controller's estimate cannot read)
+            raise ValueError(f"adaptive steps are not available for {type(self.system).__name__}: "
+                             f"{why}")
         while True:
             snap = self.save_state()
             try:

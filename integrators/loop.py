@@ -44,6 +44,8 @@ _NEWTON = True       # False: a host that never hands the step Newton matrices (
 _STAGE_VELOCITIES = False  # True: the separable step hands the kernel the stages (q, v), X of
                      # shape (n, 2m), instead of the positions (n, m) (core.stage_velocities),
                      # for a kernel that reads velocities
+_RECENTRE = False    # True: the system's hook _recentre(y, cy, gamma, h, params) runs after each
+_recentre = None     # committed step (bound by integrators.specialise)
 
 
 def tableau(method):
@@ -528,6 +530,8 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
         copy1(y, yt)
         copy1(cy, cyt)
         copy2(gamma, g)
+        if _RECENTRE:        # a system re-expressed between steps (systems.flow_composed)
+            _recentre(y, cy, gamma, h, params)
         if equip:
             eq.finish(es, eref)
         counters[C_STEPS] += 1

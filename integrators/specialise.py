@@ -144,7 +144,8 @@ def _glue(glue):
             bool(getattr(module, "GLUE_NEWTON", True)))
 
 
-def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False)) -> str:
+def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False),
+                 rref=None) -> str:
     h = hashlib.sha256()
     paths = [_LOOP_PATH, _FOLLOWERS_PATH, Path(_recordsmod.__file__), Path(core.__file__),
              Path(equip_core.__file__), Path(_jitmod.__file__),
@@ -161,6 +162,9 @@ def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False
     h.update(f"{numba.__version__} {sys.version} full={variant[0]} equip={variant[1]}".encode())
     if variant[2]:           # (the stage-velocity variant: the plain variants keep their names)
         h.update(b" stage velocities")
+    if rref is not None:     # (a recentring hook: the plain variants keep their names)
+        h.update(f" recentre {rref[0]}:{rref[1]}".encode())
+        h.update(Path(sys.modules[rref[0]].__file__).read_bytes())
     return h.hexdigest()[:24]
 
 
@@ -231,8 +235,8 @@ def _announce(name: str, path: Path, refs, glue, frefs, variant) -> None:
 
 
 def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
-                        variant=(None, None, False)) -> types.ModuleType:
-    digest = _source_hash(refs, glue, frefs, variant)
+                        variant=(None, None, False), rref=None) -> types.ModuleType:
+    digest = _source_hash(refs, glue, frefs, variant, rref)
     name = f"_hbvm_md_step_{digest}"
     if name in sys.modules:
         return sys.modules[name]
@@ -261,6 +265,8 @@ def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
              + "".join(f"{f} = _jit({f}{', inline=True' if f in INLINED else ''})\n"
                        for f in functions)
              + _variant_lines(refs, glue, frefs, variant)
+             + (f"from {rref[0]} import {rref[1]} as _recentre  # noqa: E402\n_RECENTRE = True\n"
+                if rref is not None else "_recentre = _absent.recentre\n")
              + "".join(f"{f} = _cjit({sig!r})({f})\n" for f, sig in cfuncs.items()))
     folder = cache_dir()
     path = folder / f"{name}.py"
@@ -277,7 +283,7 @@ def _compiled_from_file(refs, glue=None, frefs=NO_FOLLOWERS,
 
 
 def _executed(force, potential, compile_: bool, glue=None, jvp=None,
-              follow=None, equip=None, velocities=False) -> types.SimpleNamespace:
+              follow=None, equip=None, velocities=False, recentre=None) -> types.SimpleNamespace:
     ns = {"__name__": "integrators.loop_bound", "__file__": str(_LOOP_PATH)}
     exec(compile(_LOOP_PATH.read_text(), str(_LOOP_PATH), "exec"), ns)
     functions = LOOP_FUNCTIONS
@@ -298,6 +304,8 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
     ns["_FOLLOWERS"] = follow is not None
     ns["_TANGENTS"] = jvp is not None
     ns["_STAGE_VELOCITIES"] = bool(velocities)
+    ns["_RECENTRE"] = recentre is not None
+    ns["_recentre"] = recentre if recentre is not None else absent.recentre
     ns["_followers"], ns["_field"] = follow if follow is not None else (core.no_followers,
                                                                         core.no_field)
     if compile_:
@@ -313,7 +321,7 @@ def _executed(force, potential, compile_: bool, glue=None, jvp=None,
 
 def specialise(force, potential, python: bool = False, glue: str | None = None, jvp=None,
                follow=None, *, full: bool | None = None, equip: bool | None = None,
-               velocities: bool = False):
+               velocities: bool = False, recentre=None):
     """The step bound to these kernels: an object with ``advance``, ``run``, ``attempt`` (see
     :mod:`integrators.loop`) and ``kind`` ("compiled" or "python"); ``python=True`` executes
     the step as Python even when the kernels are compiled.
@@ -340,18 +348,26 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
 
     ``velocities``: the separable HBVM step hands the force kernel the stage velocities too
     (``_force(X, params, out)`` with X (n, 2m): positions, then velocities; out (n, m)), for a
-    force that reads them (:func:`integrators.core.stage_velocities`).  A variant of its own."""
+    force that reads them (:func:`integrators.core.stage_velocities`).  A variant of its own.
+
+    ``recentre``: a kernel ``recentre(y, cy, gamma, h, params)`` run after each committed step
+    (the loop's ``_recentre``: a system whose variables are re-expressed between steps, such
+    as :class:`systems.flow_composed.FlowComposed`'s recentring of the Keplerian flows); bound
+    like the force kernel (a Python one makes the step Python).  A variant of its own."""
+    if recentre is not None and not _is_compiled(recentre):
+        python = True
     if jvp is not None and not _is_compiled(jvp):
         python = True
     if follow is not None and not all(_is_compiled(f) for f in follow):
         python = True
     if python:
-        out = _executed(force, potential, False, _glue(glue), jvp, follow, equip, velocities)
+        out = _executed(force, potential, False, _glue(glue), jvp, follow, equip, velocities,
+                        recentre)
         out.kind = "python"
         return out
     variant = (None if full is None else bool(full), None if equip is None else bool(equip),
                bool(velocities))
-    key = (force, potential, glue, jvp, follow, variant)
+    key = (force, potential, glue, jvp, follow, variant, recentre)
     try:
         hit = _CACHE.get(key)
     except TypeError:            # unhashable callables: no cache
@@ -365,16 +381,19 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
             if jvp is not None:
                 refs.append(_import_ref(jvp))
             frefs = NO_FOLLOWERS if follow is None else tuple(_import_ref(f) for f in follow)
-            if None not in refs and None not in frefs:
-                mod = _compiled_from_file(refs, glue_, frefs, variant)
+            rref = None if recentre is None else _import_ref(recentre)
+            if None not in refs and None not in frefs and (recentre is None) == (rref is None):
+                mod = _compiled_from_file(refs, glue_, frefs, variant, rref)
                 names = (LOOP_FUNCTIONS + ("follow",) + (TANGENT_FUNCTIONS if jvp is not None else ())
                          + (glue_[1] + tuple(glue_[2]) if glue_ else ()))
                 out = types.SimpleNamespace(**{f: getattr(mod, f) for f in names})
             else:
-                out = _executed(force, potential, True, glue_, jvp, follow, equip, velocities)
+                out = _executed(force, potential, True, glue_, jvp, follow, equip, velocities,
+                                recentre)
             out.kind = "compiled"
         else:
-            out = _executed(force, potential, False, glue_, jvp, follow, equip, velocities)
+            out = _executed(force, potential, False, glue_, jvp, follow, equip, velocities,
+                            recentre)
             out.kind = "python"
         if key is not None and out.kind == "compiled":
             _CACHE[key] = out

@@ -181,6 +181,12 @@ def _check_audit(ns, out):
     assert pathlib.Path("audit.png").stat().st_size > 0
 
 
+def _check_flow_composed(ns, out):
+    err = float(out.split("relative energy error:")[1].split()[0])
+    assert err < 1e-13, out
+    assert ns["res"].y.shape[0] == 2
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -193,6 +199,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     'Icosahedron("Cu", noshells=2)': ((("dyn.run(100)", "dyn.run(30)"),), None, _check_readme_ase),
     '# was: "ias15"': ((), None, _check_notebook_pattern),
     "kepler_flow_into(x, v, mu, 0.3, x, v)": ((), None, _check_kepler_flow),
+    "FlowComposed.from_nbody(nb, h)": ((), None, _check_flow_composed),
     "hbvm_md.audit(atoms": ((), None, _check_audit),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),

@@ -1,0 +1,363 @@
+"""A planetary system transformed by its Keplerian flows: HBVM composed with them (issue 48).
+
+The construction of the flow-composed implicit Runge-Kutta methods of Antonana, Makazaga and
+Murua (FCIRK, J. Sci. Comput. 2018, arXiv 1711.06050), with HBVM(k, s) in place of Gauss.
+
+Coordinates (democratic heliocentric, canonical): Q_i = x_i - x_0 the heliocentric positions
+of the N planets, P_i = m_i v_i their barycentric momenta (v_i barycentric velocities).  With
+the barycentre's motion removed the Hamiltonian is exactly
+
+    H = H_K + H_I,   H_K = sum_i |P_i|^2 / (2 m_i) - G m_0 m_i / |Q_i|,
+                     H_I = -sum_{i<j} G m_i m_j / |Q_i - Q_j| + |sum_i P_i|^2 / (2 m_0),
+
+the split of WHFast's democratic heliocentric coordinates (REBOUND's
+``reb_integrator_whfast`` with ``coordinates = "democraticheliocentric"``, whose Kepler drift
+uses mu = G m_0): H_K is N uncoupled Kepler problems with mu = G m_0, whose flow phi_t
+(all planets at once, :mod:`integrators.kepler_flow`) is known to round-off.
+
+The transformed system.  Write the state as x = phi_tau(X).  Then x solves x' = J grad H(x)
+exactly when X solves X' = J grad_X K(X, tau), tau' = 1, with K(X, tau) = H_I(phi_tau(X))
+(phi_tau is symplectic, so the transformed system is Hamiltonian with the time-dependent K;
+grad_X K = Phi^T grad H_I(phi_tau(X)), Phi the flow's state transition matrix).  Time enters
+as one more canonical pair (tau, p_tau) of the extended Hamiltonian
+
+    H~(X, tau, P, p_tau) = K(X, tau) + p_tau,     tau' = 1,  p_tau' = -dK/dtau,
+
+so every Runge-Kutta method integrates tau exactly and the force kernel reads each stage's
+time from its row: the transformed system is an ordinary full-form system of the one step
+(:mod:`integrators.loop`), not a second step.  dK/dtau = grad H_I(x) . J grad H_K(x).
+
+A step [t_n, t_n + h] runs tau from -h/2 to h/2 (FCIRK: the flows centred on the step, so that
+the composition of the two half flows and the symmetric HBVM step is symmetric); the state
+entering it is X_n = phi_{h/2}(x_n) and the state leaving it x_{n+1} = phi_{h/2}(X_{n+1}).
+Between two steps the two half flows are one flow: :func:`composed_recentre` maps
+X <- phi_{tau + h/2}(X), tau <- -h/2 after each committed step (the hook ``_recentre`` of
+:mod:`integrators.loop`), which changes the representation, not the physical state.
+
+What it keeps.  HBVM keeps H~ (to round-off for k large enough: K is not a polynomial), and
+the recentring keeps it too (K(phi_h(X), -h/2) = K(X, h/2)).  The physical energy is
+H = H_K(X) + K(X, tau), so H - H~ = H_K(X) - p_tau, an invariant of the exact flow that the
+method does not keep: the physical energy's error is that of H_K(X) - p_tau, O(eps h^(2s)) a
+step with eps the size of H_I against H_K (measured in benchmarks/results/kepler_composed.md).
+p_tau starts at H_K(x_0), so that H~ starts at H.
+
+The state as the step sees it: Y = (Q_1 .. Q_N, tau, P_1 .. P_N, p_tau), dim = 3N + 1,
+``body_dim = 3`` (the step's own error estimate then judges each planet's block of Q and of P
+by itself, and the clock alone: :func:`integrators.core.resolution_error`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from integrators.jit import jit
+from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler_step,
+                                     kepler_step_saved, kepler_step_stm)
+
+from .base import HamiltonianSystem
+
+# params: [N, G, m_0, m_1 .. m_N]
+_HEAD = 3
+
+
+@jit
+def _interaction_gradient(x, v, ms, G, m0, gx, gp):
+    """grad H_I at heliocentric positions x (N, 3) and velocities v (N, 3): gx = dH_I/dQ (the
+    planets' mutual attractions), gp = dH_I/dP (the same for every planet: sum P / m_0).
+    Returns H_I."""
+    N = x.shape[0]
+    px = 0.0
+    py = 0.0
+    pz = 0.0
+    for i in range(N):
+        gx[i, 0] = 0.0
+        gx[i, 1] = 0.0
+        gx[i, 2] = 0.0
+        px += ms[i] * v[i, 0]
+        py += ms[i] * v[i, 1]
+        pz += ms[i] * v[i, 2]
+    hi = 0.5 * (px * px + py * py + pz * pz) / m0
+    for i in range(N):
+        for j in range(i + 1, N):
+            dx = x[i, 0] - x[j, 0]
+            dy = x[i, 1] - x[j, 1]
+            dz = x[i, 2] - x[j, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            r = np.sqrt(r2)
+            gm = G * ms[i] * ms[j]
+            hi -= gm / r
+            c = gm / (r2 * r)
+            gx[i, 0] += c * dx
+            gx[i, 1] += c * dy
+            gx[i, 2] += c * dz
+            gx[j, 0] -= c * dx
+            gx[j, 1] -= c * dy
+            gx[j, 2] -= c * dz
+    gp[0] = px / m0
+    gp[1] = py / m0
+    gp[2] = pz / m0
+    return hi
+
+
+@jit
+def composed_gradient(Y, params, out):
+    """grad H~ at each row of Y (n, 2m), m = 3N + 1 (module docstring): the Keplerian flows
+    over each row's own tau, grad H_I there, pulled back by Phi^T without forming Phi
+    (:func:`integrators.kepler_flow.kepler_pullback`, from the scalars each flow kept);
+    dH~/dtau = dK/dtau, dH~/dp_tau = 1.  A flow that fails (a collision orbit) gives NaN,
+    which the step refuses."""
+    N = int(params[0])
+    G = params[1]
+    m0 = params[2]
+    ms = params[_HEAD:_HEAD + N]
+    mu = G * m0
+    m = 3 * N + 1
+    x = np.empty((N, 3))
+    v = np.empty((N, 3))
+    sv = np.empty((N, SAVED))
+    gx = np.empty((N, 3))
+    gp = np.empty(3)
+    for r in range(Y.shape[0]):
+        tau = Y[r, m - 1]
+        for i in range(N):
+            mi = ms[i]
+            (x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2], it) = kepler_step_saved(
+                Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
+                Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, mu, tau, sv, i)
+        _interaction_gradient(x, v, ms, G, m0, gx, gp)
+        dkdt = 0.0
+        for i in range(N):
+            mi = ms[i]
+            ri2 = x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] + x[i, 2] * x[i, 2]
+            k = -mu / (ri2 * np.sqrt(ri2))
+            # grad H_I . J grad H_K: H_I's change along the Keplerian motion (x' = v,
+            # v' = -mu x / r^3, P' = m v')
+            for a in range(3):
+                dkdt += gx[i, a] * v[i, a] + gp[a] * mi * k * x[i, a]
+            # (Q, V = P / m): K's gradient in (Q, V) is Phi^T (gx, m gp); dK/dP = dK/dV / m
+            wx, wy, wz, wu, wv, ww = kepler_pullback(
+                Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
+                Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, sv, i,
+                gx[i, 0], gx[i, 1], gx[i, 2], mi * gp[0], mi * gp[1], mi * gp[2])
+            out[r, 3 * i] = wx
+            out[r, 3 * i + 1] = wy
+            out[r, 3 * i + 2] = wz
+            out[r, m + 3 * i] = wu / mi
+            out[r, m + 3 * i + 1] = wv / mi
+            out[r, m + 3 * i + 2] = ww / mi
+        out[r, m - 1] = dkdt
+        out[r, 2 * m - 1] = 1.0
+
+
+@jit
+def composed_energy(y, params):
+    """H~(y) = H_I(phi_tau(X)) + p_tau for one state y (2m,)."""
+    N = int(params[0])
+    G = params[1]
+    m0 = params[2]
+    ms = params[_HEAD:_HEAD + N]
+    mu = G * m0
+    m = 3 * N + 1
+    tau = y[m - 1]
+    x = np.empty((N, 3))
+    v = np.empty((N, 3))
+    gx = np.empty((N, 3))
+    gp = np.empty(3)
+    for i in range(N):
+        mi = ms[i]
+        a, b, c, d, e, f, it = kepler_step(y[3 * i], y[3 * i + 1], y[3 * i + 2],
+                                           y[m + 3 * i] / mi, y[m + 3 * i + 1] / mi,
+                                           y[m + 3 * i + 2] / mi, mu, tau)
+        x[i, 0], x[i, 1], x[i, 2] = a, b, c
+        v[i, 0], v[i, 1], v[i, 2] = d, e, f
+    return _interaction_gradient(x, v, ms, G, m0, gx, gp) + y[2 * m - 1]
+
+
+@jit
+def composed_recentre(y, cy, gamma, h, params):
+    """After a committed step of size h: X <- phi_{tau + h/2}(X), tau <- -h/2 (the next step's
+    start, centred as in the module docstring; the same physical state).  The state's low
+    parts cy (the step keeps y - cy) and the coefficients gamma (the next step's initial
+    guess extrapolates them) are carried by the flow's state transition matrix, as derivatives
+    are: the guess then describes the right-hand side in the new variables.  Returns 0, or
+    1 + the index of a planet whose flow did not converge (nothing changed then)."""
+    N = int(params[0])
+    G = params[1]
+    m0 = params[2]
+    ms = params[_HEAD:_HEAD + N]
+    mu = G * m0
+    m = 3 * N + 1
+    dt = (y[m - 1] - cy[m - 1]) + 0.5 * h
+    x0 = np.empty(3)
+    v0 = np.empty(3)
+    x = np.empty((N, 3))
+    v = np.empty((N, 3))
+    phi = np.empty((N, 6, 6))
+    for i in range(N):
+        for a in range(3):
+            x0[a] = y[3 * i + a]
+            v0[a] = y[m + 3 * i + a] / ms[i]
+        if kepler_step_stm(x0, v0, mu, dt, x[i], v[i], phi[i]) < 0:
+            return 1 + i
+    w = np.empty(6)
+    for i in range(N):
+        mi = ms[i]
+        for a in range(3):
+            y[3 * i + a] = x[i, a]
+            y[m + 3 * i + a] = mi * v[i, a]
+        # (dQ, dP) -> Phi_c (dQ, dP), Phi_c = diag(1, m) Phi diag(1, 1/m) the canonical STM
+        for row in range(-1, gamma.shape[0]):
+            vec = cy if row < 0 else gamma[row]
+            for a in range(3):
+                w[a] = vec[3 * i + a]
+                w[3 + a] = vec[m + 3 * i + a] / mi
+            for a in range(3):
+                sq = 0.0
+                sv = 0.0
+                for b in range(6):
+                    sq += phi[i, a, b] * w[b]
+                    sv += phi[i, 3 + a, b] * w[b]
+                vec[3 * i + a] = sq
+                vec[m + 3 * i + a] = mi * sv
+    y[m - 1] = -0.5 * h
+    cy[m - 1] = 0.0
+    return 0
+
+
+def _no_recentre(y, cy, gamma, h, params):      # pragma: no cover - the stand-in's shape
+    return 0
+
+
+class FlowComposed(HamiltonianSystem):
+    """A star and N planets in the variables transformed by their Keplerian flows.
+
+    Parameters
+    ----------
+    masses : array_like (N + 1,)
+        The star's mass first, then the planets' (all > 0).
+    G : float
+    h : float
+        The step the integration will take: the first state is centred on the first step
+        (tau = -h/2).  A step of another size afterwards stays exact (the flows are taken over
+        each step's own tau), only not centred.
+
+    Build it with :meth:`from_nbody`.  States: :meth:`extend` (from a barycentric
+    :class:`systems.NBody` state) and :meth:`physical` (back, at the state's own tau).
+    """
+
+    polynomial_degree = None
+    # the adaptive controller's estimate (integrators.core.step_error) takes the largest
+    # coefficient over the whole state, which is the clock's rate 1 here: it would accept any
+    # step the resolution check lets through, so adaptive steps are refused by name
+    fixed_steps_only = ("its clock row (tau' = 1) hides the planets from the step-size "
+                        "controller's estimate; use fixed steps (integrate(..., h, steps)), "
+                        "whose own error check (error_bound) still refuses an unresolved step")
+
+    def __init__(self, masses, G: float, h: float):
+        ms = np.asarray(masses, dtype=float).reshape(-1)
+        if ms.size < 2 or not np.all(np.isfinite(ms) & (ms > 0)):
+            raise ValueError(f"`masses` must be the star's mass then each planet's, all > 0 and "
+                             f"finite (got {ms!r}); test particles are not supported here yet")
+        if not (np.isfinite(G) and G > 0):
+            raise ValueError(f"`G` must be a positive number (got G={G!r})")
+        if not (np.isfinite(h) and h != 0):
+            raise ValueError(f"`h` must be the (nonzero, finite) step the run will take (got h={h!r})")
+        self.m0, self.planet_masses, self.G, self.h = float(ms[0]), ms[1:].copy(), float(G), float(h)
+        self.N = ms.size - 1
+        self.dim = 3 * self.N + 1
+        self.body_dim = 3
+        self.body_masses = ms.copy()
+        self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses])
+        self._com = (np.zeros(3), np.zeros(3))
+
+    @classmethod
+    def from_nbody(cls, nbody, h: float) -> "FlowComposed":
+        """The system of an :class:`systems.NBody` whose first body is the star."""
+        return cls(nbody.body_masses, nbody.G, h)
+
+    def full_kernels(self):
+        return composed_gradient, composed_energy, self._params
+
+    def recentre_kernel(self):
+        """The hook run after each committed step (:func:`composed_recentre`)."""
+        return composed_recentre
+
+    # -- states ------------------------------------------------------------------------
+    def extend(self, y) -> np.ndarray:
+        """Y from a barycentric NBody state y = (positions (N+1)*3, momenta (N+1)*3): the
+        heliocentric Q, barycentric P, flowed by phi_{h/2} (tau = -h/2), p_tau = H_K.  The
+        barycentre's position and velocity are kept for :meth:`physical`."""
+        y = np.asarray(y, dtype=float)
+        n = self.N + 1
+        if y.shape != (6 * n,):
+            raise ValueError(f"`y` must be a state of {n} bodies, shape ({6 * n},) (got {y.shape})")
+        x = y[:3 * n].reshape(n, 3)
+        p = y[3 * n:].reshape(n, 3)
+        M = self.body_masses.sum()
+        vcm = p.sum(axis=0) / M
+        xcm = (self.body_masses[:, None] * x).sum(axis=0) / M
+        self._com = (xcm, vcm)
+        Q = x[1:] - x[0]
+        V = p[1:] / self.planet_masses[:, None] - vcm          # barycentric velocities
+        hk = float(np.sum(0.5 * self.planet_masses * np.sum(V * V, axis=1)
+                          - self.G * self.m0 * self.planet_masses / np.linalg.norm(Q, axis=1)))
+        tau0 = -0.5 * self.h
+        X, W = kepler_flow(Q, V, self.G * self.m0, -tau0)
+        return np.concatenate([X.ravel(), [tau0], (W * self.planet_masses[:, None]).ravel(), [hk]])
+
+    def heliocentric(self, Y):
+        """(Q, V), each (..., N, 3), of states Y (..., 2m) at their own time tau:
+        x = phi_tau(X).  One compiled call when every state has the same tau (the samples of
+        a run: the hook leaves tau at -h/2 after every step)."""
+        Y = np.asarray(Y, dtype=float)
+        lead = Y.shape[:-1]
+        Y2 = Y.reshape(-1, Y.shape[-1])
+        m = self.dim
+        X = Y2[:, :m - 1].reshape(-1, 3)
+        V = (Y2[:, m:2 * m - 1].reshape(-1, self.N, 3) / self.planet_masses[:, None]).reshape(-1, 3)
+        mu = np.full(X.shape[0], self.G * self.m0)
+        taus = Y2[:, m - 1]
+        if np.all(taus == taus[0]):
+            Q, W = kepler_flow(X, V, mu, float(taus[0]))
+        else:
+            Q, W = np.empty_like(X), np.empty_like(V)
+            for r, tau in enumerate(taus):
+                rows = slice(r * self.N, (r + 1) * self.N)
+                Q[rows], W[rows] = kepler_flow(X[rows], V[rows], mu[rows], float(tau))
+        return Q.reshape(lead + (self.N, 3)), W.reshape(lead + (self.N, 3))
+
+    def physical(self, Y, t=0.0) -> np.ndarray:
+        """The barycentric NBody states (positions, momenta), (..., 6 (N + 1)), of states Y
+        (..., 2m) at times t since :meth:`extend` (the barycentre moves uniformly)."""
+        Q, V = self.heliocentric(Y)
+        ms = self.planet_masses[:, None]
+        M = self.body_masses.sum()
+        xcm, vcm = self._com
+        t = np.asarray(t, dtype=float)[..., None, None]
+        x0 = -(ms * Q).sum(axis=-2, keepdims=True) / M       # the star, barycentre at the origin
+        v0 = -(ms * V).sum(axis=-2, keepdims=True) / self.m0
+        x = np.concatenate([x0, Q + x0], axis=-2) + xcm + vcm * t
+        v = np.concatenate([v0, V], axis=-2) + vcm
+        lead = x.shape[:-2]
+        return np.concatenate([x.reshape(lead + (-1,)),
+                               (v * self.body_masses[:, None]).reshape(lead + (-1,))], axis=-1)
+
+    def physical_energy(self, Y) -> float:
+        """H = H_K + H_I at the physical state of Y (barycentric frame)."""
+        Q, V = self.heliocentric(Y)
+        ms = self.planet_masses
+        hk = np.sum(0.5 * ms * np.sum(V * V, axis=1) - self.G * self.m0 * ms / np.linalg.norm(Q, axis=1))
+        gx, gp = np.empty((self.N, 3)), np.empty(3)
+        return float(hk + _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp))
+
+    # -- the protocol (Python path) ----------------------------------------------------
+    def energy(self, Y):
+        Y = np.asarray(Y, dtype=float)
+        if Y.ndim == 1:
+            return composed_energy(np.ascontiguousarray(Y), self._params)
+        return np.array([composed_energy(np.ascontiguousarray(r), self._params) for r in Y])
+
+    def gradient(self, Y):
+        Y = np.atleast_2d(np.asarray(Y, dtype=float))
+        out = np.empty_like(Y)
+        composed_gradient(np.ascontiguousarray(Y), self._params, out)
+        return out

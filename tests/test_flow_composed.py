@@ -1,0 +1,133 @@
+"""HBVM composed with the Keplerian flows (systems.flow_composed, issue 48): the transformed
+system run by the one step, its recentring hook, its order, its agreement with plain HBVM and
+the step's own error estimate through a close encounter."""
+import numpy as np
+import pytest
+
+from integrators import HBVM, Stepper, UnresolvedStepError, integrate
+from integrators.kepler_flow import kepler_step_stm, kepler_step_vjp, orbit_state
+from systems import NBody
+from systems.flow_composed import FlowComposed
+
+
+def two_planets(f=1e-2):
+    """A star and two planets (G = 1): a = 1, e = 0.1 and a = 1.6, e = 0.05, inclined;
+    masses f and f / 2."""
+    x = np.array([[0, 0, 0], [0.9, 0, 0], [-1.68, 0, 0.05]])
+    v = np.array([[0, 0, 0], [0, np.sqrt(1.9 / 0.9), 0], [0, -np.sqrt(2 / 1.68 - 1 / 1.6), 0]])
+    return NBody([1.0, f, f / 2], 1.0, positions=x, velocities=v)
+
+
+def composed(nb, s, k, h, n, **kw):
+    fc = FlowComposed.from_nbody(nb, h)
+    r = integrate(HBVM(k, s), fc, fc.extend(nb.initial_state()), h, n, sample_every=n,
+                  form="full", **kw)
+    return fc, r
+
+
+def plain_reference(nb, T, n=4000):
+    return integrate(HBVM(12, 8), nb, nb.initial_state(), T / n, n, sample_every=n).y[-1]
+
+
+def test_pullback_is_the_transposed_stm():
+    rng = np.random.default_rng(3)
+    for e in (0.0, 0.5, 0.99, 3.0):
+        x, v = (np.asarray(a, dtype=float) for a in orbit_state(e, 1.3))
+        for dt in (-4.0, 0.0, 0.9, 25.0):
+            x1, v1, phi = np.empty(3), np.empty(3), np.empty((6, 6))
+            kepler_step_stm(x, v, 1.0, dt, x1, v1, phi)
+            g = rng.standard_normal(6)
+            x2, v2, wx, wv = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+            kepler_step_vjp(x, v, 1.0, dt, g[:3].copy(), g[3:].copy(), x2, v2, wx, wv)
+            assert np.array_equal(x1, x2) and np.array_equal(v1, v2)
+            assert np.abs(np.r_[wx, wv] - phi.T @ g).max() <= 1e-13 * np.abs(phi).max() * 3
+
+
+def test_gradient_is_the_energy_s():
+    nb = two_planets()
+    fc = FlowComposed.from_nbody(nb, 0.3)
+    Y = fc.extend(nb.initial_state())
+    g = fc.gradient(Y)[0]
+    for j in range(Y.size):
+        e = 1e-6
+        Yp, Ym = Y.copy(), Y.copy()
+        Yp[j] += e
+        Ym[j] -= e
+        fd = (fc.energy(Yp) - fc.energy(Ym)) / (2 * e)
+        assert abs(g[j] - fd) <= 1e-7 * max(1.0, abs(g[j])), j
+    # H~ starts at the physical energy, and the state converts back
+    assert fc.energy(Y) == pytest.approx(fc.physical_energy(Y), rel=1e-14)
+    assert np.abs(fc.physical(Y) - nb.initial_state()).max() < 1e-14
+
+
+@pytest.mark.parametrize("s, k, ns", [(2, 4, (32, 64, 128)), (3, 5, (16, 32, 64))])
+def test_order_2s(s, k, ns):
+    nb = two_planets()
+    T = 8.0
+    ref = plain_reference(nb, T)
+    errs = []
+    for n in ns:
+        fc, r = composed(nb, s, k, T / n, n, error_bound=None)
+        errs.append(np.abs(fc.physical(r.y[-1], T)[:9] - ref[:9]).max())
+    slopes = -np.diff(np.log(errs)) / np.log(2)
+    assert np.all(np.abs(slopes - 2 * s) < 0.3), (errs, slopes)
+
+
+def test_agrees_with_plain_hbvm():
+    nb = two_planets(1e-3)
+    T = 8.0
+    ref = plain_reference(nb, T)
+    fc, r = composed(nb, 6, 8, T / 32, 32)
+    y = fc.physical(r.y[-1], T)
+    assert np.abs(y[:9] - ref[:9]).max() < 1e-12
+    assert nb.energy(y) == pytest.approx(nb.energy(nb.initial_state()), rel=1e-13)
+
+
+def test_recentring_is_the_hook_and_deterministic():
+    nb = two_planets()
+    h = 0.25
+    fc = FlowComposed.from_nbody(nb, h)
+    Y0 = fc.extend(nb.initial_state())
+    m = fc.dim
+    one = integrate(HBVM(6, 4), fc, Y0, h, 12, sample_every=1, form="full")
+    # after every committed step the flows are recentred: tau is back at -h/2
+    assert np.all(one.y[:, m - 1] == -0.5 * h)
+    st = Stepper(HBVM(6, 4), fc, Y0, form="full")
+    st.run(h, 5, sample_every=5)
+    for _ in range(7):
+        st.step(h)
+    assert np.array_equal(st.y, one.y[-1])         # bit for bit, however the steps are called
+
+
+def test_close_encounter_is_refused():
+    # two planets on crossing orbits meet head on near (0, 1) at t ~ pi/2, 0.02 apart
+    x = np.array([[0, 0, 0], [1, 0, 0], [-1.02, 0, 0]])
+    v = np.array([[0, 0, 0], [0, 1.0, 0], [0, 1 / np.sqrt(1.02), 0]])
+    nb = NBody([1.0, 1e-3, 1e-3], 1.0, positions=x, velocities=v)
+    for h in (0.1, 0.5):
+        fc = FlowComposed.from_nbody(nb, h)
+        st = Stepper(HBVM(8, 6), fc, fc.extend(nb.initial_state()), form="full")
+        with pytest.raises(UnresolvedStepError, match="does not resolve the motion of body"):
+            for _ in range(int(4 / h)):
+                st.step(h)
+        assert 0.9 < st.t < 1.6              # refused at the encounter (t ~ pi/2), not before
+    # the same steps far from any encounter pass
+    fc, r = composed(two_planets(1e-3), 6, 8, 0.5, 16)
+    assert r.y.shape[0] == 2
+
+
+def test_bad_input_names_the_argument():
+    with pytest.raises(ValueError, match="`masses`"):
+        FlowComposed([1.0, 0.0], 1.0, 0.1)
+    with pytest.raises(ValueError, match="`h`"):
+        FlowComposed([1.0, 1e-3], 1.0, 0.0)
+    with pytest.raises(ValueError, match="`y`"):
+        FlowComposed([1.0, 1e-3], 1.0, 0.1).extend(np.zeros(5))
+
+
+def test_adaptive_steps_are_refused_by_name():
+    nb = two_planets()
+    fc = FlowComposed.from_nbody(nb, 0.1)
+    with pytest.raises(ValueError, match="adaptive steps are not available for FlowComposed"):
+        integrate(HBVM(6, 4), fc, fc.extend(nb.initial_state()), 0.1, form="full",
+                  adaptive=True, t_end=1.0, epsilon=1e-9)
