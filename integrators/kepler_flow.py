@@ -220,6 +220,18 @@ def anomaly_bracket(r0, beta, v2, h2, mu, dt):
 
 
 @jit
+def asymptote_coefficients(beta, eta0, zeta0, h2, mu, sb):
+    """On a hyperbola (beta < 0, sb = sqrt(-beta)): A = zeta0 + eta0 sb and B = zeta0 - eta0 sb
+    (e exp(-+H0) times mu), the one that is a difference taken from A B = mu^2 + h^2 sb^2
+    without cancellation (:func:`universal_anomaly`, :func:`conic_state`)."""
+    if eta0 >= 0.0:
+        ca = zeta0 + eta0 * sb
+        return ca, (mu * mu - h2 * beta) / ca
+    cb = zeta0 - eta0 * sb
+    return (mu * mu - h2 * beta) / cb, cb
+
+
+@jit
 def universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dt):
     """Solve Kepler's equation in universal variables for X.
 
@@ -236,12 +248,7 @@ def universal_anomaly(r0, eta0, beta, zeta0, v2, h2, mu, dt):
     sb = ca = cb = 0.0
     if beta < 0.0:
         sb = math.sqrt(-beta)
-        if eta0 >= 0.0:
-            ca = zeta0 + eta0 * sb
-            cb = (mu * mu - h2 * beta) / ca
-        else:
-            cb = zeta0 - eta0 * sb
-            ca = (mu * mu - h2 * beta) / cb
+        ca, cb = asymptote_coefficients(beta, eta0, zeta0, h2, mu, sb)
     # start: the series of X(t) to dt^3 while it converges well (|v0 dt| <= r0 / 2, the
     # common case of a planetary step: there the analytic bracket is only computed if a step
     # ever leaves the one the iterates' signs of F make); else, on an ellipse, the mean
@@ -393,12 +400,7 @@ def conic_state(x0, y0, z0, vx, vy, vz, mu, r0, eta0, beta, zeta0, h2, X):
     else:
         sb = math.sqrt(-beta)
         a = -mu / beta
-        if eta0 >= 0.0:
-            ca = zeta0 + eta0 * sb
-            cb = (mu * mu - h2 * beta) / ca
-        else:
-            cb = zeta0 - eta0 * sb
-            ca = (mu * mu - h2 * beta) / cb
+        ca, cb = asymptote_coefficients(beta, eta0, zeta0, h2, mu, sb)
         H1 = 0.5 * math.log(ca / cb) + sb * X
         sn = math.sinh(H1)
         sh = math.sinh(0.5 * H1)
@@ -487,6 +489,19 @@ def kepler_flow_into(x, v, mu, dt, x_out, v_out):
 
 
 @jit
+def beta_slopes(beta, X, G2, G3):
+    """G_0 and dG_n/dbeta = (n G_{n+2} - X G_{n+1}) / 2, n = 1, 2, 3, at the universal anomaly
+    X: the linearisation's terms that :func:`kepler_step_stm` and :func:`kepler_pullback`
+    share (the one forward, the other in reverse mode)."""
+    c0, c1, c2, c3, c4, c5 = stumpff5(beta * X * X)
+    X2 = X * X
+    G4 = X2 * X2 * c4
+    G5 = X2 * X2 * X * c5
+    return (c0, 0.5 * (G3 - X * G2), 0.5 * (2.0 * G4 - X * G3),
+            0.5 * (3.0 * G5 - X * G4))
+
+
+@jit
 def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
     """The flow of one body over dt and its Jacobian, the state transition matrix.
 
@@ -507,18 +522,11 @@ def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
             v1[i] = math.nan
         phi[:, :] = math.nan
         return -abs(it) - 1
-    c0, c1, c2, c3, c4, c5 = stumpff5(beta * X * X)
-    X2 = X * X
-    G0 = c0
-    G4 = X2 * X2 * c4
-    G5 = X2 * X2 * X * c5
+    G0, G1b, G2b, G3b = beta_slopes(beta, X, G2, G3)
     fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
     (x1[0], x1[1], x1[2], v1[0], v1[1], v1[2]) = new_state(
         x0[0], x0[1], x0[2], v0[0], v0[1], v0[2], mu, r0, eta0, beta, zeta0, v2, h2, X, G1, G2,
         G3, r, dtr)
-    G1b = 0.5 * (G3 - X * G2)
-    G2b = 0.5 * (2.0 * G4 - X * G3)
-    G3b = 0.5 * (3.0 * G5 - X * G4)
     ri = 1.0 / r
     r0i = 1.0 / r0
     # gradients (6,) with respect to (x0, v0), one component j at a time
@@ -604,15 +612,8 @@ def kepler_pullback(x0, y0, z0, vx, vy, vz, sv, row, gx, gy, gz, gu, gv, gw):
     gdot times g (measured: the flow 90 ns, with the STM 196 ns)."""
     r0, eta0, beta, zeta0, X, r = sv[row, 0], sv[row, 1], sv[row, 2], sv[row, 3], sv[row, 4], sv[row, 5]
     G1, G2, G3, dtr, kp, mu = sv[row, 6], sv[row, 7], sv[row, 8], sv[row, 9], sv[row, 10], sv[row, 11]
-    c0, c1, c2, c3, c4, c5 = stumpff5(beta * X * X)
-    X2 = X * X
-    G0 = c0
-    G4 = X2 * X2 * c4
-    G5 = X2 * X2 * X * c5
+    G0, G1b, G2b, G3b = beta_slopes(beta, X, G2, G3)
     fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
-    G1b = 0.5 * (G3 - X * G2)
-    G2b = 0.5 * (2.0 * G4 - X * G3)
-    G3b = 0.5 * (3.0 * G5 - X * G4)
     ri = 1.0 / r
     r0i = 1.0 / r0
     xg = x0 * gx + y0 * gy + z0 * gz

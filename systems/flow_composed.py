@@ -60,6 +60,16 @@ _HEAD = 3
 
 
 @jit
+def _header(params):
+    """The kernels' params read once (layout above): (N, G, m_0, the planets' masses m_1 ..
+    m_N, mu = G m_0, m = 3 N + 1 the coordinates of each half of the state)."""
+    N = int(params[0])
+    G = params[1]
+    m0 = params[2]
+    return N, G, m0, params[_HEAD:_HEAD + N], G * m0, 3 * N + 1
+
+
+@jit
 def _interaction_gradient(x, v, ms, G, m0, gx, gp):
     """grad H_I at heliocentric positions x (N, 3) and velocities v (N, 3): gx = dH_I/dQ (the
     planets' mutual attractions), gp = dH_I/dP (the same for every planet: sum P / m_0).
@@ -105,12 +115,7 @@ def composed_gradient(Y, params, out):
     (:func:`integrators.kepler_flow.kepler_pullback`, from the scalars each flow kept);
     dH~/dtau = dK/dtau, dH~/dp_tau = 1.  A flow that fails (a collision orbit) gives NaN,
     which the step refuses."""
-    N = int(params[0])
-    G = params[1]
-    m0 = params[2]
-    ms = params[_HEAD:_HEAD + N]
-    mu = G * m0
-    m = 3 * N + 1
+    N, G, m0, ms, mu, m = _header(params)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     sv = np.empty((N, SAVED))
@@ -151,12 +156,7 @@ def composed_gradient(Y, params, out):
 @jit
 def composed_energy(y, params):
     """H~(y) = H_I(phi_tau(X)) + p_tau for one state y (2m,)."""
-    N = int(params[0])
-    G = params[1]
-    m0 = params[2]
-    ms = params[_HEAD:_HEAD + N]
-    mu = G * m0
-    m = 3 * N + 1
+    N, G, m0, ms, mu, m = _header(params)
     tau = y[m - 1]
     x = np.empty((N, 3))
     v = np.empty((N, 3))
@@ -180,12 +180,7 @@ def composed_recentre(y, cy, gamma, h, params):
     guess extrapolates them) are carried by the flow's state transition matrix, as derivatives
     are: the guess then describes the right-hand side in the new variables.  Returns 0, or
     1 + the index of a planet whose flow did not converge (nothing changed then)."""
-    N = int(params[0])
-    G = params[1]
-    m0 = params[2]
-    ms = params[_HEAD:_HEAD + N]
-    mu = G * m0
-    m = 3 * N + 1
+    N, G, m0, ms, mu, m = _header(params)
     dt = (y[m - 1] - cy[m - 1]) + 0.5 * h
     x0 = np.empty(3)
     v0 = np.empty(3)
