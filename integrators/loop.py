@@ -348,7 +348,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
     work, cwork, counters = wk
     nsteps, sample_every, out_t, out_y, out_e = samples
     t, ct = clock[0], clock[1]
-    tn, ts, Wp, Cp = method
+    ts, Cp = method.ts, method.Cp       # (EQUIP's arrays; the rest is named by tableau)
     tab = tableau(method)
     tau, tau_lo, X0, X0_lo = tab.tau, tab.tau_lo, tab.X0, tab.X0_lo
     W, W_lo, I = tab.W, tab.W_lo, tab.I
