@@ -51,6 +51,10 @@ OK, DIVERGED, NOT_FINITE, UNRESOLVED, TOO_SMALL = 0, 1, 2, 3, 4
 # NOT_RESOLVED: a converged step whose own error estimate (resolution_error) exceeds the bound
 # (6: after integrators.equip_core.NO_ENERGY_ROOT, 5)
 NOT_RESOLVED = 6
+# DRIFTED: a converged step of a method not exact for H after which the run's energy stands more
+# than DRIFT_BOUND away from its start (the energy check, integrators.loop.energy_check); not
+# retried by the controller: a shorter step does not undo the run's past
+DRIFTED = 7
 NARROW = 8                # from this many columns the sums run column-innermost (vectorised),
                           # below it entry by entry (fewer than 3 bodies), measured
 BLOCK = 512               # ... in blocks of this many columns (their partial sums stay in cache)
@@ -81,6 +85,26 @@ N_COUNTERS = 9
 # at most ERROR_BOUND: three correct digits a step.  The derivation and the measurements are in
 # docs/design/step.md, "A step judged by its own error".
 ERROR_BOUND = 1e-3
+# A run of a method not exact for H (energy_tol "auto" negative: k = s, the Gauss method, or k
+# too small for H's quadrature) is refused when its energy stands more than DRIFT_BOUND of
+# |T| + |V| away from the energy at its start.  Why this bound: on a bound orbit |T| + |V| >= |H|,
+# and a relative energy offset delta shifts the semi-major axis by delta and the mean motion by
+# 1.5 delta, so the phase lags by 3 pi delta (1e-2 rad at 1e-3) every period: the run no longer
+# keeps three correct digits of its orbit, the same standard as ERROR_BOUND for one step.  No
+# single step can see this: a symmetric method's energy error rises through a pericentre
+# passage and falls back after it (a bump of 1e-2 of |H| for HBVM(1, 1) at e = 0.9, 3000 steps
+# a period), and a run that starts inside the passage keeps half of the bump as a lasting offset,
+# with the same steps and the same estimates as a run that does not.  Measured on the sweep of
+# benchmarks/bench_error_estimate.py (one period of fixed steps, e 0.9 .. 0.999): the runs that
+# ended more than 0.1 off in silence drifted by 3.9e-3 to 7.9e-2 of |T| + |V|; the runs within
+# 0.07 of their orbit by at most 1e-3 (docs/design/step.md, "What it cannot see").
+DRIFT_BOUND = ERROR_BOUND
+# the step's eref, carried between steps by every host: [the energy after the last step, EQUIP's
+# alpha and dE/dalpha (integrators.equip_core.EREF_EQUIP), the energy at the run's start (the
+# anchor of DRIFT_BOUND's rule)]; nan: not known yet (a host that changes the Hamiltonian or the
+# state sets all of them to nan, so a run starts again from there)
+EREF_RUN = 3
+N_EREF = 4
 
 
 def two_product(a, b):

@@ -20,10 +20,10 @@ import numpy as np
 from .core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
                    OK, velocity_work, work_sizes)
 from .core import DIVERGED as FAILED_STEP
-from .core import ERROR_BOUND, adapt_step, select_extrapolation
+from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolation
 from .core import step_error as error_estimate
 from .jit import entry_point
-from .errors import StepError, StepSizeError, step_error
+from .errors import EnergyDriftError, StepError, StepSizeError, step_error
 from .protocol import _Adapted, adapt_system
 from .records import Method, Newton, Options, Samples, State, System, Work
 from .quadrature import gauss_rule01
@@ -761,7 +761,7 @@ class Stepper(Counted):
         self._gamma = np.zeros((method.s, self.binding.u))
         self._h_prev = None
         self._extrapolation = Extrapolation(method)
-        self._eref = np.full(3, np.nan)     # [energy, EQUIP's alpha and slope] (integrators.loop)
+        self._eref = np.full(N_EREF, np.nan)  # [energy, EQUIP's alpha, slope, start] (core.N_EREF)
         self.counters = np.zeros(N_COUNTERS)
         self.binding.watch(self.counters)
         # one step is run() of one step without samples (loop.advance, which compiled callers
@@ -827,6 +827,14 @@ class Stepper(Counted):
         it (nan before the first step): a host compares it with H at the state it hands back
         to see a Hamiltonian changed between steps (ASE's calculator set in place)."""
         return float(self._eref[0])
+
+    def accept_energy_jump(self, jump: float) -> None:
+        """Move the run's starting energy by ``jump``, a change of H on the last step that the
+        host knows is not the step's (a calculator's own discontinuity, accepted with a warning
+        by ASE's host): the drift rule (:data:`integrators.core.DRIFT_BOUND`) then goes on
+        judging what the steps did, not the calculator's jumps."""
+        if math.isfinite(jump):
+            self._eref[EREF_RUN] += jump
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -1031,6 +1039,8 @@ class Stepper(Counted):
             snap = self.save_state()
             try:
                 self.step(h)
+            except EnergyDriftError:
+                raise               # the run's past: no shorter step in its place undoes it
             except StepError as err:
                 status, err_est, cause = FAILED_STEP, math.nan, f"{type(err).__name__}: {err}"
             else:

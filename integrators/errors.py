@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 
-from .core import DIVERGED, NOT_FINITE, NOT_RESOLVED, UNRESOLVED
+from .core import DIVERGED, DRIFTED, NOT_FINITE, NOT_RESOLVED, UNRESOLVED
 from .equip_core import ALPHA_LIMIT, NO_ENERGY_ROOT
 
 
@@ -138,6 +138,37 @@ class UnresolvedStepError(StepError):
                          f"{what}; {self.hint}")
 
 
+class EnergyDriftError(UnresolvedStepError):
+    """A step of a method not exact for H (k = s, the Gauss method, or k too small for H's
+    quadrature) converged and passed its own checks, but the run's energy now stands more than
+    :data:`integrators.core.DRIFT_BOUND` of |T| + |V| away from its start: the orbit's size and
+    period are off by about as much, its phase by ten times that a period.  No shorter step in
+    its place can undo the run's past, so adaptive steps do not retry it.  Nothing was committed.
+
+    Attributes (besides :class:`UnresolvedStepError`'s): ``drift``, the energy's distance from
+    its start relative to |T| + |V| (also ``change``), and ``bound``, the bound it exceeded.
+    The message names no step size: the drift found here is the first to pass the bound, and a
+    run's drift can still grow after it (a pericentre passage's offset is set over the whole
+    passage), so a step computed from it would not be a way out that works.
+    """
+
+    def __init__(self, h: float, drift: float, bound: float, iterations: int, s: int,
+                 t: float | None = None, hint: str | None = None, solver: str = "fixed_point"):
+        way = hint or (f"give the line integral more quadrature nodes: integrators.kchoice."
+                       f"choose_k(system, y0, {s}, h, steps) finds the fewest that keep H to "
+                       f"round-off at this step (HBVM({2 * s}, {s}) is often enough)")
+        hint = (f"{way}; or a smaller step (the drift of HBVM with too few nodes falls like "
+                f"h^{2 * s}); or energy_tol=None to accept the drift")
+        super().__init__(h, drift, bound, iterations, t, hint, solver)
+        RuntimeError.__init__(self, (
+            f"{self._where()} leaves the run's energy {drift:.3e} (relative to |T| + |V|) away "
+            f"from its start, more than {bound:.1e}: HBVM with this many quadrature nodes does "
+            f"not keep this H, and an energy this far off puts the orbit off too (its size and "
+            f"period by about as much, its phase by ten times that a period), although every "
+            f"step passed its own checks; {hint}"))
+        self.drift, self.bound = drift, bound
+
+
 def unresolved_by_estimate(h: float, estimate: float, bound: float, body: int, s: int,
                            iterations: int, t: float | None, solver: str = "fixed_point",
                            hints: dict | None = None) -> "UnresolvedStepError":
@@ -231,6 +262,10 @@ def _step_error(status, h, t, counters, solver, energy_tol, hints, error_bound, 
         return ConvergenceError(h, float(counters[C_LAST]), it, solver, t, hints.get("diverged"))
     if status == NOT_FINITE:
         return NonFiniteError(h, it, solver, t, hints.get("not_finite"))
+    if status == DRIFTED:
+        from .core import DRIFT_BOUND
+        return EnergyDriftError(h, float(counters[C_CHANGE]), DRIFT_BOUND, it, s, t,
+                                hints.get("drifted"), solver)
     if status == UNRESOLVED:
         etol = float(energy_tol or 0.0)
         return UnresolvedStepError(h, float(counters[C_CHANGE]), abs(etol), it, t,

@@ -15,7 +15,7 @@ step: the documentation's design page "One step, written once" (``docs/design/st
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ERR, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
-                              C_STEPS, C_WORST, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
+                              C_STEPS, C_WORST, DRIFT_BOUND, DRIFTED, EREF_RUN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
                               resolution_error, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation,
                               all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
@@ -271,8 +271,11 @@ def resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb, Xb, Fb, Xpb, Fpb, 
 
 def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
     """The energy check, a second guard independent of the step's own estimate (etol: see
-    :func:`run`).  Returns (refused, the relative change of H); eref[0] holds the new energy
-    when the step passes."""
+    :func:`run`).  Returns (status: OK, UNRESOLVED or DRIFTED; the relative change of H, or the
+    run's relative drift when DRIFTED); eref[0] holds the new energy when the step passes, and
+    eref[EREF_RUN] the energy at the run's start (the energy before this step when not known:
+    a host that starts a run afresh sets it to nan, one that only recomputes the energy of a
+    loaded state, eref[0], keeps the run's start)."""
     if not np.isfinite(eref[0]):
         t0, v0 = energy_parts(full, y, kin_w, params)
         eref[0] = t0 + v0
@@ -291,9 +294,22 @@ def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
         moved = abs(t1 + v1 - eref[0]) / FLOW_FRACTION[min(g.shape[0], 3) - 1]
         refuse = not ((not full and moved <= abs(t1 - weighted_kinetic(y[m:], kin_w)))
                       or moved <= energy_flow(full, y, kin_w, h, g, W, I, G))
-    if not refuse:
-        eref[0] = t1 + v1
-    return refuse, change
+    if refuse:
+        return UNRESOLVED, change
+    if etol < 0.0 and not full:
+        # ... and the run's energy against its start: each step of a symmetric method may pass
+        # while the run keeps an offset that puts its orbit off (core.DRIFT_BOUND).  Only in
+        # the separable form, whose |T| + |V| is the size of a physical energy: a full-form H
+        # has no such scale (a Poincare-transformed H is zero on the solution)
+        if not np.isfinite(eref[EREF_RUN]):
+            eref[EREF_RUN] = eref[0]
+        drift = abs(t1 + v1 - eref[EREF_RUN])
+        if scale > 0.0:
+            drift = drift / scale
+        if not drift <= DRIFT_BOUND:
+            return DRIFTED, drift
+    eref[0] = t1 + v1
+    return OK, change
 
 
 def run(system, state, h, E, method, newton, opts, wk, samples):
@@ -522,11 +538,11 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             if not err <= ebound:
                 return fail(counters, NOT_RESOLVED, work_iter, work_nfev, work_newton)
         if etol != 0.0:
-            refused, change = energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W,
+            checked, change = energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W,
                                            I, G)
-            if refused:
+            if checked != OK:
                 counters[C_CHANGE] = change
-                return fail(counters, UNRESOLVED, work_iter, work_nfev, work_newton)
+                return fail(counters, checked, work_iter, work_nfev, work_newton)
         copy1(y, yt)
         copy1(cy, cyt)
         copy2(gamma, g)
@@ -588,7 +604,7 @@ def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts,
                          opts, wk)
         res[0] = h
         res[1] = h
-        if epsilon <= 0.0:
+        if epsilon <= 0.0 or status == DRIFTED:   # (the run's past: no shorter step undoes it)
             return status
         err = error_estimate(gammat, system.minv) if status == OK else np.nan
         accept, h_new, too_small = adapt_step(h, status, err, epsilon, s, t_start, min_dt)

@@ -8,9 +8,11 @@ import itertools
 import numpy as np
 import pytest
 
-from integrators import (HBVM, ConvergenceError, StepError, Stepper, UnresolvedStepError,
+from integrators import (HBVM, ConvergenceError, EnergyDriftError, StepError, Stepper, UnresolvedStepError,
                          integrate)
 from integrators.engine import DEFAULT_ENERGY_TOL, NOT_A_SOLUTION, energy_check
+from integrators.core import DRIFT_BOUND
+from integrators.kchoice import choose_k
 from systems import HamiltonianSystem, HenonHeiles, Kepler, SeparableSystem
 
 
@@ -97,25 +99,37 @@ def test_kepler_at_a_huge_step_raises_rather_than_escaping():
 
 def test_the_default_check_passes_a_method_s_own_energy_error():
     """A method not exact for H keeps its quadrature error, far above 1e-10 a step at coarse
-    steps: Gauss s = 2 on Kepler e = 0.6 at 50 steps a period (1e-5 a step near pericentre),
-    the midpoint rule (0.14 over the run): the defaults run them, a strict 1e-10 refuses them."""
+    steps: Gauss s = 2 on Kepler e = 0.6 at 50 steps a period (1e-5 a step near pericentre,
+    2.8e-4 over five periods, 0.02 off its orbit): the defaults run it, a strict 1e-10 refuses
+    it."""
     kep = Kepler(0.6)
     y0 = kep.initial_state()
-    for k, s, n in ((2, 2, 50), (1, 1, 50)):
-        # (the energy check alone: such coarse steps can miss more than a thousandth of their
-        # motion at pericentre, which the step's own error check, issue 46, refuses)
-        res = integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, 5 * n, error_bound=None)
-        assert res.steps == 5 * n and 1e-6 < res.max_energy_error < 0.5, (k, s, res.max_energy_error)
-        with pytest.raises(UnresolvedStepError, match="energy_tol=1.0e-10: the step does not"):
-            integrate(HBVM(k, s), kep, y0, 2 * np.pi / n, 5 * n, energy_tol=1e-10,
-                      error_bound=None)
-    # the midpoint rule on Henon-Heiles at h = 0.5 crosses the potential's minimum with a
-    # quadrature error (6e-3 of |T| + |V| at t = 455.5) above the energy its one stage moves:
-    # its own error, not garbage, and it passes
+    # (the energy checks alone: such coarse steps can miss more than a thousandth of their
+    # motion at pericentre, which the step's own error check, issue 46, refuses)
+    res = integrate(HBVM(2, 2), kep, y0, 2 * np.pi / 50, 250, error_bound=None)
+    assert res.steps == 250 and 1e-6 < res.max_energy_error < 1e-3, res.max_energy_error
+    with pytest.raises(UnresolvedStepError, match="energy_tol=1.0e-10: the step does not"):
+        integrate(HBVM(2, 2), kep, y0, 2 * np.pi / 50, 250, energy_tol=1e-10, error_bound=None)
+
+
+def test_the_run_s_drift_is_refused_where_each_step_passes():
+    """The midpoint rule at the same steps (0.9 off its orbit after five periods) and on
+    Henon-Heiles at h = 0.5 (the orbit 0.09 off at t = 500, its energy 6e-3 of |T| + |V|):
+    each step passes the energy check's flow rule (its quadrature error is about the energy it
+    moves), but the run's energy stands more than core.DRIFT_BOUND of |T| + |V| away from its
+    start after the first step, which is refused (EnergyDriftError, nothing committed); its
+    way out, more nodes, runs; energy_tol=None accepts the drift."""
+    kep = Kepler(0.6)
     hh = HenonHeiles(y0=[0.0, 0.1, 0.5, 0.1])
-    res = integrate(HBVM(1, 1), hh, hh.initial_state(), 0.5, 1000, sample_every=10,
-                    error_bound=None)
-    assert res.steps == 1000 and res.max_energy_error > 1e-3
+    for system, h, n in ((kep, 2 * np.pi / 50, 250), (hh, 0.5, 1000)):
+        y0 = system.initial_state()
+        with pytest.raises(EnergyDriftError, match=r"choose_k\(system, y0, 1, h, steps\)") as info:
+            integrate(HBVM(1, 1), system, y0, h, n, error_bound=None)
+        assert info.value.result.steps == 0 and info.value.drift > DRIFT_BOUND
+        k = choose_k(system, y0, 1, h, n, solver="fixed_point").k       # the way out, taken
+        assert integrate(HBVM(k, 1), system, y0, h, n, error_bound=None).steps == n
+        res = integrate(HBVM(1, 1), system, y0, h, n, error_bound=None, energy_tol=None)
+        assert res.steps == n and res.max_energy_error > 1e-3
 
 
 def test_energy_check_defaults():

@@ -434,7 +434,9 @@ class HBVMDynamics(MolecularDynamics):
                                     error_bound=self.error_bound)
             self._stepper.hints = {"body": "atom {i}",
                                    "resolution": "or a larger s (a higher order resolves more "
-                                                 "of the motion in one step)"}
+                                                 "of the motion in one step)",
+                                   "drifted": "give more quadrature nodes (k >= 2s: "
+                                              "HBVMDynamics(..., k=2 * s) or more)"}
         return self._stepper
 
     def _advance(self, st: Stepper) -> np.ndarray:
@@ -578,8 +580,11 @@ class HBVMDynamics(MolecularDynamics):
         ebound = st.error_bound
         st.error_bound = None
         self._through_jump = True
+        before = st.energy_reference
         try:
             forces = self.step()
+            # the jump is the calculator's: the run's drift (core.DRIFT_BOUND) is not charged
+            st.accept_energy_jump(st.energy_reference - before)
         finally:
             st.energy_tol = etol
             st.error_bound = ebound

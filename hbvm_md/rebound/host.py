@@ -42,7 +42,11 @@ _WAY_OUT = ("leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shr
             "encounters, test particles' too), or use a smaller sim.dt")
 _HINTS = {"diverged": _WAY_OUT + ", or a larger max_iter",
           "not_finite": _WAY_OUT + "; check for particles at the same position",
-          "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps"}
+          "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps",
+          # (a run's drift: not the step's size but the quadrature, which the default k makes
+          # exact to round-off)
+          "drifted": "leave k unset (HBVMIntegrator(sim, s=...) then chooses k so that H is "
+                     "kept to round-off) or give more nodes, k >= 2s"}
 _REB_GENERIC_ERROR = 1            # enum REB_STATUS
 _PENDING: dict = {}               # simulation address -> the exception of its failed step
 _REG = None                       # what registration keeps alive (see register)
@@ -189,7 +193,7 @@ def _create() -> int:
         int(d["adaptive"]))
     sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV]] = (
         d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan)
-    sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, EQUIP's alpha and slope: unknown
+    sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, alpha, slope, run's start: unknown
     st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
     return p
 
@@ -476,6 +480,7 @@ def _forget_host_energy(addr: int) -> None:
     prepared = _prepared(addr)
     if prepared is not None and prepared[2][L.D_HOST]:
         prepared[1][L.SL_EREF] = np.nan
+        prepared[1][L.SL_EREF_RUN] = np.nan     # (H may have changed: the run's start too)
 
 
 def _install_operators() -> None:
@@ -787,6 +792,7 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
         exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
     else:
         hints = {k: near + v for k, v in _HINTS.items()}
+        hints["drifted"] = _HINTS["drifted"]     # (the run's drift: no encounter to name)
         if status == NOT_RESOLVED and sim is not None:
             body = int(counters[C_WORST])
             if 0 <= body < sim.N:
@@ -949,7 +955,7 @@ def _prepare(sim, p: int) -> None:
         y[:2 * dim] = y0
         _array(st, L.SL_GAMMA, L.SL_NGAMMA, s * u)[:] = 0.0
         sd[L.SL_H_PREV] = np.nan
-        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha and slope
+        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha, slope, run's start
         st[L.SL_RESYNCS] += 1
     if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
         sd[L.SL_EREF] = np.nan

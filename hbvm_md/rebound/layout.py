@@ -45,21 +45,23 @@ TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error 
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
- SL_H_PREV, SL_EREF, SL_ALPHA, SL_SLOPE, SL_METHOD, SL_NSTEPS, SL_REJECTED, SL_RESYNCS,
- SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS, SL_NCOUNTERS,
+ SL_H_PREV, SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN, SL_METHOD, SL_NSTEPS, SL_REJECTED,
+ SL_RESYNCS, SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS, SL_NCOUNTERS,
  # not saved: this process's addresses, and what a failed step recorded
  SL_CORE, SL_CTX, SL_PREPARE, SL_FAIL, SL_FREE, SL_ECHECK,
- SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(35)
+ SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(36)
 N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, its status
 #: saved: the largest adaptive step (0: no bound), after the unsaved slots so that no slot
 #: number above moved when it was added
 SL_MAX_DT = SL_RES + N_RES
 N_SLOTS = SL_MAX_DT + 1
-#: the step's eref (integrators.loop): the energy, and EQUIP's alpha and dE/dalpha (its warm
-#: starts), in the consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE (integrators.equip_core's
-#: EREF_EQUIP entries; HBVM reads the first only)
-N_EREF = 3
-assert (SL_ALPHA, SL_SLOPE) == (SL_EREF + 1, SL_EREF + 2)   # one array of N_EREF
+#: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
+#: starts) and the energy at the run's start (the anchor of core.DRIFT_BOUND's rule), in the
+#: consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN.  Saved fields are found by name
+#: in REBOUND's binary format, so a slot added here leaves older archives readable (a field
+#: they lack keeps the value ``create`` gave it: nan for these)
+N_EREF = 4
+assert (SL_ALPHA, SL_SLOPE, SL_EREF_RUN) == (SL_EREF + 1, SL_EREF + 2, SL_EREF + 3)
 
 NODES = ("gauss", "lobatto")
 #: the integrators' family (``sim.integrator.method``): integrators.HBVM, integrators.EQUIP
@@ -93,6 +95,7 @@ SAVED = (
     ("eref", SL_EREF, _DOUBLE, None, ""),
     ("alpha", SL_ALPHA, _DOUBLE, None, ""),
     ("slope", SL_SLOPE, _DOUBLE, None, ""),
+    ("eref_run", SL_EREF_RUN, _DOUBLE, None, ""),
     ("nsteps", SL_NSTEPS, _INT64, None, "Steps committed."),
     ("rejected", SL_REJECTED, _INT64, None, "Adaptive trial steps rejected and retried smaller."),
     ("resyncs", SL_RESYNCS, _INT64, None, "Times the state was read afresh from the particles."),
