@@ -103,8 +103,8 @@ def check_particles(y: np.ndarray, model: NBody) -> None:
 
 
 def shortest_period(sim) -> float:
-    """The shortest two-body orbital period 2 pi sqrt(r^3 / (G M)) over pairs with a
-    gravitating member, from the current positions (a crude time scale of the scene).
+    """The shortest two-body orbital period 2 pi sqrt(r^3 / (G (|m_i| + |m_j|))) over pairs
+    with a gravitating member, from the current positions (a crude time scale of the scene).
     ``sim``: a ``rebound.Simulation`` or the :class:`systems.NBody` read from one."""
     nb = sim if isinstance(sim, NBody) else NBody.from_rebound(sim)
     g = np.where(nb.is_source, nb.body_masses, 0.0)

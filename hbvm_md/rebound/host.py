@@ -664,8 +664,9 @@ def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
     """The closest encounter in ``sim`` as it is (the start of a failed step): of the pairs
     with a gravitating body (test particles do not meet each other), or of particle ``only``'s
     pairs, the one that weighs most in a step's error estimate: the largest (s-1)-th
-    derivative of their pull, G (m_i + m_j) / d^2 / tau^(s-1) with the pair's time scale
-    tau = min(d / v, sqrt(d^3 / (G (m_i + m_j)))) (a fast pass of a light body weighs little).
+    derivative of their pull, G (|m_i| + |m_j|) / d^2 / tau^(s-1) with the pair's time scale
+    tau = min(d / v, sqrt(d^3 / (G (|m_i| + |m_j|)))) (a fast pass of a light body weighs
+    little).
     dict(i, j, distance, speed, time) (j gravitates), or None when there is no such pair."""
     N = sim.N
     x, v, m = np.empty((N, 3)), np.empty((N, 3)), np.empty(N)
