@@ -129,7 +129,9 @@ def test_the_energy_reference_follows_a_mass_changed_between_runs():
     mass change between runs: no spurious refusal (a star kept at rest, whose state the host
     keeps across the change: before, UnresolvedStepError 'the step changed the energy by
     6.2e-2', the potential's jump read as the step's error) and no jump hidden (the energy after
-    the run is the changed system's, and the check's reference tracks it)."""
+    the run is the changed system's, and the check's reference tracks it); the same on a copy
+    made before the change (a loaded or copied run keeps no record of its masses: refused as
+    well before), and bit for bit the uninterrupted run's."""
     runs = []
     for integrator in ("ias15", "hbvm"):
         sim = _symmetric(integrator)
@@ -143,6 +145,13 @@ def test_the_energy_reference_follows_a_mass_changed_between_runs():
             assert abs(sim.energy() - e_changed) < 1e-13
             assert abs(_energy_reference(sim) - sim.energy()) < 1e-13
     assert np.max(np.abs(runs[0] - runs[1])) < 1e-10
+    # the same change on a copy (no record of the masses its saved reference belongs to)
+    sim = _symmetric("hbvm")
+    sim.integrate(2.0)
+    copy = sim.copy()
+    copy.particles[0].m = 1.1
+    copy.integrate(4.0)
+    assert np.array_equal(_xv(copy), runs[1])
     # a change taken in place (no variational particles): the same
     sim = _three("hbvm", 1e-3, 1e-3, test_particle=False)
     HBVMIntegrator(sim, s=6, k=8, dt=0.05, adaptive=False)

@@ -942,6 +942,14 @@ def _prepare(sim, p: int) -> None:
         # kept, but the reference energy is the old masses' and would refuse the next step
         # (a jump of the potential, not the step's error); the check starts afresh from it
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
+    elif keep and nb is not None and not st[L.SL_CTX]:
+        # a loaded or copied run kept: no record of the masses its reference energy was
+        # computed with (a mass changed after loading, on a body at rest, was refused as
+        # above).  The energy alone starts afresh: the check computes it from the kept state
+        # by the same function that computed the saved one at the last commit (loop.
+        # energy_check), so an unchanged run continues bit for bit; EQUIP's alpha and slope
+        # (an initial guess and its slope) stay.
+        sd[L.SL_EREF] = np.nan
     if not keep:
         if nb is not None:
             q0 = x.reshape(-1).copy()
