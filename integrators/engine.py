@@ -493,9 +493,11 @@ class Binding:
             if masses.shape != (m,):
                 raise ValueError(f"`masses` of the system must have shape ({m},) "
                                  f"(got {masses.shape})")
-            if not np.all(np.isfinite(masses) & (masses > 0)):
-                bad = int(np.flatnonzero(~(np.isfinite(masses) & (masses > 0)))[0])
-                raise ValueError(f"`masses` of {type(system).__name__} must be positive and "
+            # (a negative mass is a mass: an N-body source of negative mass, whose p / m is
+            # its velocity; only a zero has no velocity)
+            if not np.all(np.isfinite(masses) & (masses != 0)):
+                bad = int(np.flatnonzero(~(np.isfinite(masses) & (masses != 0)))[0])
+                raise ValueError(f"`masses` of {type(system).__name__} must be nonzero and "
                                  f"finite, one per coordinate (got masses[{bad}]={float(masses[bad])!r}): "
                                  f"a coordinate of zero mass has no velocity p / m; give it a "
                                  f"mass (NBody gives a massless test particle 1 per coordinate) "

@@ -2,9 +2,13 @@
 
 Sources and test particles
 --------------------------
-Particle i is a *source* when it is active (i < ``n_active``) and has positive mass; every other
+Particle i is a *source* when it is active (i < ``n_active``) and has a nonzero mass; every other
 particle is a *test particle*: it feels the sources and exerts nothing (REBOUND's
-``testparticle_type = 0``).  The unknowns are q (3N,) flat and
+``testparticle_type = 0``).  A negative mass is a source like any other (REBOUND and IAS15 take
+them; REBOUND's own ``test_variational.py`` differences runs across m = 0): its momentum m v
+points against its velocity, its kinetic energy is negative, and it pulls with -|m|, so that
+two bodies of opposite masses chase each other; nothing below assumes m > 0 (a time scale
+takes |m|).  The unknowns are q (3N,) flat and
 
 * p_i = m_i v_i for a source (the usual canonical momentum),
 * p_i = v_i for a test particle (unit "mass" in M), so that a zero mass loses nothing.
@@ -185,23 +189,25 @@ def _add_pair(out, r, i, j, ci, cj, dx, dy, dz):
 
 @jit
 def shortest_r3_over_m(x, g):
-    """min of r^3 / (g_i + g_j) over the pairs of rows of x (N, 3) with g_i + g_j > 0 (inf
-    when there is none): the shortest two-body period is 2 pi sqrt(that / G).  Every such pair
-    has a member with g > 0, so the loop runs over those: O(N) for one star among test
-    particles, no memory."""
+    """min of r^3 / (|g_i| + |g_j|) over the pairs of rows of x (N, 3) with a nonzero g among
+    them (inf when there is none): the shortest two-body period is 2 pi sqrt(that / G).  The
+    loop runs over the members with g != 0: O(N) for one star among test particles, no memory.
+    |g| and not g: a negative mass (a source, :mod:`systems.nbody`) moves its partner as fast
+    as a positive one of the same size, and a pair of opposite masses has g_i + g_j = 0 (and
+    the same numbers as g_i + g_j when every mass is positive)."""
     N = x.shape[0]
     best = np.inf
     for i in range(N):
-        if not g[i] > 0.0:
+        if g[i] == 0.0:
             continue
         for j in range(N):
-            if j == i or (g[j] > 0.0 and j < i):     # a pair of two sources once
+            if j == i or (g[j] != 0.0 and j < i):    # a pair of two sources once
                 continue
             dx = x[j, 0] - x[i, 0]
             dy = x[j, 1] - x[i, 1]
             dz = x[j, 2] - x[i, 2]
             r2 = dx * dx + dy * dy + dz * dz
-            t = r2 * np.sqrt(r2) / (g[i] + g[j])
+            t = r2 * np.sqrt(r2) / (abs(g[i]) + abs(g[j]))
             if t < best:
                 best = t
     return best
@@ -283,7 +289,7 @@ def nbody_set_masses(params, masses):
     ns = int(params[own + 1]) if own >= 0 else 0
     k = 0
     for i in range(N):
-        if params[2 + N + i] > 0.0:           # g: the gravitating mass (0: not a source)
+        if params[2 + N + i] != 0.0:          # g: the gravitating mass (0: not a source)
             params[2 + i] = masses[i]
             params[2 + N + i] = masses[i]
             if own >= 0:
@@ -344,7 +350,8 @@ class NBody(SeparableSystem):
     Parameters
     ----------
     masses : array_like, shape (N,)
-        Masses m_i >= 0; zero-mass particles are test particles.
+        Finite masses; zero-mass particles are test particles, a negative mass is a source
+        (module docstring).
     G : float
         Gravitational constant (REBOUND's default is 1).
     n_active : int, optional
@@ -375,8 +382,8 @@ class NBody(SeparableSystem):
         m = np.array(masses, dtype=float).reshape(-1) if np.ndim(masses) <= 1 else None
         if m is None or m.size < 1:
             raise ValueError(f"`masses` must be a 1-d array of N >= 1 masses (got {masses!r})")
-        if not np.all(np.isfinite(m)) or np.any(m < 0):
-            raise ValueError(f"`masses` must be finite and >= 0 (got {m}); use 0 for test particles")
+        if not np.all(np.isfinite(m)):
+            raise ValueError(f"`masses` must be finite (got {m}); use 0 for test particles")
         if not (np.isfinite(G) and G > 0):
             raise ValueError(f"`G` must be a positive number (got G={G!r})")
         N = m.size
@@ -386,7 +393,7 @@ class NBody(SeparableSystem):
             raise ValueError(f"`n_active` must be an integer in [0, N={N}] or None for all (got {n_active!r})")
         self.N, self.G, self.n_active = N, float(G), int(n_active)
         self.body_masses = m
-        self.is_source = (np.arange(N) < self.n_active) & (m > 0)
+        self.is_source = (np.arange(N) < self.n_active) & (m != 0)
         w = np.where(self.is_source, m, 1.0)
         self.masses = np.repeat(w, 3)
         self.dim = 3 * N

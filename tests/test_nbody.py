@@ -217,7 +217,8 @@ def test_test_particles_far_outside_the_sources_leave_them_bit_for_bit():
     ([1.0, 1e-3, 3e-4], None),                      # sources only
     ([1.0, 0.0, 1e-3, 0.0, 2e-4], None),            # sources and test particles (followers)
     ([1.0, 1e-3, 5e-4, 1e-6], 2),                   # bodies past n_active
-    ([0.0, 0.0], None)])                            # test particles only
+    ([0.0, 0.0], None),                             # test particles only
+    ([1.0, -1e-3, 0.0, 2e-4], None)])               # a negative mass (a source)
 def test_set_masses_gives_the_parameters_of_the_new_masses(masses, n_active):
     """nbody_set_masses (the REBOUND host's change of masses in place) writes exactly the
     kernel parameters an NBody of the new masses has, the followers block included."""
@@ -227,11 +228,36 @@ def test_set_masses_gives_the_parameters_of_the_new_masses(masses, n_active):
     params = NBody(m, G=2.0, n_active=n_active)._params.copy()
     nbody_set_masses(params, new)
     assert np.array_equal(params, NBody(new, G=2.0, n_active=n_active)._params)
+    nbody_set_masses(params, -new)                        # through zero: the same sources
+    assert np.array_equal(params, NBody(-new, G=2.0, n_active=n_active)._params)
+
+
+def test_a_negative_mass_is_a_source_and_zero_a_test_particle():
+    """A negative mass gravitates (REBOUND's and IAS15's convention: a source of mass -|m|,
+    momentum m v, kinetic energy m v^2 / 2 < 0), a zero mass stays a test particle; the time
+    scale takes |m| (a pair of opposite masses has m_i + m_j = 0, and used to be skipped,
+    with the sign of m, as no pair at all)."""
+    from systems.nbody import shortest_r3_over_m
+    nb = NBody([1.0, -1.0, 0.0], positions=[[0, 0, 0], [2, 0, 0], [0, 3, 0]],
+               velocities=[[0, 0, 0], [0, 1, 0], [1, 0, 0]])
+    assert nb.is_source.tolist() == [True, True, False]
+    y = nb.initial_state()
+    assert np.array_equal(y[9:], [0, 0, 0, 0, -1, 0, 1, 0, 0])            # p = m v, v
+    assert nb.kinetic(y[9:]) == -0.5 and nb.potential(y[:9]) == 0.5      # -G m1 m2 / r
+    f = nb.forces(y[:9]).reshape(3, 3)
+    # the positive mass is pushed away from the negative one, which is pulled after it
+    # (its acceleration f / m = -0.25 too: a chase)
+    assert np.allclose(f[0], [-0.25, 0, 0]) and np.allclose(f[1], [0.25, 0, 0])
+    # the test particle at (0, 3): the star's pull, and the negative mass's push from (2, 0)
+    assert np.allclose(f[2], np.array([0, -3, 0]) / 27.0 - np.array([2, -3, 0]) / 13.0 ** 1.5)
+    x = np.array(nb.positions)
+    assert shortest_r3_over_m(x, np.array([1.0, -1.0, 0.0])) == 4.0      # 8 / (1 + 1)
+    assert shortest_r3_over_m(x, np.array([1.0, 1.0, 0.0])) == 4.0
 
 
 def test_bad_input_is_refused():
-    with pytest.raises(ValueError, match="`masses` must be finite and >= 0"):
-        NBody([1.0, -1.0])
+    with pytest.raises(ValueError, match="`masses` must be finite"):
+        NBody([1.0, np.nan])
     with pytest.raises(ValueError, match="`n_active` must be an integer in"):
         NBody([1.0, 1.0], n_active=3)
     with pytest.raises(ValueError, match="`G` must be a positive number"):

@@ -255,22 +255,6 @@ def test_a_variation_of_a_particle_past_the_last_is_refused_at_the_first_step():
     assert sim.t == 0.0 and np.array_equal(_xv(sim), before)
 
 
-def test_a_negative_mass_is_refused_naming_ias15():
-    """REBOUND and IAS15 take negative masses (REBOUND's test_variational.py differences runs
-    across m = 0); HBVM's N-body step does not, and said so in its own terms ("`masses` must be
-    finite and >= 0 ... use 0 for test particles"), not the way out."""
-    sim = outer_solar_system().to_rebound()
-    sim.particles[2].m = -1e-5
-    sim.integrator = "hbvm"
-    with pytest.raises(ValueError, match=r"negative masses \(particle 2: m=-1e-05; HBVM's N-body "
-                                         r"step takes masses >= 0, 0 for a test particle\); use "
-                                         r"IAS15"):
-        sim.integrate(100.0)
-    sim.integrator = "ias15"                    # (the way out, taken)
-    sim.integrate(100.0)
-    assert sim.t == 100.0
-
-
 def test_warnings_point_at_the_users_line_and_nothing_is_printed(capsys):
     sim = rebound.Simulation()
     sim.add(m=1.0)

@@ -87,7 +87,7 @@ MESSAGES = [
     ("coincident bodies, adaptive", _run(*PAIR, steps=None, adaptive=True, t_end=1.0),
      StepSizeError, r"fell below the smallest step .*\(NonFiniteError: .*coincident particles"),
     ("zero mass", _run(ZeroMass()), ValueError,
-     r"`masses` of ZeroMass must be positive and finite, .*\(got masses\[0\]=0.0\)"),
+     r"`masses` of ZeroMass must be nonzero and finite, .*\(got masses\[0\]=0.0\)"),
     ("fast='no'", _run(KEP, fast="no"), ValueError,
      r"`fast` must be True .*, False .* or None .* \(got fast='no'\)"),
     ("dim = 0", _run(NoDim()), ValueError, r"`dim` of NoDim must be a positive integer.*\(got dim=0\)"),

@@ -328,7 +328,7 @@ def scene_set_masses(params, masses, g0):
     the caller).  The caller keeps the gravitating bodies (no mass becomes 0 or nonzero)."""
     N = int(params[P_N])
     for i in range(N):
-        if params[g0 + i] > 0.0:
+        if params[g0 + i] != 0.0:
             params[g0 + i] = masses[i]
 
 
@@ -550,7 +550,7 @@ class ReboundScene:
         vmax = float(np.max(np.abs(v))) if np.all(np.isfinite(v)) else 0.0
         odes, nz = ode_entries(sim, vmax)
         self.N, self.nz, self.dim = N, nz, 3 * N + nz + 1
-        self.gravitating = (m > 0) & (act | semi)
+        self.gravitating = (m != 0) & (act | semi)       # (a negative mass gravitates too)
         self.masses = np.ones(self.dim)
         self.kinetic_weights = np.concatenate(
             [np.repeat(np.where(self.gravitating, m, 0.0), 3), np.zeros(nz + 1)])

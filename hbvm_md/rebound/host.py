@@ -669,14 +669,15 @@ def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
     """The closest encounter in ``sim`` as it is (the start of a failed step): of the pairs
     with a gravitating body (test particles do not meet each other), or of particle ``only``'s
     pairs, the one that weighs most in a step's error estimate: the largest (s-1)-th
-    derivative of their pull, G (m_i + m_j) / d^2 / tau^(s-1) with the pair's time scale
-    tau = min(d / v, sqrt(d^3 / (G (m_i + m_j)))) (a fast pass of a light body weighs little).
+    derivative of their pull, G (|m_i| + |m_j|) / d^2 / tau^(s-1) with the pair's time scale
+    tau = min(d / v, sqrt(d^3 / (G (|m_i| + |m_j|)))) (a fast pass of a light body weighs
+    little).
     dict(i, j, distance, speed, time) (j gravitates), or None when there is no such pair."""
     N = sim.N
     x, v, m = np.empty((N, 3)), np.empty((N, 3)), np.empty(N)
     sim.serialize_particle_data(xyz=x, vxvyvz=v, m=m)
     na = sim.N_active if 0 <= sim.N_active < N else N
-    src = np.flatnonzero((np.arange(N) < na) & (m > 0))
+    src = np.flatnonzero((np.arange(N) < na) & (m != 0))
     rows = np.arange(N) if only is None else np.array([only])
     best = None
     for a in range(0, rows.size, 256):                  # O(N N_sources) in blocks, no N^2 array
@@ -684,7 +685,8 @@ def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
         d = np.linalg.norm(x[i] - x[src][None], axis=2)
         u = np.linalg.norm(v[i] - v[src][None], axis=2)
         with np.errstate(divide="ignore", invalid="ignore"):
-            gm = sim.G * (m[i] + m[src][None, :])
+            # (|m|: a negative mass moves its partner as fast as a positive one)
+            gm = sim.G * (np.abs(m[i]) + np.abs(m[src])[None, :])
             tau = np.fmin(d / u, np.sqrt(d ** 3 / gm))
             weight = gm / d ** 2 / tau ** (s - 1)
         weight[(i == src[None, :]) | np.isnan(weight)] = -1.0
@@ -941,6 +943,19 @@ def _prepare(sim, p: int) -> None:
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
         st[L.SL_RESYNCS] += 1
         keep = True
+    if keep and nb is not None and _masses_changed(st, sim):
+        # a mass changed between runs on a body at rest (p = 0 = m v whatever m): the state is
+        # kept, but the reference energy is the old masses' and would refuse the next step
+        # (a jump of the potential, not the step's error); the check starts afresh from it
+        sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
+    elif keep and nb is not None and not st[L.SL_CTX]:
+        # a loaded or copied run kept: no record of the masses its reference energy was
+        # computed with (a mass changed after loading, on a body at rest, was refused as
+        # above).  The energy alone starts afresh: the check computes it from the kept state
+        # by the same function that computed the saved one at the last commit (loop.
+        # energy_check), so an unchanged run continues bit for bit; EQUIP's alpha and slope
+        # (an initial guess and its slope) stay.
+        sd[L.SL_EREF] = np.nan
     if not keep:
         if nb is not None:
             q0 = x.reshape(-1).copy()
@@ -984,7 +999,7 @@ def _prepare(sim, p: int) -> None:
     if nb is None:
         check = scene.hamiltonian
     else:
-        check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) > 0)
+        check = bool(np.count_nonzero(nb.is_source) >= 2 or nb.kinetic(y[dim:2 * dim]) != 0)
     if not check and nb is not None and sd[L.SL_ETOL] > 0 and not st[L.SL_ECHECK] == -1:
         warnings.warn("HBVM: the gravitating bodies have no energy (a single body at rest), so "
                       "energy_tol's energy check checks nothing here; test particles are checked "
@@ -1021,14 +1036,23 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
         return True
     if bool(ctx[L.D_HOST]) != host:
         return True
+    # (a state of velocities does not see a mass changed)
+    return host and _masses_changed(st, sim)
+
+
+def _masses_changed(st: np.ndarray, sim) -> bool:
+    """Are the simulation's masses other than those the last step wrote (its context's copy of
+    the particles)?  False without a context or with another N."""
+    if not st[L.SL_CTX]:
+        return False
+    ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
     N = int(ctx[L.D_N])
-    if N == sim.N and host:      # (a state of velocities does not see a mass changed)
-        written = doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
-        m = np.zeros(N)
-        sim.serialize_particle_data(m=m)
-        if not np.array_equal(written[:, 6], m):
-            return True
-    return False
+    if N != sim.N:
+        return False
+    written = doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
+    m = np.zeros(N)
+    sim.serialize_particle_data(m=m)
+    return not np.array_equal(written[:, 6], m)
 
 
 def _force_name(sim, reasons=None) -> str:

@@ -31,11 +31,16 @@ def _closest_ahead(x, v, xs, vs, mu):
     at xs, vs (3,) of G m = mu (the squared two-body periods over 4 pi^2): r the distance now,
     r_a the closest distance their two-body motion about it still has ahead, the osculating
     pericentre h^2 / (mu (1 + e)) when the relative orbit is bound or approaching, else r (an
-    unbound orbit moving away has its pericentre behind it)."""
+    unbound orbit moving away has its pericentre behind it).  mu < 0 (a negative mass, which
+    repels): r^3 / |mu| for both."""
     r = x - xs
     w = v - vs
     r2 = np.einsum("ij,ij->i", r, r)
     rn = np.sqrt(r2)
+    if mu < 0.0:
+        # a source of negative mass repels: its time scale is that of |mu|, and no closer
+        # approach than now is taken from a two-body motion that turns away from it
+        return r2 * rn / -mu, r2 * rn / -mu
     c = np.cross(r, w)
     h2 = np.einsum("ij,ij->i", c, c)
     energy = 0.5 * np.einsum("ij,ij->i", w, w) - mu / rn

@@ -95,13 +95,14 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
     accelerations (weights 1, kinetic weights the gravitating masses), else (q, p) of the
     N-body kernel; g0: where the gravitating masses start in params on REBOUND's own
     accelerations (:func:`hbvm_md.rebound.forces.masses_at`).  Returns False, changing
-    nothing, when no mass changed, a value is not finite or negative, or a body's mass became
-    or stopped being zero (the model's structure changes: the host prepares afresh)."""
+    nothing, when no mass changed, a value is not finite, or a body's mass became or stopped
+    being zero (the model's structure changes: the host prepares afresh).  A mass may change
+    sign: a negative mass is a source (:mod:`systems.nbody`), its weights 1/m negative."""
     N = view.shape[0]
     changed = False
     for i in range(N):
         mi, wi = view[i, im], written[i, 6]
-        if not (np.isfinite(mi) and mi >= 0.0) or (mi > 0.0) != (wi > 0.0):
+        if not np.isfinite(mi) or (mi != 0.0) != (wi != 0.0):
             return False
         changed = changed or mi != wi
         for c in range(3):
@@ -125,10 +126,10 @@ def update_masses(view, written, params, minv, kin_w, y, eref, host, ix, ivx, im
     # m v and zero the compensations always: a restart differed by 1e-14.)
     keep = True
     for i in range(N):
-        # a source's weights are 1/m (kin_w > 0 marks a source: a test particle's momentum is
-        # its velocity, weight 1, kinetic weight 0); on REBOUND's own accelerations the state
-        # holds velocities and a source's kinetic weight is its mass
-        source = kin_w[3 * i] > 0.0
+        # a source's weights are 1/m (kin_w != 0 marks a source, of either sign: a test
+        # particle's momentum is its velocity, weight 1, kinetic weight 0); on REBOUND's own
+        # accelerations the state holds velocities and a source's kinetic weight is its mass
+        source = kin_w[3 * i] != 0.0
         for c in range(3):
             j = 3 * i + c
             if host:
