@@ -218,6 +218,48 @@ def composed_recentre(y, cy, gamma, h, params):
     return 0
 
 
+@jit
+def composed_bodies(y, params, com, t, out):
+    """The barycentric positions and velocities of the star and the N planets, out (N + 1, 6),
+    of one state y (2m,) at its own tau (x = phi_tau(X)), the barycentre at com[0:3] +
+    com[3:6] (t - com[6]) moving with velocity com[3:6] (:meth:`FlowComposed.physical`, for a
+    host that writes bodies at every step).  Returns 0, or 1 + the index of a planet whose flow
+    did not converge (out is then partly NaN)."""
+    N, G, m0, ms, mu, m = _header(params)
+    tau = y[m - 1]
+    bad = 0
+    M = m0
+    for i in range(N):
+        M += ms[i]
+    sx = np.zeros(3)
+    sv = np.zeros(3)
+    for i in range(N):
+        mi = ms[i]
+        a, b, c, d, e, f, it = kepler_step(y[3 * i], y[3 * i + 1], y[3 * i + 2],
+                                           y[m + 3 * i] / mi, y[m + 3 * i + 1] / mi,
+                                           y[m + 3 * i + 2] / mi, mu, tau)
+        if it < 0 and bad == 0:
+            bad = 1 + i
+        out[i + 1, 0], out[i + 1, 1], out[i + 1, 2] = a, b, c
+        out[i + 1, 3], out[i + 1, 4], out[i + 1, 5] = d, e, f
+        sx[0] += mi * a
+        sx[1] += mi * b
+        sx[2] += mi * c
+        sv[0] += mi * d
+        sv[1] += mi * e
+        sv[2] += mi * f
+    dt = t - com[6]
+    for a in range(3):
+        # the star: the barycentre less the planets' moments (heliocentric Q, barycentric V)
+        x0 = com[a] + com[3 + a] * dt - sx[a] / M
+        out[0, a] = x0
+        out[0, 3 + a] = com[3 + a] - sv[a] / m0
+        for i in range(N):
+            out[i + 1, a] += x0
+            out[i + 1, 3 + a] += com[3 + a]
+    return bad
+
+
 def _no_recentre(y, cy, gamma, h, params):      # pragma: no cover - the stand-in's shape
     return 0
 
@@ -271,6 +313,10 @@ class FlowComposed(HamiltonianSystem):
 
     def full_kernels(self):
         return composed_gradient, composed_energy, self._params
+
+    def bodies_kernel(self):
+        """The compiled map of a state to its bodies (:func:`composed_bodies`)."""
+        return composed_bodies
 
     def recentre_kernel(self):
         """The hook run after each committed step (:func:`composed_recentre`)."""

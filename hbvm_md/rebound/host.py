@@ -848,6 +848,19 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
+    if st[L.SL_KEPLER] not in (0, 1):
+        raise ValueError(f"`sim.integrator.kepler` must be 0 (plain HBVM) or 1 (HBVM composed "
+                         f"with the Keplerian flows) (got {int(st[L.SL_KEPLER])})")
+    if st[L.SL_KEPLER] and st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] != 0.0:
+        raise ValueError(
+            "sim.integrator.kepler = 1 takes fixed steps of sim.dt only (the composed step's "
+            "clock row hides the planets from the step-size controller's estimate, as in "
+            "systems.flow_composed); set sim.integrator.epsilon = 0 (fixed steps of sim.dt, as "
+            "with IAS15), or attach with HBVMIntegrator(sim, kepler=True, dt=...); for adaptive "
+            "steps use sim.integrator.kepler = 0")
+    if st[L.SL_KEPLER] and isinstance(method, EQUIP):
+        raise ValueError("sim.integrator.kepler = 1 composes HBVM with the Keplerian flows; "
+                         "method='equip' is not composed: use method='hbvm', or kepler = 0")
     if st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] != 0.0:   # (0: fixed steps, as IAS15's)
         try:
             check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
@@ -866,6 +879,10 @@ def _prepare(sim, p: int) -> None:
     _release_odes(ctypes.addressof(sim))     # (hidden by the last step, when a run resyncs)
     method = check_settings(st, sd)
     check_simulation(sim)
+    if st[L.SL_KEPLER]:
+        from hbvm_md.rebound.composed import prepare_composed
+        prepare_composed(sim, p, method)
+        return
     h = sim.dt
     if not (math.isfinite(h) and h != 0.0):
         _step_size("sim.dt", h)
@@ -1129,14 +1146,21 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
     return doubles(int(st[slot]), n)
 
 
-def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False) -> None:
+def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False,
+             kepler=False) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
-    allocated with the C library (the state's ``free`` releases it with the state)."""
+    allocated with the C library (the state's ``free`` releases it with the state).  kepler:
+    the composed step's (:mod:`hbvm_md.rebound.kepler_glue`: the full form, coefficients of
+    width 2m)."""
     ex = Extrapolation(method)
     (tn, ts), (Wp, Cp) = binding.c1, binding.c2
     NV, NVinv, NM = binding.no_newton
     s, N = method.s, view.shape[0]
-    u = m = binding.minv.shape[0]             # the coefficients' width (separable: m)
+    if binding.full:
+        m = int(binding.system.dim)
+        u = 2 * m                             # the coefficients' width (full form: 2m)
+    else:
+        u = m = binding.minv.shape[0]         # the coefficients' width (separable: m)
     written = np.empty((N, 7))
     written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     written[:, 6] = view[:, im]
@@ -1182,6 +1206,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
         binding.cwork.shape[0], ptr)
     header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
     header[L.D_HOST] = int(host_forces)
+    header[L.D_KEPLER] = int(kepler)
     # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
     header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
         tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
@@ -1225,7 +1250,8 @@ def _python_step(code, st):
         if simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N or any(
                 st_[a] != ctx[b] for a, b in ((L.SL_S, L.D_S), (L.SL_K, L.D_K),
                                                (L.SL_NODES, L.D_NODES),
-                                               (L.SL_METHOD, L.D_METHOD))):
+                                               (L.SL_METHOD, L.D_METHOD),
+                                               (L.SL_KEPLER, L.D_KEPLER))):
             return L.RESYNC
         s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
         u = m
