@@ -40,6 +40,10 @@ DEFAULTS["energy_tol"] = energy_check(HBVM(DEFAULTS["k"], DEFAULTS["s"]), None, 
 #: what to do about a failed fixed step, by its cause (after the closest encounter, _encounter)
 _WAY_OUT = ("leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink through "
             "encounters, test particles' too), or use a smaller sim.dt")
+#: the same for the composed step (``sim.integrator.kepler = 1``: fixed steps only)
+_WAY_OUT_KEPLER = ("use a smaller sim.dt, or sim.integrator.kepler = 0 with adaptive steps "
+                   "(HBVMIntegrator(sim, kepler=False) without `dt`), which shrink through "
+                   "encounters")
 _HINTS = {"diverged": _WAY_OUT + ", or a larger max_iter",
           "not_finite": _WAY_OUT + "; check for particles at the same position",
           "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps"}
@@ -786,13 +790,24 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                                 error_bound=ERROR_BOUND, s=int(st[L.SL_S]))))
         exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
     else:
-        hints = {k: near + v for k, v in _HINTS.items()}
+        kepler = bool(st[L.SL_KEPLER])
+        # (the composed step takes fixed steps only: adaptive ones are plain HBVM's)
+        way_out = (_WAY_OUT_KEPLER if kepler else
+                   "or leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink "
+                   "through encounters)")
+        hints = {k: near + (v.replace(_WAY_OUT, _WAY_OUT_KEPLER) if kepler else v)
+                 for k, v in _HINTS.items()}
         if status == NOT_RESOLVED and sim is not None:
             body = int(counters[C_WORST])
-            if 0 <= body < sim.N:
+            if kepler:
+                # the composed state's blocks are the planets 1 .. N-1, then the clock
+                # (tau, p_tau: the perturbation's rate, systems.flow_composed)
+                who = (_name(sim, body + 1) if 0 <= body < sim.N - 1 else
+                       "the perturbation p_tau")
+                hints["body"] = who.replace("{", "{{").replace("}", "}}")
+            elif 0 <= body < sim.N:
                 hints["body"] = _name(sim, body).replace("{", "{{").replace("}", "}}")
-            hints["resolution"] = (near + "or leave out `dt` (HBVMIntegrator(sim) takes "
-                                   "adaptive steps, which shrink through encounters)")
+            hints["resolution"] = near + way_out
             hints["switch_off"] = "energy_tol=None"
         exc = step_error(status, h, t, counters, "fixed_point", energy_tol=etol,
                          hints=hints, method=name, error_bound=ERROR_BOUND,

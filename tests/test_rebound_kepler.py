@@ -1,0 +1,149 @@
+"""``sim.integrator.kepler = 1`` / ``HBVMIntegrator(sim, kepler=True)``: HBVM composed with
+the Keplerian flows in REBOUND (issue 48, item 4), through the engine's FlowComposed (the same
+state bit for bit), against IAS15, restarted from copies and archives, and its refusals."""
+import numpy as np
+import pytest
+import rebound
+
+from hbvm_md import HBVMIntegrator
+from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.memory import doubles
+from integrators import HBVM, StepError, integrate
+from systems import NBody, outer_solar_system
+from systems.flow_composed import FlowComposed
+
+H = 500.0          # days: the composed method's step of benchmarks/results/kepler_composed.md
+
+
+def _xv(sim):
+    N = sim.N
+    xv = np.zeros(6 * N)
+    sim.serialize_particle_data(xyzvxvyvz=xv)
+    return xv.reshape(N, 6)
+
+
+def _state(sim, m):
+    """The composed state y (2m,) HBVM keeps in REBOUND (hbvm_md.rebound.kepler_glue)."""
+    st, _ = HBVMIntegrator.of(sim)._slots()
+    return doubles(int(st[L.SL_Y]), 2 * m).copy()
+
+
+def _outer(**kw):
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, kepler=True, dt=H, **kw)
+    return sim
+
+
+def test_outer_solar_system_is_the_engines_run_and_ias15s():
+    sim = outer_solar_system().to_rebound()
+    nb = NBody.from_rebound(sim)
+    E0 = sim.energy()
+    hb = HBVMIntegrator(sim, kepler=True, dt=H)
+    assert repr(hb).startswith("HBVMIntegrator(HBVM(8, 6), kepler=True")
+    assert "kepler=1" in repr(sim.integrator) and sim.integrator.kepler == 1
+    n = 40
+    sim.steps(n)
+    # one implementation: the engine's FlowComposed run by integrators.integrate, bit for bit
+    fc = FlowComposed.from_nbody(nb, H)
+    r = integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), H, n, sample_every=n,
+                  form="full")
+    assert np.array_equal(_state(sim, fc.dim), r.y[-1])
+    phys = fc.physical(r.y[-1], H * n)[:3 * sim.N].reshape(sim.N, 3)
+    assert np.abs(_xv(sim)[:, :3] - phys).max() < 1e-13
+    # against IAS15 (55 years): positions and energy
+    ref = outer_solar_system().to_rebound()
+    ref.integrator = "ias15"
+    ref.integrate(sim.t)
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 1e-11
+    assert abs(sim.energy() / E0 - 1) < 1e-14
+    assert hb.nsteps == n and sim.t == H * n
+
+
+def test_the_field_is_the_same_method():
+    a = _outer(k=8, s=6)
+    b = outer_solar_system().to_rebound()
+    b.integrator = "hbvm"
+    b.integrator.kepler = 1
+    b.integrator.epsilon = 0            # fixed steps of sim.dt (IAS15's idiom)
+    b.dt = H
+    a.steps(8)
+    b.steps(8)
+    assert np.array_equal(_xv(a), _xv(b))
+
+
+def test_copy_and_archive_continue_bit_for_bit(tmp_path):
+    sim = _outer()
+    sim.integrate(10 * H)
+    path = str(tmp_path / "kepler.bin")
+    sim.save_to_file(path, delete_file=True)
+    copy = sim.copy()
+    sim.integrate(20 * H)
+    copy.integrate(20 * H)
+    loaded = rebound.Simulation(path)
+    assert loaded.integrator.kepler == 1
+    loaded.integrate(20 * H)
+    arch = rebound.Simulationarchive(path)[-1]
+    arch.integrate(20 * H)
+    for other in (copy, loaded, arch):
+        assert np.array_equal(_xv(other), _xv(sim))
+        assert HBVMIntegrator.of(other).resyncs == HBVMIntegrator.of(sim).resyncs
+
+
+def test_moved_particles_start_afresh_and_switching_back_is_plain_hbvm():
+    sim = _outer()
+    sim.steps(4)
+    sim.particles[1].x += 1e-3            # a user's change between runs: read afresh
+    sim.steps(2)
+    assert HBVMIntegrator.of(sim).resyncs == 2 and np.all(np.isfinite(_xv(sim)))
+    sim.integrator.kepler = 0             # plain HBVM from here (its own fixed step)
+    sim.steps(2)
+    assert HBVMIntegrator.of(sim).method == HBVM(8, 6) and sim.t == 8 * H
+
+
+def test_refusals_name_the_way_out():
+    sim = outer_solar_system().to_rebound()
+    with pytest.raises(ValueError, match="fixed steps only.*dt="):
+        HBVMIntegrator(sim, kepler=True, adaptive=True)
+    with pytest.raises(ValueError, match="method='hbvm' or kepler=False"):
+        HBVMIntegrator(sim, kepler=True, dt=H, method="equip")
+    with pytest.raises(TypeError, match="`kepler`"):
+        HBVMIntegrator(sim, kepler="yes", dt=H)
+    assert sim.integrator == "ias15"                     # nothing changed by a refused attach
+    # the field with HBVM's default adaptive steps
+    sim.integrator = "hbvm"
+    sim.integrator.kepler = 1
+    with pytest.raises(ValueError, match=r"fixed steps of sim.dt only.*epsilon = 0"):
+        sim.integrate(1000.0)
+    # a force beyond Newtonian gravity would be left out of the perturbation
+    sim = outer_solar_system().to_rebound()
+    sim.additional_forces = lambda reb_sim: None
+    with pytest.raises(ValueError, match=r"additional_forces.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
+    # a body not bound to particle 0, a central body that does not dominate
+    sim = outer_solar_system().to_rebound()
+    sim.particles[4].vx *= 3.0
+    with pytest.raises(ValueError, match=r"particle 4 is not .*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1.0, a=1.0)
+    with pytest.raises(ValueError, match="dominant mass"):
+        HBVMIntegrator(sim, kepler=True, dt=0.01)
+
+
+def test_close_encounter_is_refused_before_it_is_stepped():
+    # systems.flow_composed's test scene: two planets on crossing orbits meet near t ~ pi/2
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, x=1.0, vy=1.0)
+    sim.add(m=1e-3, x=-1.02, vy=1 / np.sqrt(1.02))
+    HBVMIntegrator(sim, kepler=True, dt=0.1)
+    with pytest.raises(StepError, match=r"does not resolve the motion of (particle|the pert)"
+                       r".*kepler = 0 with adaptive steps") as err:
+        sim.integrate(4.0)
+    assert 0.9 < sim.t < 1.6                      # at the encounter, not before
+    before = _xv(sim)
+    assert err.value.encounter["distance"] < 0.2
+    with pytest.raises(StepError):
+        sim.integrate(4.0)
+    assert np.array_equal(_xv(sim), before)       # a refused step changes nothing
