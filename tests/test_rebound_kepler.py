@@ -59,6 +59,43 @@ def test_outer_solar_system_is_the_engines_run_and_ias15s():
     assert hb.nsteps == n and sim.t == H * n
 
 
+def _with_test_particles(sim):
+    sim.add(m=0.0, a=7.0, e=0.1, inc=0.05, primary=sim.particles[0])
+    sim.add(m=0.0, a=40.0, e=0.2, inc=0.1, Omega=1.0, primary=sim.particles[0])
+    sim.N_active = 6
+    return sim
+
+
+def test_test_particles_follow_and_pull_nothing():
+    sim = _with_test_particles(outer_solar_system().to_rebound())
+    nb = NBody.from_rebound(sim)
+    HBVMIntegrator(sim, kepler=True, dt=H / 2)
+    n = 80
+    sim.steps(n)
+    fc = FlowComposed.from_nbody(nb, H / 2)
+    r = integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), H / 2, n, sample_every=n,
+                  form="full")
+    assert np.array_equal(_state(sim, fc.dim), r.y[-1])
+    ref = _with_test_particles(outer_solar_system().to_rebound())
+    ref.integrator = "ias15"
+    ref.integrate(sim.t)
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 1e-12
+    # the gravitating bodies' run is the one without test particles
+    alone = outer_solar_system().to_rebound()
+    HBVMIntegrator(alone, kepler=True, dt=H / 2)
+    alone.steps(n)
+    assert np.array_equal(_xv(alone), _xv(sim)[:6])
+    # a test particle sent through Jupiter is refused, naming it
+    sim = _with_test_particles(outer_solar_system().to_rebound())
+    jup = sim.particles[1]
+    sim.particles[7].xyz = (jup.x + 0.01, jup.y, jup.z)
+    sim.particles[7].vxyz = jup.vxyz
+    HBVMIntegrator(sim, kepler=True, dt=H / 2)
+    with pytest.raises(StepError, match="particle 7"):
+        sim.steps(4)
+    assert sim.t == 0.0
+
+
 def test_the_field_is_the_same_method():
     a = _outer(k=8, s=6)
     b = outer_solar_system().to_rebound()
@@ -129,6 +166,11 @@ def test_refusals_name_the_way_out():
     sim.add(m=1.0, a=1.0)
     with pytest.raises(ValueError, match="dominant mass"):
         HBVMIntegrator(sim, kepler=True, dt=0.01)
+    # a massive body past N_active (REBOUND's bodies that pull nothing) is not modelled
+    sim = outer_solar_system().to_rebound()
+    sim.N_active = 4
+    with pytest.raises(ValueError, match=r"particle 4 is past N_active=4.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
 
 
 def test_close_encounter_is_refused_before_it_is_stepped():

@@ -29,7 +29,7 @@ WAY_OUT = "use sim.integrator.kepler = 0 (HBVMIntegrator(sim, kepler=False)), pl
 def check_composed(sim) -> None:
     """Refuse, naming the reason and the way out, a simulation the composed step does not
     model: anything beyond Newtonian gravity (it would be left out of the perturbation),
-    variational particles, test particles, fewer than two bodies, a particle 0 that is not the
+    variational particles, massive bodies past N_active, fewer than two bodies, a particle 0 that is not the
     dominant mass, or a body not bound to it."""
     reasons = host_reasons(sim)
     if reasons:
@@ -45,20 +45,24 @@ def check_composed(sim) -> None:
     if N < 2:
         raise ValueError(f"sim.integrator.kepler = 1 needs a central body (particle 0) and at "
                          f"least one more (got {N} particles); {WAY_OUT}")
-    if 0 <= sim.N_active < N:
-        raise ValueError(f"sim.integrator.kepler = 1 does not take test particles yet "
-                         f"(N_active={sim.N_active} of {N} particles); {WAY_OUT}, which "
-                         "solves them after the gravitating bodies")
     xv, m = np.zeros(6 * N), np.zeros(N)
     sim.serialize_particle_data(xyzvxvyvz=xv, m=m)
     xv = xv.reshape(N, 6)
     if not np.all(np.isfinite(xv)) or not np.all(np.isfinite(m)):
         raise ValueError("the simulation holds non-finite positions, velocities or masses")
-    small = np.flatnonzero(m[1:] <= 0.0)
-    if small.size:
-        i = int(small[0]) + 1
-        raise ValueError(f"sim.integrator.kepler = 1 does not take test particles yet: "
-                         f"particle {i} has m={m[i]!r}; {WAY_OUT}, or give it a mass")
+    # test particles are bodies of mass 0 (systems.flow_composed); a massive body past
+    # N_active would be a body that pulls nothing yet has a mass, which it does not model
+    passive = np.flatnonzero(m[sim.N_active:] != 0.0) if 0 <= sim.N_active < N else []
+    if len(passive):
+        i = int(passive[0]) + sim.N_active
+        raise ValueError(f"sim.integrator.kepler = 1 takes test particles of mass 0 only; "
+                         f"particle {i} is past N_active={sim.N_active} with m={m[i]!r}; set "
+                         f"its mass to 0, or {WAY_OUT}")
+    bad = np.flatnonzero(m[1:] < 0.0)
+    if bad.size or not np.any(m[1:] > 0.0):
+        raise ValueError(f"sim.integrator.kepler = 1 needs masses >= 0 (0: a test particle) "
+                         f"and at least one massive body besides particle 0 (got m[1:] = "
+                         f"{m[1:]!r}); {WAY_OUT}")
     big = np.flatnonzero(m[1:] >= m[0])
     if not m[0] > 0.0 or big.size:
         i = int(big[0]) + 1 if big.size else 0

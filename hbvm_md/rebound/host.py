@@ -697,9 +697,13 @@ def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
 def _encounter_text(sim, enc: dict | None, h: float) -> str:
     if enc is None:
         return ""
+    # (a pair at rest relative to each other: no d / v, which raised ZeroDivisionError in
+    # place of the step's own error)
+    speed = (f"at relative speed {enc['speed']:.3g} (d / v = "
+             f"{enc['distance'] / enc['speed'] / abs(h):.3g} steps)" if enc['speed'] > 0 else
+             "at rest relative to each other")
     return (f"the closest encounter at the step's start: {_name(sim, enc['i'])} and "
-            f"{_name(sim, enc['j'])}, {enc['distance']:.3g} apart at relative speed "
-            f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} steps); ")
+            f"{_name(sim, enc['j'])}, {enc['distance']:.3g} apart {speed}; ")
 
 
 def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> UnresolvedStepError:
