@@ -3,7 +3,8 @@ SABA(10,6,4), WHFast, IAS15 and plain HBVM, on bench_rebound's scenes.
 
 The composed method (``systems.flow_composed.FlowComposed``: the planets' Keplerian motion in
 closed form, HBVM(k, s) on the transformed system, the flows recentred after each step) runs
-through the engine (not yet inside REBOUND), over the same 200 output times as every peer;
+through the engine and inside REBOUND (``HBVMIntegrator(sim, kepler=True)``: rows "kepler in
+REBOUND", what a REBOUND user pays), over the same 200 output times as every peer;
 ``hbvm_md.reports.rebound_comparison._run_composed`` times what the user pays: the conversion
 into the transformed variables, the steps, and the physical state at every output time.  The
 scenes, the perturbed starts, the peers and how they are timed are bench_rebound's
@@ -44,6 +45,10 @@ PLAIN = {0: ((8, None, 500.0),), 1: ((8, None, 500.0), (12, None, 1000.0)), 2: (
 KEPLER = {0: ((6, 8, 500.0), (7, 8, 500.0), (8, 9, 500.0), (5, 7, 250.0), (4, 6, 250.0)),
           1: ((6, 8, 500.0), (8, 10, 500.0), (8, 12, 1000.0), (10, 13, 1000.0), (12, 14, 1000.0)),
           2: ((6, 8, 10.0), (8, 10, 16.0), (8, 10, 20.0), (10, 12, 25.0))}
+#: the composed method run inside REBOUND (HBVMIntegrator(sim, kepler=True), issue 48 item 4),
+#: beside the engine's rows of the same settings
+KEPLER_REBOUND = {0: ((6, 8, 500.0), (8, 9, 500.0)), 1: ((6, 8, 500.0), (10, 13, 1000.0)),
+                  2: ((8, 10, 16.0),)}
 #: the work-precision sweep (outer solar system, 1e5 days): each method's knob
 WP_KEPLER = ((4, 5, 500.0), (4, 6, 500.0), (6, 7, 500.0), (6, 8, 500.0), (8, 9, 500.0), (5, 7, 250.0))
 WP_PLAIN = ((6, None, 500.0), (6, None, 250.0), (8, None, 500.0), (8, None, 250.0))
@@ -77,7 +82,8 @@ def run_scene(i, repeat):
     nb = scene()
     all_peers = ("ias15", "heyoka") + peers
     runs = [compare_rebound(_perturbed_scene(nb, r), t_end, hbvm=PLAIN[i], peers=all_peers,
-                            kepler=KEPLER[i], n_samples=200, reference=EXTENDED)
+                            kepler=KEPLER[i], kepler_rebound=KEPLER_REBOUND[i], n_samples=200,
+                            reference=EXTENDED)
             for r in range(repeat)]
     rows = _medians(runs)
     hy = next(r for r in rows if r["method"] == "heyoka")
@@ -185,11 +191,13 @@ def main() -> None:
            f"(bench_rebound's perturbed starts), all methods once per start in turn; the same 200 output "
            f"times for every method; position error against heyoka in 80-bit extended precision. The "
            f"composed method ('kepler' rows) runs through the engine: its wall time includes the "
-           f"conversion into its variables and the physical state at every output time. Load average "
+           f"conversion into its variables and the physical state at every output time; 'kepler in "
+           f"REBOUND' rows run it inside REBOUND (HBVMIntegrator(sim, kepler=True), "
+           f"sim.integrate at each output time, timed as plain HBVM's). Load average "
            f"at the start: {', '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} cores.", ""]
     # warm-up: numba's caches of both steps (not integration)
     compare_rebound("outer_solar_system", 1e4, hbvm=((8, None, 500.0),), peers=("ias15",),
-                    kepler=((6, 8, 500.0),), n_samples=10)
+                    kepler=((6, 8, 500.0),), kepler_rebound=((6, 8, 500.0),), n_samples=10)
     for i in ((0,) if args.quick else range(len(SCENES))):
         t0 = time.perf_counter()
         lines = run_scene(i, repeat)
