@@ -55,7 +55,9 @@ from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler
 
 from .base import HamiltonianSystem
 
-# params: [N, G, m_0, m_1 .. m_N]
+# params: [N, G, m_0, m_1 .. m_N, n, i_1 .. i_n]: the masses, then the massive planets' indices
+# (0-based among the planets; the test particles, m = 0, are the others), so that a scene of
+# many test particles costs O(n N) pairs, not O(N^2)
 _HEAD = 3
 
 
@@ -77,12 +79,20 @@ def _weight(mi):
 
 
 @jit
-def _interaction_gradient(x, v, ms, G, m0, gx, gp):
+def _massive(params):
+    """The massive planets' indices (as floats) from params (layout above)."""
+    N = int(params[0])
+    n = int(params[_HEAD + N])
+    return params[_HEAD + N + 1:_HEAD + N + 1 + n]
+
+
+@jit
+def _interaction_gradient(x, v, ms, G, m0, gx, gp, massive):
     """grad H_I at heliocentric positions x (N, 3) and velocities v (N, 3): gx = dH_I/dQ (the
     planets' mutual attractions), gp = dH_I/dP (the same for every planet: sum P / m_0).
     Returns H_I.  A test particle (m = 0) is in no term of H_I; its rows are those of its own
-    Hamiltonian per unit mass (the pull of the massive planets, and the same drift sum P / m_0),
-    and nothing of it acts on the others."""
+    Hamiltonian per unit mass (the pull of the massive planets, indices ``massive``, and the same
+    drift sum P / m_0), and nothing of it acts on the others."""
     N = x.shape[0]
     px = 0.0
     py = 0.0
@@ -96,7 +106,13 @@ def _interaction_gradient(x, v, ms, G, m0, gx, gp):
         pz += ms[i] * v[i, 2]
     hi = 0.5 * (px * px + py * py + pz * pz) / m0
     for i in range(N):
-        for j in range(i + 1, N):
+        # a massive planet meets every later body; a test particle only the later massive ones
+        # (the massive pairs in the same order as without test particles: the same numbers)
+        tp = not ms[i] > 0.0
+        for jj in range(massive.shape[0] if tp else N - i - 1):
+            j = int(massive[jj]) if tp else i + 1 + jj
+            if j <= i:
+                continue
             dx = x[i, 0] - x[j, 0]
             dy = x[i, 1] - x[j, 1]
             dz = x[i, 2] - x[j, 2]
@@ -112,7 +128,7 @@ def _interaction_gradient(x, v, ms, G, m0, gx, gp):
                 gx[j, 0] -= c * dx
                 gx[j, 1] -= c * dy
                 gx[j, 2] -= c * dz
-            elif ms[i] > 0.0 or ms[j] > 0.0:
+            else:
                 # a test particle and a planet: the pull per unit mass on the test particle
                 r = np.sqrt(r2)
                 if ms[i] > 0.0:
@@ -139,6 +155,7 @@ def composed_gradient(Y, params, out):
     dH~/dtau = dK/dtau, dH~/dp_tau = 1.  A flow that fails (a collision orbit) gives NaN,
     which the step refuses."""
     N, G, m0, ms, mu, m = _header(params)
+    massive = _massive(params)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     sv = np.empty((N, SAVED))
@@ -151,7 +168,7 @@ def composed_gradient(Y, params, out):
             (x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2], it) = kepler_step_saved(
                 Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
                 Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, mu, tau, sv, i)
-        _interaction_gradient(x, v, ms, G, m0, gx, gp)
+        _interaction_gradient(x, v, ms, G, m0, gx, gp, massive)
         dkdt = 0.0
         for i in range(N):
             mi = _weight(ms[i])
@@ -193,7 +210,7 @@ def composed_energy(y, params):
                                            y[m + 3 * i + 2] / mi, mu, tau)
         x[i, 0], x[i, 1], x[i, 2] = a, b, c
         v[i, 0], v[i, 1], v[i, 2] = d, e, f
-    return _interaction_gradient(x, v, ms, G, m0, gx, gp) + y[2 * m - 1]
+    return _interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params)) + y[2 * m - 1]
 
 
 @jit
@@ -316,11 +333,9 @@ class FlowComposed(HamiltonianSystem):
 
     def __init__(self, masses, G: float, h: float):
         ms = np.asarray(masses, dtype=float).reshape(-1)
-        if (ms.size < 2 or not np.all(np.isfinite(ms) & (ms >= 0)) or not ms[0] > 0
-                or not np.any(ms[1:] > 0)):
+        if ms.size < 2 or not np.all(np.isfinite(ms) & (ms >= 0)) or not ms[0] > 0:
             raise ValueError(f"`masses` must be the star's mass (> 0) then each planet's (>= 0: "
-                             f"0 for a test particle), finite, at least one planet > 0 "
-                             f"(got {ms!r})")
+                             f"0 for a test particle), all finite (got {ms!r})")
         if not (np.isfinite(G) and G > 0):
             raise ValueError(f"`G` must be a positive number (got G={G!r})")
         if not (np.isfinite(h) and h != 0):
@@ -333,7 +348,9 @@ class FlowComposed(HamiltonianSystem):
         # the weights of the second half of the state, P = w V (1 for a test particle, whose
         # state is (Q, V), as NBody's p = v; _weight), the star's first
         self.weights = np.where(ms > 0, ms, 1.0)
-        self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses])
+        massive = np.flatnonzero(self.planet_masses > 0)
+        self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses,
+                                       [massive.size], massive])
         self._com = (np.zeros(3), np.zeros(3))
 
     @classmethod
@@ -419,7 +436,8 @@ class FlowComposed(HamiltonianSystem):
         ms = self.planet_masses
         hk = np.sum(0.5 * ms * np.sum(V * V, axis=1) - self.G * self.m0 * ms / np.linalg.norm(Q, axis=1))
         gx, gp = np.empty((self.N, 3)), np.empty(3)
-        return float(hk + _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp))
+        return float(hk + _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp,
+                                                _massive(self._params)))
 
     # -- the protocol (Python path) ----------------------------------------------------
     def energy(self, Y):

@@ -59,10 +59,10 @@ def check_composed(sim) -> None:
                          f"particle {i} is past N_active={sim.N_active} with m={m[i]!r}; set "
                          f"its mass to 0, or {WAY_OUT}")
     bad = np.flatnonzero(m[1:] < 0.0)
-    if bad.size or not np.any(m[1:] > 0.0):
-        raise ValueError(f"sim.integrator.kepler = 1 needs masses >= 0 (0: a test particle) "
-                         f"and at least one massive body besides particle 0 (got m[1:] = "
-                         f"{m[1:]!r}); {WAY_OUT}")
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise ValueError(f"sim.integrator.kepler = 1 needs masses >= 0 (0: a test particle; "
+                         f"got m[{i}]={m[i]!r}); {WAY_OUT}")
     big = np.flatnonzero(m[1:] >= m[0])
     if not m[0] > 0.0 or big.size:
         i = int(big[0]) + 1 if big.size else 0
