@@ -208,3 +208,45 @@ def test_close_encounter_is_refused_before_it_is_stepped():
     with pytest.raises(StepError):
         sim.integrate(4.0)
     assert np.array_equal(_xv(sim), before)       # a refused step changes nothing
+
+
+def test_collisions_merge_and_the_run_goes_on():
+    # the encounter scene with radii: the planets merge (REBOUND's collision search after the
+    # step), the particles change, and the next step starts afresh from them
+    def scene(integrator):
+        sim = rebound.Simulation()
+        sim.add(m=1.0, r=0.005)
+        sim.add(m=1e-3, x=1.0, vy=1.0, r=0.05)
+        sim.add(m=1e-3, x=-1.02, vy=1 / np.sqrt(1.02), r=0.05)
+        sim.collision, sim.collision_resolve = "direct", "merge"
+        if integrator == "kepler":
+            HBVMIntegrator(sim, kepler=True, dt=0.01)
+        else:
+            sim.integrator = integrator
+        return sim
+    sim, ref = scene("kepler"), scene("ias15")
+    sim.integrate(2.0)
+    ref.integrate(2.0)
+    assert sim.N == ref.N == 2 and sim.particles[1].m == 2e-3
+    assert np.abs(_xv(sim) - _xv(ref)).max() < 1e-4        # (merged at slightly other times)
+    # the merged body falls onto the star: the last planet is gone, and kepler = 1 says so
+    with pytest.raises(ValueError, match=r"at least one more \(got 1 particles\).*kepler = 0"):
+        sim.integrate(4.0)
+
+
+def test_a_mass_changed_between_runs_starts_afresh():
+    a = _outer()
+    a.steps(4)
+    a.particles[1].m *= 1.001
+    b = a.copy()
+    HBVMIntegrator(b, kepler=True, dt=H)       # a new attach from the same particles
+    a.steps(4)
+    b.steps(4)
+    assert np.array_equal(_xv(a), _xv(b))
+
+
+def test_variational_particles_are_refused():
+    sim = outer_solar_system().to_rebound()
+    sim.add_variation()
+    with pytest.raises(ValueError, match=r"variational particles.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
