@@ -122,6 +122,8 @@ def prepare_composed(sim, p: int, method) -> None:
         bad = composed_bodies(y[:2 * m], fc._params, y[4 * m:], sim.t, out)
         keep = (bad == 0 and np.array_equal(out[:, :3], view[:, ix:ix + 3])
                 and np.array_equal(out[:, 3:], view[:, ivx:ivx + 3]))
+        if keep:
+            y[4 * m + 7] = sim.t          # (the bodies are those of this time)
     if not keep:
         y0 = nb.initial_state()
         check_particles(y0, nb)
@@ -129,7 +131,8 @@ def prepare_composed(sim, p: int, method) -> None:
         y[:] = 0.0
         y[:2 * m] = fc.extend(y0)
         xcm, vcm = fc._com
-        y[4 * m:4 * m + 3], y[4 * m + 3:4 * m + 6], y[4 * m + 6] = xcm, vcm, sim.t
+        y[4 * m:4 * m + 3], y[4 * m + 3:4 * m + 6] = xcm, vcm
+        y[4 * m + 6] = y[4 * m + 7] = sim.t
         H._array(st, L.SL_GAMMA, L.SL_NGAMMA, s * 2 * m)[:] = 0.0
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan

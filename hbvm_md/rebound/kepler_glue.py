@@ -12,7 +12,8 @@ particles together: the bodies from the state by :func:`systems.flow_composed.co
 A failed step changes nothing and records its step size, start and cause, as the plain glue's.
 
 What the host keeps (:mod:`hbvm_md.rebound.layout`): the saved array ``state`` holds y (2m),
-its low parts cy (2m) and com (7: the barycentre's position at com[6], its velocity, com[6]);
+its low parts cy (2m) and com (8: the barycentre's position at time com[6], its velocity,
+com[6], and the time the bodies were last written, com[7]);
 ``gamma`` holds the last step's coefficients (s, 2m), already carried into the recentred
 variables by the hook; ``h_prev``, ``eref`` and the counts as for plain HBVM.  So a copy or a
 loaded file continues bit for bit.
@@ -44,7 +45,7 @@ GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.particles",
                 "systems.flow_composed", "integrators.kepler_flow")
 #: the width of the barycentre's record after y and cy in the saved state
-N_COM = 7
+N_COM = 8
 
 
 def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, system, state,
@@ -60,11 +61,15 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
     ix, ivx = ctx[R_X], ctx[R_VX]
     if not particles_match(view, written, ix, ivx, ctx[R_M]):
         return RESYNC                        # moved between steps: the host reads them afresh
+    t_start = simd[ctx[R_T]]
+    if t_start != com[7]:
+        # sim.t set by the user: the barycentre's position, written from its uniform motion
+        # since com[6], would jump with it; the host reads the particles afresh at this time
+        return RESYNC
     h = simd[ctx[R_DT]]
     if not (abs(h) < np.inf and h != 0.0):
         sd[SL_H_FAIL] = h
         return BAD_DT
-    t_start = simd[ctx[R_T]]
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     # the step's own error estimate per body block (integrators.core.resolution_error), on
     # with the energy check as in the plain glue (energy_tol=None switches both off)
@@ -99,6 +104,7 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
             written[i, c] = out[i, c]
             written[i, 3 + c] = out[i, 3 + c]
     simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
+    com[7] = simd[ctx[R_T]]
     simd[ctx[R_DTL]] = h_done
     st[SL_NSTEPS] += 1
     return OK
