@@ -266,3 +266,22 @@ def test_time_set_between_runs_moves_no_body():
     sim.steps(4)
     fresh.steps(4)
     assert np.array_equal(_xv(sim), _xv(fresh))
+
+
+def test_a_reboundx_force_is_refused_by_name_also_when_added_later():
+    reboundx = pytest.importorskip("reboundx")
+    sim = _outer()
+    sim.steps(2)
+    rebx = reboundx.Extras(sim)
+    gr = rebx.load_force("gr")
+    rebx.add_force(gr)
+    gr.params["c"] = 1e4
+    before = _xv(sim)
+    with pytest.raises(ValueError, match=r"REBOUNDx.*gr.*kepler = 0"):
+        sim.steps(2)
+    assert np.array_equal(_xv(sim), before) and sim.t == 2 * H
+    sim = outer_solar_system().to_rebound()
+    rebx = reboundx.Extras(sim)
+    rebx.add_force(rebx.load_force("gr"))
+    with pytest.raises(ValueError, match=r"REBOUNDx.*gr.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
