@@ -208,6 +208,17 @@ class HBVMIntegrator(Counted):
         max(1e-2, 10 x the gravitating bodies') is refused with UnresolvedStepError naming it.
         None disables both.
 
+    kepler : bool
+        True: HBVM(k, s) composed with the Keplerian flows about particle 0
+        (:class:`systems.flow_composed.FlowComposed`, the engine's kernels bound with the same
+        step; :mod:`hbvm_md.rebound.composed`): the step integrates the bodies' mutual pull
+        only.  Fixed steps only (``dt``, or ``sim.dt``; ``adaptive=True`` is refused), k = s + 2
+        unless given, HBVM only; test particles (mass 0) follow; forces beyond Newtonian
+        gravity, variational particles, a particle 0 that does not dominate or a body not bound
+        to it are refused by name (use kepler=False).  Not the default: it is not faster than
+        plain HBVM today (``benchmarks/results/kepler_rebound.md``).  Saved as
+        ``sim.integrator.kepler``.
+
     Attributes
     ----------
     method : integrators.HBVM or integrators.EQUIP
