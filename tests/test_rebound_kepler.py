@@ -164,6 +164,9 @@ def test_refusals_name_the_way_out():
         HBVMIntegrator(sim, kepler=True, dt=H, method="equip")
     with pytest.raises(TypeError, match="`kepler`"):
         HBVMIntegrator(sim, kepler="yes", dt=H)
+    # REBOUND's default sim.dt (0.001 days here) without dt=: a warning naming dt=
+    with pytest.warns(RuntimeWarning, match=r"for long steps.*pass dt="):
+        HBVMIntegrator(sim.copy(), kepler=True)
     assert sim.integrator == "ias15"                     # nothing changed by a refused attach
     # the field with HBVM's default adaptive steps
     sim.integrator = "hbvm"

@@ -3,6 +3,7 @@ settings, and reads its state back (it holds none itself)."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -19,6 +20,9 @@ from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
 
+#: kepler=True without ``dt`` warns when sim.dt is shorter than the shortest period over this
+#: (the composed method's range is 1/25 to 1/50 of it: docs/guide/rebound.md)
+KEPLER_FEW_STEPS = 1000
 #: a scene with at most this many test particles is probed for k whole (:func:`probe_scene`)
 PROBE_WHOLE = 64
 #: test particles kept from each ranking of :func:`probe_scene` (its probe has at most
@@ -315,6 +319,15 @@ class HBVMIntegrator(Counted):
         if kepler:
             from hbvm_md.rebound.composed import check_composed
             check_composed(sim)
+            period = shortest_period(sim)
+            if dt is None and abs(h) < period / KEPLER_FEW_STEPS:
+                # (REBOUND's default sim.dt is 0.001: a user who forgot dt= would wait hours,
+                # and the flows' round-off grows with the number of steps)
+                warnings.warn(
+                    f"kepler=True steps sim.dt={h!r}, 1/{period / abs(h):.3g} of the shortest "
+                    f"orbital period ({period:.3g}): the composed method is for long steps (1/25 "
+                    f"to 1/50 of it); pass dt=..., e.g. dt={period / 50:.3g}", RuntimeWarning,
+                    stacklevel=2)
         if k is None and kepler:
             # benchmarks/results/kepler_composed.md: HBVM(s + 2, s) composed keeps the energy
             # at round-off on the outer solar system (H~ is not polynomial, but its
