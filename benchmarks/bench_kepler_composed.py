@@ -3,7 +3,8 @@ SABA(10,6,4), WHFast, IAS15 and plain HBVM, on bench_rebound's scenes.
 
 The composed method (``systems.flow_composed.FlowComposed``: the planets' Keplerian motion in
 closed form, HBVM(k, s) on the transformed system, the flows recentred after each step) runs
-through the engine (not yet inside REBOUND), over the same 200 output times as every peer;
+through the engine and inside REBOUND (``HBVMIntegrator(sim, kepler=True)``: rows "kepler in
+REBOUND", what a REBOUND user pays), over the same 200 output times as every peer;
 ``hbvm_md.reports.rebound_comparison._run_composed`` times what the user pays: the conversion
 into the transformed variables, the steps, and the physical state at every output time.  The
 scenes, the perturbed starts, the peers and how they are timed are bench_rebound's
@@ -18,6 +19,7 @@ most SABA's time); then a work-precision table on the outer solar system over 1e
 Writes benchmarks/results/kepler_composed.md.
 
     python benchmarks/bench_kepler_composed.py [--repeat 5] [--quick]
+    python benchmarks/bench_kepler_composed.py --rebound [--repeat 7]
 """
 from __future__ import annotations
 
@@ -44,6 +46,10 @@ PLAIN = {0: ((8, None, 500.0),), 1: ((8, None, 500.0), (12, None, 1000.0)), 2: (
 KEPLER = {0: ((6, 8, 500.0), (7, 8, 500.0), (8, 9, 500.0), (5, 7, 250.0), (4, 6, 250.0)),
           1: ((6, 8, 500.0), (8, 10, 500.0), (8, 12, 1000.0), (10, 13, 1000.0), (12, 14, 1000.0)),
           2: ((6, 8, 10.0), (8, 10, 16.0), (8, 10, 20.0), (10, 12, 25.0))}
+#: the composed method run inside REBOUND (HBVMIntegrator(sim, kepler=True), issue 48 item 4),
+#: beside the engine's rows of the same settings
+KEPLER_REBOUND = {0: ((6, 8, 500.0), (8, 9, 500.0)), 1: ((6, 8, 500.0), (10, 13, 1000.0)),
+                  2: ((8, 10, 16.0),)}
 #: the work-precision sweep (outer solar system, 1e5 days): each method's knob
 WP_KEPLER = ((4, 5, 500.0), (4, 6, 500.0), (6, 7, 500.0), (6, 8, 500.0), (8, 9, 500.0), (5, 7, 250.0))
 WP_PLAIN = ((6, None, 500.0), (6, None, 250.0), (8, None, 500.0), (8, None, 250.0))
@@ -77,7 +83,8 @@ def run_scene(i, repeat):
     nb = scene()
     all_peers = ("ias15", "heyoka") + peers
     runs = [compare_rebound(_perturbed_scene(nb, r), t_end, hbvm=PLAIN[i], peers=all_peers,
-                            kepler=KEPLER[i], n_samples=200, reference=EXTENDED)
+                            kepler=KEPLER[i], kepler_rebound=KEPLER_REBOUND[i], n_samples=200,
+                            reference=EXTENDED)
             for r in range(repeat)]
     rows = _medians(runs)
     hy = next(r for r in rows if r["method"] == "heyoka")
@@ -172,11 +179,90 @@ def where_the_time_goes(s=6, k=8, h=500.0, steps=2000):
             f"{k} rows.)", ""]
 
 
+def rebound_rows(repeat: int) -> list[str]:
+    """``--rebound``: the composed method inside REBOUND (``HBVMIntegrator(sim, kepler=True)``)
+    beside the engine's run of the same settings, plain HBVM at the same steps and IAS15, on the
+    outer solar system over 1e5 days (200 outputs): medians of ``repeat`` runs, all methods
+    once per run in turn, positions against IAS15 (no heyoka needed)."""
+    settings = ((6, 8, 500.0), (8, 9, 500.0))
+    runs = [compare_rebound("outer_solar_system", 1e5, hbvm=((6, 8, 500.0), (8, 9, 500.0)),
+                            peers=("ias15",), kepler=settings, kepler_rebound=settings,
+                            n_samples=200, reference="ias15") for _ in range(repeat)]
+    ias = float(np.median([next(r["wall_time_s"] for r in c.rows if r["method"] == "ias15")
+                           for c in runs]))
+    lines = ["## The composed method inside REBOUND (outer solar system, 1e5 days)", "",
+             "| method | settings | max rel. energy error (median) | position vs IAS15 (AU) | "
+             "wall (ms) | / IAS15 |", "|---|---|---|---|---|---|"]
+    for i, r0 in enumerate(runs[0].rows):
+        w = float(np.median([c.rows[i]["wall_time_s"] for c in runs]))
+        e = float(np.median([c.rows[i]["max_rel_energy_error"] for c in runs]))
+        x = float(np.median([c.rows[i]["final_position_diff"] for c in runs]))
+        lines.append(f"| {r0['method']} | {_settings(r0)} | {e:.2e} | {x:.1e} | {w * 1e3:.1f} | "
+                     f"{w / ias:.2f} |")
+    return lines + [""]
+
+
+def eccentric_rows() -> list[str]:
+    """``--rebound``: where the exact Keplerian part pays: a Jupiter-mass planet at e = 0.9
+    (starting at pericentre) and a second planet (1e-4, a = 3, e = 0.3), G = 1, 100 inner
+    orbits at fixed steps of P/f, composed and plain HBVM(8, 6) inside REBOUND, against IAS15
+    at epsilon 1e-11 (accuracy only: these runs are not timed)."""
+    import rebound
+    from hbvm_md import HBVMIntegrator
+
+    def scene():
+        sim = rebound.Simulation()
+        sim.add(m=1.0)
+        sim.add(m=1e-3, a=1.0, e=0.9)
+        sim.add(m=1e-4, a=3.0, e=0.3, inc=0.1)
+        sim.move_to_com()
+        return sim
+    T = 100 * 2 * np.pi
+    ref = scene()
+    ref.integrator, ref.integrator.epsilon = "ias15", 1e-11
+    ref.integrate(T)
+    lines = ["## An eccentric planet (e = 0.9, Jupiter's mass), 100 orbits, inside REBOUND", "",
+             "| method | step | max rel. energy error at the end | position vs IAS15 (epsilon 1e-11) |",
+             "|---|---|---|---|"]
+    for f in (50, 200, 1000):
+        for kepler in (True, False):
+            sim = scene()
+            E0 = sim.energy()
+            HBVMIntegrator(sim, s=6, k=8, dt=2 * np.pi / f, kepler=kepler)
+            name = "HBVM(8,6) kepler in REBOUND" if kepler else "HBVM(8,6)"
+            try:
+                sim.integrate(T)
+            except Exception as exc:  # noqa: BLE001 - a refused step is a result here
+                lines.append(f"| {name} | P/{f} | refused at t = {sim.t:.3g}: {type(exc).__name__} | - |")
+                continue
+            x = max(abs(p.x - q.x) + abs(p.y - q.y) + abs(p.z - q.z)
+                    for p, q in zip(sim.particles, ref.particles))
+            lines.append(f"| {name} | P/{f} | {abs(sim.energy() / E0 - 1):.1e} | {x:.1e} |")
+    return lines + [""]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=5, help="perturbed starts per method")
     ap.add_argument("--quick", action="store_true", help="the first scene only, 2 starts, no work-precision")
+    ap.add_argument("--rebound", action="store_true",
+                    help="only the composed method inside REBOUND against the engine, plain HBVM and "
+                         "IAS15 (outer solar system, 1e5 days; writes results/kepler_rebound.md)")
     args = ap.parse_args()
+    if args.rebound:
+        compare_rebound("outer_solar_system", 1e4, hbvm=((8, None, 500.0),), peers=("ias15",),
+                        kepler=((6, 8, 500.0),), kepler_rebound=((6, 8, 500.0),), n_samples=10)
+        lines = rebound_rows(args.repeat) + eccentric_rows()
+        text = ["# HBVM composed with the Keplerian flows inside REBOUND (issue 48, item 4)", "",
+                f"{machine()}, one process. Generated by `python benchmarks/bench_kepler_composed.py "
+                f"--rebound --repeat {args.repeat}` on {time.strftime('%Y-%m-%d')}: 200 output times, "
+                f"`sim.integrate(t_i)` for the REBOUND-driven rows (HBVM, 'kepler in REBOUND', IAS15), "
+                f"the engine's Stepper for the 'kepler' rows. Load average at the start: "
+                f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} cores.", ""] + lines
+        print("\n".join(text), flush=True)
+        with open(os.path.join(HERE, "results", "kepler_rebound.md"), "w") as f:
+            f.write("\n".join(text))
+        return
     import_heyoka()            # (the comparison is against heyoka: refuse without it)
     repeat = 2 if args.quick else args.repeat
     out = ["# HBVM composed with the Keplerian flows (issue 48) vs heyoka, SABA(10,6,4), WHFast, IAS15, plain HBVM",
@@ -185,11 +271,13 @@ def main() -> None:
            f"(bench_rebound's perturbed starts), all methods once per start in turn; the same 200 output "
            f"times for every method; position error against heyoka in 80-bit extended precision. The "
            f"composed method ('kepler' rows) runs through the engine: its wall time includes the "
-           f"conversion into its variables and the physical state at every output time. Load average "
+           f"conversion into its variables and the physical state at every output time; 'kepler in "
+           f"REBOUND' rows run it inside REBOUND (HBVMIntegrator(sim, kepler=True), "
+           f"sim.integrate at each output time, timed as plain HBVM's). Load average "
            f"at the start: {', '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} cores.", ""]
     # warm-up: numba's caches of both steps (not integration)
     compare_rebound("outer_solar_system", 1e4, hbvm=((8, None, 500.0),), peers=("ias15",),
-                    kepler=((6, 8, 500.0),), n_samples=10)
+                    kepler=((6, 8, 500.0),), kepler_rebound=((6, 8, 500.0),), n_samples=10)
     for i in ((0,) if args.quick else range(len(SCENES))):
         t0 = time.perf_counter()
         lines = run_scene(i, repeat)

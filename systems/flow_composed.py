@@ -55,7 +55,9 @@ from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler
 
 from .base import HamiltonianSystem
 
-# params: [N, G, m_0, m_1 .. m_N]
+# params: [N, G, m_0, m_1 .. m_N, n, i_1 .. i_n]: the masses, then the massive planets' indices
+# (0-based among the planets; the test particles, m = 0, are the others), so that a scene of
+# many test particles costs O(n N) pairs, not O(N^2)
 _HEAD = 3
 
 
@@ -70,10 +72,27 @@ def _header(params):
 
 
 @jit
-def _interaction_gradient(x, v, ms, G, m0, gx, gp):
+def _weight(mi):
+    """The weight of a body's second half of the state, P = w V: its mass, 1 for a test
+    particle (m = 0: its state is (Q, V), as :class:`systems.NBody`'s p = v)."""
+    return mi if mi > 0.0 else 1.0
+
+
+@jit
+def _massive(params):
+    """The massive planets' indices (as floats) from params (layout above)."""
+    N = int(params[0])
+    n = int(params[_HEAD + N])
+    return params[_HEAD + N + 1:_HEAD + N + 1 + n]
+
+
+@jit
+def _interaction_gradient(x, v, ms, G, m0, gx, gp, massive):
     """grad H_I at heliocentric positions x (N, 3) and velocities v (N, 3): gx = dH_I/dQ (the
     planets' mutual attractions), gp = dH_I/dP (the same for every planet: sum P / m_0).
-    Returns H_I."""
+    Returns H_I.  A test particle (m = 0) is in no term of H_I; its rows are those of its own
+    Hamiltonian per unit mass (the pull of the massive planets, indices ``massive``, and the same
+    drift sum P / m_0), and nothing of it acts on the others."""
     N = x.shape[0]
     px = 0.0
     py = 0.0
@@ -87,21 +106,41 @@ def _interaction_gradient(x, v, ms, G, m0, gx, gp):
         pz += ms[i] * v[i, 2]
     hi = 0.5 * (px * px + py * py + pz * pz) / m0
     for i in range(N):
-        for j in range(i + 1, N):
+        # a massive planet meets every later body; a test particle only the later massive ones
+        # (the massive pairs in the same order as without test particles: the same numbers)
+        tp = not ms[i] > 0.0
+        for jj in range(massive.shape[0] if tp else N - i - 1):
+            j = int(massive[jj]) if tp else i + 1 + jj
+            if j <= i:
+                continue
             dx = x[i, 0] - x[j, 0]
             dy = x[i, 1] - x[j, 1]
             dz = x[i, 2] - x[j, 2]
             r2 = dx * dx + dy * dy + dz * dz
-            r = np.sqrt(r2)
-            gm = G * ms[i] * ms[j]
-            hi -= gm / r
-            c = gm / (r2 * r)
-            gx[i, 0] += c * dx
-            gx[i, 1] += c * dy
-            gx[i, 2] += c * dz
-            gx[j, 0] -= c * dx
-            gx[j, 1] -= c * dy
-            gx[j, 2] -= c * dz
+            if ms[i] > 0.0 and ms[j] > 0.0:
+                r = np.sqrt(r2)
+                gm = G * ms[i] * ms[j]
+                hi -= gm / r
+                c = gm / (r2 * r)
+                gx[i, 0] += c * dx
+                gx[i, 1] += c * dy
+                gx[i, 2] += c * dz
+                gx[j, 0] -= c * dx
+                gx[j, 1] -= c * dy
+                gx[j, 2] -= c * dz
+            else:
+                # a test particle and a planet: the pull per unit mass on the test particle
+                r = np.sqrt(r2)
+                if ms[i] > 0.0:
+                    c = G * ms[i] / (r2 * r)
+                    gx[j, 0] -= c * dx
+                    gx[j, 1] -= c * dy
+                    gx[j, 2] -= c * dz
+                else:
+                    c = G * ms[j] / (r2 * r)
+                    gx[i, 0] += c * dx
+                    gx[i, 1] += c * dy
+                    gx[i, 2] += c * dz
     gp[0] = px / m0
     gp[1] = py / m0
     gp[2] = pz / m0
@@ -116,6 +155,7 @@ def composed_gradient(Y, params, out):
     dH~/dtau = dK/dtau, dH~/dp_tau = 1.  A flow that fails (a collision orbit) gives NaN,
     which the step refuses."""
     N, G, m0, ms, mu, m = _header(params)
+    massive = _massive(params)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     sv = np.empty((N, SAVED))
@@ -124,20 +164,21 @@ def composed_gradient(Y, params, out):
     for r in range(Y.shape[0]):
         tau = Y[r, m - 1]
         for i in range(N):
-            mi = ms[i]
+            mi = _weight(ms[i])
             (x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2], it) = kepler_step_saved(
                 Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
                 Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, mu, tau, sv, i)
-        _interaction_gradient(x, v, ms, G, m0, gx, gp)
+        _interaction_gradient(x, v, ms, G, m0, gx, gp, massive)
         dkdt = 0.0
         for i in range(N):
-            mi = ms[i]
+            mi = _weight(ms[i])
             ri2 = x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] + x[i, 2] * x[i, 2]
             k = -mu / (ri2 * np.sqrt(ri2))
             # grad H_I . J grad H_K: H_I's change along the Keplerian motion (x' = v,
-            # v' = -mu x / r^3, P' = m v')
-            for a in range(3):
-                dkdt += gx[i, a] * v[i, a] + gp[a] * mi * k * x[i, a]
+            # v' = -mu x / r^3, P' = m v'); a test particle is in no term of H_I
+            if ms[i] > 0.0:
+                for a in range(3):
+                    dkdt += gx[i, a] * v[i, a] + gp[a] * mi * k * x[i, a]
             # (Q, V = P / m): K's gradient in (Q, V) is Phi^T (gx, m gp); dK/dP = dK/dV / m
             wx, wy, wz, wu, wv, ww = kepler_pullback(
                 Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
@@ -163,13 +204,13 @@ def composed_energy(y, params):
     gx = np.empty((N, 3))
     gp = np.empty(3)
     for i in range(N):
-        mi = ms[i]
+        mi = _weight(ms[i])
         a, b, c, d, e, f, it = kepler_step(y[3 * i], y[3 * i + 1], y[3 * i + 2],
                                            y[m + 3 * i] / mi, y[m + 3 * i + 1] / mi,
                                            y[m + 3 * i + 2] / mi, mu, tau)
         x[i, 0], x[i, 1], x[i, 2] = a, b, c
         v[i, 0], v[i, 1], v[i, 2] = d, e, f
-    return _interaction_gradient(x, v, ms, G, m0, gx, gp) + y[2 * m - 1]
+    return _interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params)) + y[2 * m - 1]
 
 
 @jit
@@ -190,12 +231,12 @@ def composed_recentre(y, cy, gamma, h, params):
     for i in range(N):
         for a in range(3):
             x0[a] = y[3 * i + a]
-            v0[a] = y[m + 3 * i + a] / ms[i]
+            v0[a] = y[m + 3 * i + a] / _weight(ms[i])
         if kepler_step_stm(x0, v0, mu, dt, x[i], v[i], phi[i]) < 0:
             return 1 + i
     w = np.empty(6)
     for i in range(N):
-        mi = ms[i]
+        mi = _weight(ms[i])
         for a in range(3):
             y[3 * i + a] = x[i, a]
             y[m + 3 * i + a] = mi * v[i, a]
@@ -216,6 +257,49 @@ def composed_recentre(y, cy, gamma, h, params):
     y[m - 1] = -0.5 * h
     cy[m - 1] = 0.0
     return 0
+
+
+@jit
+def composed_bodies(y, params, com, t, out):
+    """The barycentric positions and velocities of the star and the N planets, out (N + 1, 6),
+    of one state y (2m,) at its own tau (x = phi_tau(X)), the barycentre at com[0:3] +
+    com[3:6] (t - com[6]) moving with velocity com[3:6] (:meth:`FlowComposed.physical`, for a
+    host that writes bodies at every step).  Returns 0, or 1 + the index of a planet whose flow
+    did not converge (out is then partly NaN)."""
+    N, G, m0, ms, mu, m = _header(params)
+    tau = y[m - 1]
+    bad = 0
+    M = m0
+    for i in range(N):
+        M += ms[i]
+    sx = np.zeros(3)
+    sv = np.zeros(3)
+    for i in range(N):
+        mi = ms[i]
+        wi = _weight(mi)
+        a, b, c, d, e, f, it = kepler_step(y[3 * i], y[3 * i + 1], y[3 * i + 2],
+                                           y[m + 3 * i] / wi, y[m + 3 * i + 1] / wi,
+                                           y[m + 3 * i + 2] / wi, mu, tau)
+        if it < 0 and bad == 0:
+            bad = 1 + i
+        out[i + 1, 0], out[i + 1, 1], out[i + 1, 2] = a, b, c
+        out[i + 1, 3], out[i + 1, 4], out[i + 1, 5] = d, e, f
+        sx[0] += mi * a
+        sx[1] += mi * b
+        sx[2] += mi * c
+        sv[0] += mi * d
+        sv[1] += mi * e
+        sv[2] += mi * f
+    dt = t - com[6]
+    for a in range(3):
+        # the star: the barycentre less the planets' moments (heliocentric Q, barycentric V)
+        x0 = com[a] + com[3 + a] * dt - sx[a] / M
+        out[0, a] = x0
+        out[0, 3 + a] = com[3 + a] - sv[a] / m0
+        for i in range(N):
+            out[i + 1, a] += x0
+            out[i + 1, 3 + a] += com[3 + a]
+    return bad
 
 
 def _no_recentre(y, cy, gamma, h, params):      # pragma: no cover - the stand-in's shape
@@ -249,9 +333,9 @@ class FlowComposed(HamiltonianSystem):
 
     def __init__(self, masses, G: float, h: float):
         ms = np.asarray(masses, dtype=float).reshape(-1)
-        if ms.size < 2 or not np.all(np.isfinite(ms) & (ms > 0)):
-            raise ValueError(f"`masses` must be the star's mass then each planet's, all > 0 and "
-                             f"finite (got {ms!r}); test particles are not supported here yet")
+        if ms.size < 2 or not np.all(np.isfinite(ms) & (ms >= 0)) or not ms[0] > 0:
+            raise ValueError(f"`masses` must be the star's mass (> 0) then each planet's (>= 0: "
+                             f"0 for a test particle), all finite (got {ms!r})")
         if not (np.isfinite(G) and G > 0):
             raise ValueError(f"`G` must be a positive number (got G={G!r})")
         if not (np.isfinite(h) and h != 0):
@@ -261,7 +345,12 @@ class FlowComposed(HamiltonianSystem):
         self.dim = 3 * self.N + 1
         self.body_dim = 3
         self.body_masses = ms.copy()
-        self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses])
+        # the weights of the second half of the state, P = w V (1 for a test particle, whose
+        # state is (Q, V), as NBody's p = v; _weight), the star's first
+        self.weights = np.where(ms > 0, ms, 1.0)
+        massive = np.flatnonzero(self.planet_masses > 0)
+        self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses,
+                                       [massive.size], massive])
         self._com = (np.zeros(3), np.zeros(3))
 
     @classmethod
@@ -271,6 +360,10 @@ class FlowComposed(HamiltonianSystem):
 
     def full_kernels(self):
         return composed_gradient, composed_energy, self._params
+
+    def bodies_kernel(self):
+        """The compiled map of a state to its bodies (:func:`composed_bodies`)."""
+        return composed_bodies
 
     def recentre_kernel(self):
         """The hook run after each committed step (:func:`composed_recentre`)."""
@@ -288,16 +381,17 @@ class FlowComposed(HamiltonianSystem):
         x = y[:3 * n].reshape(n, 3)
         p = y[3 * n:].reshape(n, 3)
         M = self.body_masses.sum()
-        vcm = p.sum(axis=0) / M
+        # (a test particle's p is its velocity: no momentum)
+        vcm = np.where(self.body_masses[:, None] > 0, p, 0.0).sum(axis=0) / M
         xcm = (self.body_masses[:, None] * x).sum(axis=0) / M
         self._com = (xcm, vcm)
         Q = x[1:] - x[0]
-        V = p[1:] / self.planet_masses[:, None] - vcm          # barycentric velocities
+        V = p[1:] / self.weights[1:, None] - vcm               # barycentric velocities
         hk = float(np.sum(0.5 * self.planet_masses * np.sum(V * V, axis=1)
                           - self.G * self.m0 * self.planet_masses / np.linalg.norm(Q, axis=1)))
         tau0 = -0.5 * self.h
         X, W = kepler_flow(Q, V, self.G * self.m0, -tau0)
-        return np.concatenate([X.ravel(), [tau0], (W * self.planet_masses[:, None]).ravel(), [hk]])
+        return np.concatenate([X.ravel(), [tau0], (W * self.weights[1:, None]).ravel(), [hk]])
 
     def heliocentric(self, Y):
         """(Q, V), each (..., N, 3), of states Y (..., 2m) at their own time tau:
@@ -308,7 +402,7 @@ class FlowComposed(HamiltonianSystem):
         Y2 = Y.reshape(-1, Y.shape[-1])
         m = self.dim
         X = Y2[:, :m - 1].reshape(-1, 3)
-        V = (Y2[:, m:2 * m - 1].reshape(-1, self.N, 3) / self.planet_masses[:, None]).reshape(-1, 3)
+        V = (Y2[:, m:2 * m - 1].reshape(-1, self.N, 3) / self.weights[1:, None]).reshape(-1, 3)
         mu = np.full(X.shape[0], self.G * self.m0)
         taus = Y2[:, m - 1]
         if np.all(taus == taus[0]):
@@ -334,7 +428,7 @@ class FlowComposed(HamiltonianSystem):
         v = np.concatenate([v0, V], axis=-2) + vcm
         lead = x.shape[:-2]
         return np.concatenate([x.reshape(lead + (-1,)),
-                               (v * self.body_masses[:, None]).reshape(lead + (-1,))], axis=-1)
+                               (v * self.weights[:, None]).reshape(lead + (-1,))], axis=-1)
 
     def physical_energy(self, Y) -> float:
         """H = H_K + H_I at the physical state of Y (barycentric frame)."""
@@ -342,7 +436,8 @@ class FlowComposed(HamiltonianSystem):
         ms = self.planet_masses
         hk = np.sum(0.5 * ms * np.sum(V * V, axis=1) - self.G * self.m0 * ms / np.linalg.norm(Q, axis=1))
         gx, gp = np.empty((self.N, 3)), np.empty(3)
-        return float(hk + _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp))
+        return float(hk + _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp,
+                                                _massive(self._params)))
 
     # -- the protocol (Python path) ----------------------------------------------------
     def energy(self, Y):

@@ -118,7 +118,7 @@ def test_close_encounter_is_refused():
 
 def test_bad_input_names_the_argument():
     with pytest.raises(ValueError, match="`masses`"):
-        FlowComposed([1.0, 0.0], 1.0, 0.1)
+        FlowComposed([1.0, -1e-3], 1.0, 0.1)     # (0 is a test particle)
     with pytest.raises(ValueError, match="`h`"):
         FlowComposed([1.0, 1e-3], 1.0, 0.0)
     with pytest.raises(ValueError, match="`y`"):

@@ -187,6 +187,11 @@ def _check_flow_composed(ns, out):
     assert ns["res"].y.shape[0] == 2
 
 
+def _check_rebound_kepler(ns, out):
+    assert ns["sim"].t == 1e5 and "kepler=True" in out, out
+    assert float(out.split("energy error:")[1]) < 1e-13, out
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -200,6 +205,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     '# was: "ias15"': ((), None, _check_notebook_pattern),
     "kepler_flow_into(x, v, mu, 0.3, x, v)": ((), None, _check_kepler_flow),
     "FlowComposed.from_nbody(nb, h)": ((), None, _check_flow_composed),
+    "HBVMIntegrator(sim, kepler=True, dt=500.0)": ((), None, _check_rebound_kepler),
     "hbvm_md.audit(atoms": ((), None, _check_audit),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),

@@ -35,7 +35,7 @@ from hbvm_md.rebound.layout import (
     A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
     A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
     A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP, A_TO,
+    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP, A_TO, D_KEPLER, SL_KEPLER,
     BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
     D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
     RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
@@ -338,7 +338,7 @@ def core_step(r, p):
     if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
         return RESYNC
     if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
-            or st[SL_METHOD] != ctx[D_METHOD]):
+            or st[SL_METHOD] != ctx[D_METHOD] or st[SL_KEPLER] != ctx[D_KEPLER]):
         return RESYNC                              # the method was changed between runs
     for i in range(N_CFG):
         if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:

@@ -40,6 +40,10 @@ DEFAULTS["energy_tol"] = energy_check(HBVM(DEFAULTS["k"], DEFAULTS["s"]), None, 
 #: what to do about a failed fixed step, by its cause (after the closest encounter, _encounter)
 _WAY_OUT = ("leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink through "
             "encounters, test particles' too), or use a smaller sim.dt")
+#: the same for the composed step (``sim.integrator.kepler = 1``: fixed steps only)
+_WAY_OUT_KEPLER = ("use a smaller sim.dt, or sim.integrator.kepler = 0 with adaptive steps "
+                   "(HBVMIntegrator(sim, kepler=False) without `dt`), which shrink through "
+                   "encounters")
 _HINTS = {"diverged": _WAY_OUT + ", or a larger max_iter",
           "not_finite": _WAY_OUT + "; check for particles at the same position",
           "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps",
@@ -700,9 +704,13 @@ def _encounter(sim, only: int | None = None, s: int = 6) -> dict | None:
 def _encounter_text(sim, enc: dict | None, h: float) -> str:
     if enc is None:
         return ""
+    # (a pair at rest relative to each other: no d / v, which raised ZeroDivisionError in
+    # place of the step's own error)
+    speed = (f"at relative speed {enc['speed']:.3g} (d / v = "
+             f"{enc['distance'] / enc['speed'] / abs(h):.3g} steps)" if enc['speed'] > 0 else
+             "at rest relative to each other")
     return (f"the closest encounter at the step's start: {_name(sim, enc['i'])} and "
-            f"{_name(sim, enc['j'])}, {enc['distance']:.3g} apart at relative speed "
-            f"{enc['speed']:.3g} (d / v = {enc['distance'] / enc['speed'] / abs(h):.3g} steps); ")
+            f"{_name(sim, enc['j'])}, {enc['distance']:.3g} apart {speed}; ")
 
 
 def _test_particle_failure(sim, st, sd, h: float, t: float, counters) -> UnresolvedStepError:
@@ -793,14 +801,25 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                                 error_bound=ERROR_BOUND, s=int(st[L.SL_S]))))
         exc = StepSizeError(h, float(sd[L.SL_MIN_DT]), t, near + cause)
     else:
-        hints = {k: near + v for k, v in _HINTS.items()}
+        kepler = bool(st[L.SL_KEPLER])
+        # (the composed step takes fixed steps only: adaptive ones are plain HBVM's)
+        way_out = (_WAY_OUT_KEPLER if kepler else
+                   "or leave out `dt` (HBVMIntegrator(sim) takes adaptive steps, which shrink "
+                   "through encounters)")
+        hints = {k: near + (v.replace(_WAY_OUT, _WAY_OUT_KEPLER) if kepler else v)
+                 for k, v in _HINTS.items()}
         hints["drifted"] = _HINTS["drifted"]     # (the run's drift: no encounter to name)
         if status == NOT_RESOLVED and sim is not None:
             body = int(counters[C_WORST])
-            if 0 <= body < sim.N:
+            if kepler:
+                # the composed state's blocks are the planets 1 .. N-1, then the clock
+                # (tau, p_tau: the perturbation's rate, systems.flow_composed)
+                who = (_name(sim, body + 1) if 0 <= body < sim.N - 1 else
+                       "the perturbation p_tau")
+                hints["body"] = who.replace("{", "{{").replace("}", "}}")
+            elif 0 <= body < sim.N:
                 hints["body"] = _name(sim, body).replace("{", "{{").replace("}", "}}")
-            hints["resolution"] = (near + "or leave out `dt` (HBVMIntegrator(sim) takes "
-                                   "adaptive steps, which shrink through encounters)")
+            hints["resolution"] = near + way_out
             hints["switch_off"] = "energy_tol=None"
         exc = step_error(status, h, t, counters, "fixed_point", energy_tol=etol,
                          hints=hints, method=name, error_bound=ERROR_BOUND,
@@ -856,6 +875,19 @@ def check_settings(st: np.ndarray, sd: np.ndarray) -> HBVM | EQUIP:
     if bad:
         n, v, want = bad[0]
         raise ValueError(f"`sim.integrator.{n}` must be {want} (got {v!r})")
+    if st[L.SL_KEPLER] not in (0, 1):
+        raise ValueError(f"`sim.integrator.kepler` must be 0 (plain HBVM) or 1 (HBVM composed "
+                         f"with the Keplerian flows) (got {int(st[L.SL_KEPLER])})")
+    if st[L.SL_KEPLER] and st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] != 0.0:
+        raise ValueError(
+            "sim.integrator.kepler = 1 takes fixed steps of sim.dt only (the composed step's "
+            "clock row hides the planets from the step-size controller's estimate, as in "
+            "systems.flow_composed); set sim.integrator.epsilon = 0 (fixed steps of sim.dt, as "
+            "with IAS15), or attach with HBVMIntegrator(sim, kepler=True, dt=...); for adaptive "
+            "steps use sim.integrator.kepler = 0")
+    if st[L.SL_KEPLER] and isinstance(method, EQUIP):
+        raise ValueError("sim.integrator.kepler = 1 composes HBVM with the Keplerian flows; "
+                         "method='equip' is not composed: use method='hbvm', or kepler = 0")
     if st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] != 0.0:   # (0: fixed steps, as IAS15's)
         try:
             check_adaptive(float(sd[L.SL_EPSILON]), float(sd[L.SL_MIN_DT]), method.s)
@@ -874,6 +906,10 @@ def _prepare(sim, p: int) -> None:
     _release_odes(ctypes.addressof(sim))     # (hidden by the last step, when a run resyncs)
     method = check_settings(st, sd)
     check_simulation(sim)
+    if st[L.SL_KEPLER]:
+        from hbvm_md.rebound.composed import prepare_composed
+        prepare_composed(sim, p, method)
+        return
     h = sim.dt
     if not (math.isfinite(h) and h != 0.0):
         _step_size("sim.dt", h)
@@ -1159,14 +1195,21 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
     return doubles(int(st[slot]), n)
 
 
-def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False) -> None:
+def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False,
+             kepler=False) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
-    allocated with the C library (the state's ``free`` releases it with the state)."""
+    allocated with the C library (the state's ``free`` releases it with the state).  kepler:
+    the composed step's (:mod:`hbvm_md.rebound.kepler_glue`: the full form, coefficients of
+    width 2m)."""
     ex = Extrapolation(method)
     (tn, ts), (Wp, Cp) = binding.c1, binding.c2
     NV, NVinv, NM = binding.no_newton
     s, N = method.s, view.shape[0]
-    u = m = binding.minv.shape[0]             # the coefficients' width (separable: m)
+    if binding.full:
+        m = int(binding.system.dim)
+        u = 2 * m                             # the coefficients' width (full form: 2m)
+    else:
+        u = m = binding.minv.shape[0]         # the coefficients' width (separable: m)
     written = np.empty((N, 7))
     written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
     written[:, 6] = view[:, im]
@@ -1212,6 +1255,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
         binding.cwork.shape[0], ptr)
     header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
     header[L.D_HOST] = int(host_forces)
+    header[L.D_KEPLER] = int(kepler)
     # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
     header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
         tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
@@ -1255,7 +1299,8 @@ def _python_step(code, st):
         if simi[ctx[L.R_PARTICLES]] != ctx[L.D_PTR] or simi[ctx[L.R_N]] != N or any(
                 st_[a] != ctx[b] for a, b in ((L.SL_S, L.D_S), (L.SL_K, L.D_K),
                                                (L.SL_NODES, L.D_NODES),
-                                               (L.SL_METHOD, L.D_METHOD))):
+                                               (L.SL_METHOD, L.D_METHOD),
+                                               (L.SL_KEPLER, L.D_KEPLER))):
             return L.RESYNC
         s, m = (int(ctx[i]) for i in (L.D_S, L.D_M))
         u = m

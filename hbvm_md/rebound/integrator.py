@@ -3,6 +3,7 @@ settings, and reads its state back (it holds none itself)."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -19,6 +20,9 @@ from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
 
+#: kepler=True without ``dt`` warns when sim.dt is shorter than the shortest period over this
+#: (the composed method's range is 1/25 to 1/50 of it: docs/guide/rebound.md)
+KEPLER_FEW_STEPS = 1000
 #: a scene with at most this many test particles is probed for k whole (:func:`probe_scene`)
 PROBE_WHOLE = 64
 #: test particles kept from each ranking of :func:`probe_scene` (its probe has at most
@@ -213,6 +217,17 @@ class HBVMIntegrator(Counted):
         max(1e-2, 10 x the gravitating bodies') is refused with UnresolvedStepError naming it.
         None disables both.
 
+    kepler : bool
+        True: HBVM(k, s) composed with the Keplerian flows about particle 0
+        (:class:`systems.flow_composed.FlowComposed`, the engine's kernels bound with the same
+        step; :mod:`hbvm_md.rebound.composed`): the step integrates the bodies' mutual pull
+        only.  Fixed steps only (``dt``, or ``sim.dt``; ``adaptive=True`` is refused), k = s + 2
+        unless given, HBVM only; test particles (mass 0) follow; forces beyond Newtonian
+        gravity, variational particles, a particle 0 that does not dominate or a body not bound
+        to it are refused by name (use kepler=False).  Not the default: it is not faster than
+        plain HBVM today (``benchmarks/results/kepler_rebound.md``).  Saved as
+        ``sim.integrator.kepler``.
+
     Attributes
     ----------
     method : integrators.HBVM or integrators.EQUIP
@@ -235,7 +250,8 @@ class HBVMIntegrator(Counted):
                  dt: float | None = None, max_iter: int = 60, tol: float | None = None,
                  nodes: str = "gauss", energy_tol: float | str | None = "auto",
                  adaptive: bool | None = None, epsilon: float | None = None,
-                 min_dt: float = 0.0, method: str = "hbvm", max_dt: float = 0.0):
+                 min_dt: float = 0.0, method: str = "hbvm", max_dt: float = 0.0,
+                 kepler: bool = False):
         # Everything is checked before anything is changed: a failed attach leaves sim as it was.
         rebound = _rebound()
         if not isinstance(sim, rebound.Simulation):
@@ -249,6 +265,21 @@ class HBVMIntegrator(Counted):
         if method == "equip" and nodes != "gauss":
             raise ValueError(f"`nodes` must be 'gauss' with method='equip' (got nodes={nodes!r}):"
                              " EQUIP perturbs the Gauss method")
+        if isinstance(kepler, (bool, np.bool_)) or (isinstance(kepler, (int, np.integer))
+                                                   and kepler in (0, 1)):
+            kepler = bool(kepler)
+        else:
+            raise TypeError(f"`kepler` must be True or False (got kepler={kepler!r})")
+        if kepler and method == "equip":
+            raise ValueError("`kepler=True` composes HBVM with the Keplerian flows; "
+                             "method='equip' is not composed: use method='hbvm' or kepler=False")
+        if kepler and adaptive:
+            raise ValueError("`kepler=True` takes fixed steps only (the composed step's clock "
+                             "row hides the planets from the step-size controller's estimate): "
+                             "pass dt=... (and adaptive=None or False), or kepler=False for "
+                             "adaptive steps")
+        if kepler:
+            adaptive = False          # (fixed steps of dt, or of sim.dt)
         family = EQUIP if method == "equip" else HBVM
         # each method's own defaults (EQUIP's: integrators.equip.DEFAULT_S, DEFAULT_EPSILON)
         if s is None:
@@ -290,7 +321,24 @@ class HBVMIntegrator(Counted):
             h = math.copysign(h, sim.dt) if sim.dt != 0 else h
         else:
             h = _step_size("sim.dt", sim.dt)
-        if k is None and adaptive:
+        if kepler:
+            from hbvm_md.rebound.composed import check_composed
+            check_composed(sim)
+            period = shortest_period(sim)
+            if dt is None and abs(h) < period / KEPLER_FEW_STEPS:
+                # (REBOUND's default sim.dt is 0.001: a user who forgot dt= would wait hours,
+                # and the flows' round-off grows with the number of steps)
+                warnings.warn(
+                    f"kepler=True steps sim.dt={h!r}, 1/{period / abs(h):.3g} of the shortest "
+                    f"orbital period ({period:.3g}): the composed method is for long steps (1/25 "
+                    f"to 1/50 of it); pass dt=..., e.g. dt={period / 50:.3g}", RuntimeWarning,
+                    stacklevel=2)
+        if k is None and kepler:
+            # benchmarks/results/kepler_composed.md: HBVM(s + 2, s) composed keeps the energy
+            # at round-off on the outer solar system (H~ is not polynomial, but its
+            # perturbation is small: two nodes beyond s suffice there)
+            method = build(method.s + 2)
+        elif k is None and adaptive:
             # the steps vary (pericentres, encounters): no single step to probe k on
             method = build(adaptive_k(method.s, epsilon))
         elif k is None and sim.N > 1:
@@ -305,7 +353,7 @@ class HBVMIntegrator(Counted):
         # the engine's one default check; k chosen here is chosen for a round-off quadrature
         # error, so "auto" is its strict DEFAULT_ENERGY_TOL (gravity is not polynomial: a k the
         # user gives gets the not-a-solution rule)
-        etol = energy_check(method, None, energy_tol, tol, round_off_k=k is None)
+        etol = energy_check(method, None, energy_tol, tol, round_off_k=k is None and not kepler)
         self._prev_integrator = str(sim.integrator)
         self.sim = sim
         sim.integrator = NAME
@@ -316,6 +364,7 @@ class HBVMIntegrator(Counted):
             L.NODES.index(method.nodes), int(max_iter), int(adaptive))
         sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_MAX_DT]] = (
             float(epsilon), float(min_dt), float(tol or 0.0), etol, float(max_dt))
+        st[L.SL_KEPLER] = int(kepler)
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":
@@ -407,8 +456,23 @@ class HBVMIntegrator(Counted):
                              f"energy_tol={value!r}); None switches the energy check off")
         self._slots()[1][L.SL_ETOL] = float(value or 0.0)
 
+    @property
+    def kepler(self) -> bool:
+        """HBVM composed with the Keplerian flows about particle 0 (``sim.integrator.kepler``;
+        :mod:`hbvm_md.rebound.composed`); settable between runs (True needs fixed steps)."""
+        return bool(self._get(L.SL_KEPLER))
+
+    @kepler.setter
+    def kepler(self, value: bool) -> None:
+        if not (isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer))
+                                                        and value in (0, 1))):
+            raise TypeError(f"`kepler` must be True or False (got kepler={value!r})")
+        self._slots()[0][L.SL_KEPLER] = int(value)
+
     def __repr__(self) -> str:
-        return f"HBVMIntegrator({self.method!r}, attached={self.attached}, nsteps={self.nsteps})"
+        kepler = ", kepler=True" if self.attached and self.kepler else ""
+        return (f"HBVMIntegrator({self.method!r}{kepler}, attached={self.attached}, "
+                f"nsteps={self.nsteps})")
 
     def integrate(self, tmax: float, exact_finish_time: int = 1) -> None:
         """``sim.integrate(tmax, exact_finish_time)``."""

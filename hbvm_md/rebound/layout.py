@@ -54,7 +54,12 @@ N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, 
 #: saved: the largest adaptive step (0: no bound), after the unsaved slots so that no slot
 #: number above moved when it was added
 SL_MAX_DT = SL_RES + N_RES
-N_SLOTS = SL_MAX_DT + 1
+#: saved: 1 runs HBVM composed with the Keplerian flows (:mod:`systems.flow_composed`,
+#: :mod:`hbvm_md.rebound.kepler_glue`), 0 plain HBVM; after SL_MAX_DT for the same reason.  A
+#: file saved before it existed loads it as 0 (REBOUND leaves a field it does not find at the
+#: value ``create`` gave it)
+SL_KEPLER = SL_MAX_DT + 1
+N_SLOTS = SL_KEPLER + 1
 #: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
 #: starts) and the energy at the run's start (the anchor of core.DRIFT_BOUND's rule), in the
 #: consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN.  Saved fields are found by name
@@ -74,6 +79,9 @@ _DOUBLE, _INT64, _POINTER = 1, 5, 10
 SAVED = (
     ("method", SL_METHOD, _INT64, None, "'hbvm': HBVM(k, s), energy conserving; 'equip': "
      "EQUIP(k, s), energy and every quadratic invariant (angular momentum) conserving."),
+    ("kepler", SL_KEPLER, _INT64, None, "1: HBVM composed with the Keplerian flows about "
+     "particle 0 (democratic heliocentric coordinates; fixed steps of sim.dt only, every other "
+     "body bound to particle 0, Newtonian gravity only); 0: plain HBVM."),
     ("s", SL_S, _INT64, None, "Degree of the method: HBVM(k, s) and EQUIP(k, s) have order 2s."),
     ("k", SL_K, _INT64, None, "Quadrature nodes of the line integral (k >= s; EQUIP: of its "
      "energy condition)."),
@@ -144,7 +152,11 @@ D_HOST = R_MEGNO_T0 + 1
 A_TP = D_HOST + 1
 #: each variational set's order and, for a second-order set, its two first-order sets (nv, 3)
 A_TO = A_TP + 1
-N_HEADER = A_TO + 1
+#: the step's kind: 1 the composed step (:mod:`hbvm_md.rebound.kepler_glue`, whose state is
+#: systems.flow_composed's), 0 the plain one; a step finding ``sim.integrator.kepler`` changed
+#: answers RESYNC
+D_KEPLER = A_TO + 1
+N_HEADER = D_KEPLER + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")

@@ -58,7 +58,8 @@ def masses_only(r: int, p: int) -> bool:
     if not (st[L.SL_CTX] and st[L.SL_CORE]):
         return False
     ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
-    if ctx[L.D_NV] != 0 or any(st[a] != ctx[b] for a, b in _METHOD_SLOTS):
+    # (the composed step's state and parameters hold the masses: it is prepared afresh)
+    if ctx[L.D_NV] != 0 or ctx[L.D_KEPLER] or any(st[a] != ctx[b] for a, b in _METHOD_SLOTS):
         return False
     # what the compiled step's RESYNC tests compare (glue.core_step, step_arrays)
     simi = int64s(r, int(ctx[L.R_HEAD]))

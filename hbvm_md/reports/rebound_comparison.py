@@ -264,7 +264,8 @@ EXTENDED = "heyoka-extended"
 def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
                     hbvm: Sequence = ((6, None),), peers: Sequence = DEFAULT_PEERS,
                     n_samples: int = 200, reference: str | None = None,
-                    verbose: bool = False, kepler: Sequence = ()) -> ReboundComparison:
+                    verbose: bool = False, kepler: Sequence = (),
+                    kepler_rebound: Sequence = ()) -> ReboundComparison:
     """Integrate one scene with HBVM(k, s) through REBOUND, with REBOUND's integrators and
     (optionally) heyoka, over the same output times.
 
@@ -304,6 +305,10 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
         HBVM(k, s) composed with the Keplerian flows (:mod:`systems.flow_composed`, the first
         body the star), run by the engine at steps of about dt (:func:`_run_composed`); rows
         "HBVM(k,s) kepler".
+    kepler_rebound : sequence of (s, k, dt)
+        The same method run inside REBOUND, as a user writes it:
+        ``HBVMIntegrator(sim, s=s, k=k, dt=dt, kepler=True)`` and ``sim.integrate(t_i)`` at each
+        output time (timed as the plain HBVM rows); rows "HBVM(k,s) kepler in REBOUND".
 
     Returns
     -------
@@ -351,6 +356,12 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
     for v in kepler:
         s_, k_, dt_ = (int(v[0]), int(v[1]), float(v[2]))
         runs.append(("kepler", (s_, k_), None, dt_))
+    for v in kepler_rebound:
+        s_, k_, dt_ = (int(v[0]), int(v[1]), float(v[2]))
+
+        def setup(sim, s=s_, k=k_, dt=dt_):
+            return HBVMIntegrator(sim, s=s, k=k, dt=dt, kepler=True)
+        runs.append(("kepler_rebound", (s_, k_), setup, dt_))
 
     rows, series, positions, l_series = [], {}, {}, {}
     for kind, label, setup, dt in runs:
@@ -360,6 +371,11 @@ def compare_rebound(scene="outer_solar_system", t_end: float = 1e5,
             _run(make, "hbvm", setup, interval, 1)
             row, ser, x, drv, lser = _run(make, "hbvm", setup, t_end, n_samples)
             label = row["method"] = f"HBVM({drv.method.k},{label[0]})"
+        elif kind == "kepler_rebound":
+            _run(make, "hbvm", setup, interval, 1)              # (warm-up, as for HBVM)
+            row, ser, x, drv, lser = _run(make, "hbvm", setup, t_end, n_samples)
+            label = row["method"] = f"HBVM({label[1]},{label[0]}) kepler in REBOUND"
+            row["iterations_per_step"] = drv.niter / max(drv.nsteps, 1)
         elif kind == "kepler":
             _run_composed(make, *label, dt, interval, 1)          # (warm-up, as for HBVM)
             row, ser, x, lser = _run_composed(make, *label, dt, t_end, n_samples)

@@ -1,0 +1,171 @@
+"""REBOUND's step of HBVM composed with the Keplerian flows (``sim.integrator.kepler = 1``),
+compiled in the same module as the one step, as :mod:`hbvm_md.rebound.glue` is for plain HBVM.
+
+The mathematics is the engine's, not a copy: the state is :class:`systems.flow_composed.
+FlowComposed`'s (X, tau, P, p_tau), its kernels (gradient, energy and the recentring hook) are
+bound with the step by :mod:`integrators.specialise` exactly as the engine binds them, and
+the step is :func:`integrators.loop.attempt` with a fixed step.  This glue only reads REBOUND's
+side (``sim.dt``, ``sim.t``, the particles), checks that the particles are those the last
+commit wrote (else RESYNC: the host reads them afresh), and after a step commits state and
+particles together: the bodies from the state by :func:`systems.flow_composed.composed_bodies`
+(the barycentre moving uniformly from the saved ``com``), ``t``, ``dt_last_done`` and the counts.
+A failed step changes nothing and records its step size, start and cause, as the plain glue's.
+
+What the host keeps (:mod:`hbvm_md.rebound.layout`): the saved array ``state`` holds y (2m),
+its low parts cy (2m) and com (8: the barycentre's position at time com[6], its velocity,
+com[6], and the time the bodies were last written, com[7]);
+``gamma`` holds the last step's coefficients (s, 2m), already carried into the recentred
+variables by the hook; ``h_prev``, ``eref`` and the counts as for plain HBVM.  So a copy or a
+loaded file continues bit for bit.
+"""
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numba import carray
+
+from integrators.core import ERROR_BOUND, N_COUNTERS, NOT_FINITE, OK, copy1, copy2
+from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
+from integrators.records import Adaptive, Extrapolation, Method, Newton, Options, State, System, Work
+from hbvm_md.rebound.layout import (
+    A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
+    A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT, BAD_DT,
+    BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
+    D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES,
+    N_SLOTS, RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N, R_NACTIVE, R_PARTICLES, R_STRIDE, R_T,
+    R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_COUNTERS, SL_CTX, SL_ECHECK,
+    SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV, SL_K, SL_KEPLER, SL_MAX_ITER,
+    SL_METHOD, SL_NODES, SL_NSTEPS, SL_RES, SL_S, SL_TOL, SL_T_FAIL, SL_Y)
+from hbvm_md.rebound.particles import particles_match, settings_ok
+from systems.flow_composed import composed_bodies
+
+GLUE_FUNCTIONS = ("kepler_step_arrays",)
+#: the fixed-point iteration only, as the plain glue (integrators.specialise, "Compile time")
+GLUE_NEWTON = False
+GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
+GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.particles",
+                "systems.flow_composed", "integrators.kepler_flow")
+#: the width of the barycentre's record after y and cy in the saved state
+N_COM = 8
+
+
+def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, system, state,
+                       trial, method, newton, wk, ext):
+    """One REBOUND step of sim.dt of the composed method (module docstring).  Returns OK,
+    RESYNC (nothing done) or a failure status (nothing done, cause recorded)."""
+    if simd[ctx[R_G]] != host[0] or float(simi[ctx[R_NACTIVE]]) != host[1]:
+        return RESYNC
+    if not settings_ok(st, sd):
+        return BAD_SETTINGS
+    if st[SL_ADAPTIVE] != 0 and sd[SL_EPSILON] != 0.0:
+        return BAD_SETTINGS                  # (fixed steps only: host.check_settings names it)
+    ix, ivx = ctx[R_X], ctx[R_VX]
+    if not particles_match(view, written, ix, ivx, ctx[R_M]):
+        return RESYNC                        # moved between steps: the host reads them afresh
+    t_start = simd[ctx[R_T]]
+    if t_start != com[7]:
+        # sim.t set by the user: the barycentre's position, written from its uniform motion
+        # since com[6], would jump with it; the host reads the particles afresh at this time
+        return RESYNC
+    h = simd[ctx[R_DT]]
+    if not (abs(h) < np.inf and h != 0.0):
+        sd[SL_H_FAIL] = h
+        return BAD_DT
+    etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
+    # the step's own error estimate per body block (integrators.core.resolution_error), on
+    # with the energy check as in the plain glue (energy_tol=None switches both off)
+    ebound = ERROR_BOUND if sd[SL_ETOL] != 0.0 else 0.0
+    res[2] = 0.0
+    status = attempt(system, state, trial, h, sd[SL_H_PREV], t_start, ext, method, newton,
+                     Options(st[SL_MAX_ITER], sd[SL_TOL], etol, ebound, 3), wk,
+                     Adaptive(0.0, 0.0, res))
+    yt = trial.y
+    N = view.shape[0]
+    out = np.empty((N, 6))
+    if status == OK:
+        if composed_bodies(yt, system.params, com, t_start + res[0], out) != 0:
+            status = NOT_FINITE     # (a flow that did not converge: nothing committed)
+    if status != OK:
+        sd[SL_H_FAIL] = res[0]
+        sd[SL_T_FAIL] = t_start
+        sd[SL_CAUSE_ERR] = res[3]
+        sd[SL_CAUSE_STATUS] = res[4]
+        return status
+    h_done = res[0]
+    y, cy, gamma, eref, _ = state
+    copy1(y, yt)
+    copy1(cy, trial.cy)
+    copy2(gamma, trial.gamma)
+    sd[SL_H_PREV] = h_done
+    eref[0] = trial.eref[0]
+    for i in range(N):
+        for c in range(3):
+            view[i, ix + c] = out[i, c]
+            view[i, ivx + c] = out[i, 3 + c]
+            written[i, c] = out[i, c]
+            written[i, 3 + c] = out[i, 3 + c]
+    simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
+    com[7] = simd[ctx[R_T]]
+    simd[ctx[R_DTL]] = h_done
+    st[SL_NSTEPS] += 1
+    return OK
+
+
+def core_step(r, p):
+    """:func:`kepler_step_arrays` on REBOUND's simulation ``r`` and HBVM's state ``p``; RESYNC
+    also when the particle array moved or changed size, or a setting changed."""
+    ra, pa = address_of(r), address_of(p)
+    st = carray(int64_pointer(pa), N_SLOTS)
+    sd = carray(float64_pointer(pa), N_SLOTS)
+    ctx = carray(int64_pointer(st[SL_CTX]), N_HEADER)
+    simd = carray(float64_pointer(ra), ctx[R_HEAD])
+    simi = carray(int64_pointer(ra), ctx[R_HEAD])
+    N = ctx[D_N]
+    if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
+        return RESYNC
+    if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
+            or st[SL_METHOD] != ctx[D_METHOD] or st[SL_KEPLER] != ctx[D_KEPLER]):
+        return RESYNC                              # the method was changed between runs
+    for i in range(N_CFG):
+        if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
+            return RESYNC                          # a setting HBVM checks was changed
+    s, kk = ctx[D_S], ctx[D_KK]
+    m = ctx[D_M]
+    u = 2 * m                                      # the coefficients' width (full form)
+
+    def f(slot, n):
+        return carray(float64_pointer(ctx[slot]), n)
+
+    def f2(slot, a, b):
+        return carray(float64_pointer(ctx[slot]), (a, b))
+
+    def f3(slot, a, b, c):
+        return carray(float64_pointer(ctx[slot]), (a, b, c))
+
+    def z2(slot, a, b):
+        return carray(complex128_pointer(ctx[slot]), (a, b))
+
+    view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
+    ys = st[SL_Y]
+    empty = carray(float64_pointer(ctx[A_PARAMS]), 0)
+    return kepler_step_arrays(
+        simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES),
+        f2(A_WRITTEN, N, 7), f(A_HOST, N_HOST), carray(float64_pointer(ys + 32 * m), N_COM),
+        System(True, empty, empty, f(A_PARAMS, ctx[D_P])),
+        State(carray(float64_pointer(ys), 2 * m), carray(float64_pointer(ys + 16 * m), 2 * m),
+              carray(float64_pointer(st[SL_GAMMA]), (s, u)),
+              carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), f(A_CLOCK, 2)),
+        State(f(A_YT, 2 * m), f(A_CYT, 2 * m), f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF),
+              f(A_CLOCK, 2)),
+        Method(f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s), f3(A_WP, ctx[D_WPP], s, kk),
+               f3(A_CP, ctx[D_CPP], kk, s)),
+        Newton(z2(A_NV, s, s), z2(A_NVINV, s, s), carray(complex128_pointer(ctx[A_NM]), (0, u, u))),
+        Work(f(A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
+             carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS)),
+        Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s)))
+
+
+if TYPE_CHECKING:
+    # integrators.specialise compiles this text after the step's (integrators.loop), where
+    # these are the step's own, bound to systems.flow_composed's kernels (imported here for
+    # readers and linters only)
+    from integrators.loop import attempt

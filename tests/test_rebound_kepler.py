@@ -1,0 +1,290 @@
+"""``sim.integrator.kepler = 1`` / ``HBVMIntegrator(sim, kepler=True)``: HBVM composed with
+the Keplerian flows in REBOUND (issue 48, item 4), through the engine's FlowComposed (the same
+state bit for bit), against IAS15, restarted from copies and archives, and its refusals."""
+import numpy as np
+import pytest
+import rebound
+
+from hbvm_md import HBVMIntegrator
+from hbvm_md.rebound import layout as L
+from hbvm_md.rebound.memory import doubles
+from integrators import HBVM, StepError, integrate
+from systems import NBody, outer_solar_system
+from systems.flow_composed import FlowComposed
+
+H = 500.0          # days: the composed method's step of benchmarks/results/kepler_composed.md
+
+
+def _xv(sim):
+    N = sim.N
+    xv = np.zeros(6 * N)
+    sim.serialize_particle_data(xyzvxvyvz=xv)
+    return xv.reshape(N, 6)
+
+
+def _state(sim, m):
+    """The composed state y (2m,) HBVM keeps in REBOUND (hbvm_md.rebound.kepler_glue)."""
+    st, _ = HBVMIntegrator.of(sim)._slots()
+    return doubles(int(st[L.SL_Y]), 2 * m).copy()
+
+
+def _outer(**kw):
+    sim = outer_solar_system().to_rebound()
+    HBVMIntegrator(sim, kepler=True, dt=H, **kw)
+    return sim
+
+
+def test_outer_solar_system_is_the_engines_run_and_ias15s():
+    sim = outer_solar_system().to_rebound()
+    nb = NBody.from_rebound(sim)
+    E0 = sim.energy()
+    hb = HBVMIntegrator(sim, kepler=True, dt=H)
+    assert repr(hb).startswith("HBVMIntegrator(HBVM(8, 6), kepler=True")
+    assert "kepler=1" in repr(sim.integrator) and sim.integrator.kepler == 1
+    n = 40
+    sim.steps(n)
+    # one implementation: the engine's FlowComposed run by integrators.integrate, bit for bit
+    fc = FlowComposed.from_nbody(nb, H)
+    r = integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), H, n, sample_every=n,
+                  form="full")
+    assert np.array_equal(_state(sim, fc.dim), r.y[-1])
+    phys = fc.physical(r.y[-1], H * n)[:3 * sim.N].reshape(sim.N, 3)
+    assert np.abs(_xv(sim)[:, :3] - phys).max() < 1e-13
+    # against IAS15 (55 years): positions and energy
+    ref = outer_solar_system().to_rebound()
+    ref.integrator = "ias15"
+    ref.integrate(sim.t)
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 1e-11
+    assert abs(sim.energy() / E0 - 1) < 1e-14
+    assert hb.nsteps == n and sim.t == H * n
+
+
+def _with_test_particles(sim):
+    sim.add(m=0.0, a=7.0, e=0.1, inc=0.05, primary=sim.particles[0])
+    sim.add(m=0.0, a=40.0, e=0.2, inc=0.1, Omega=1.0, primary=sim.particles[0])
+    sim.N_active = 6
+    return sim
+
+
+def test_test_particles_follow_and_pull_nothing():
+    sim = _with_test_particles(outer_solar_system().to_rebound())
+    nb = NBody.from_rebound(sim)
+    HBVMIntegrator(sim, kepler=True, dt=H / 2)
+    n = 80
+    sim.steps(n)
+    fc = FlowComposed.from_nbody(nb, H / 2)
+    r = integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), H / 2, n, sample_every=n,
+                  form="full")
+    assert np.array_equal(_state(sim, fc.dim), r.y[-1])
+    ref = _with_test_particles(outer_solar_system().to_rebound())
+    ref.integrator = "ias15"
+    ref.integrate(sim.t)
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 1e-12
+    # the gravitating bodies' run is the one without test particles
+    alone = outer_solar_system().to_rebound()
+    HBVMIntegrator(alone, kepler=True, dt=H / 2)
+    alone.steps(n)
+    assert np.array_equal(_xv(alone), _xv(sim)[:6])
+    # a test particle sent through Jupiter is refused, naming it
+    sim = _with_test_particles(outer_solar_system().to_rebound())
+    jup = sim.particles[1]
+    sim.particles[7].xyz = (jup.x + 0.01, jup.y, jup.z)
+    sim.particles[7].vxyz = jup.vxyz
+    HBVMIntegrator(sim, kepler=True, dt=H / 2)
+    with pytest.raises(StepError, match="particle 7"):
+        sim.steps(4)
+    assert sim.t == 0.0
+
+
+def test_a_star_with_test_particles_only_is_exact():
+    # REBOUND's test_whfast_testparticles scene: every orbit is Keplerian, so the composed
+    # step is the exact flow; N_active set or not is the same model
+    def scene():
+        sim = rebound.Simulation()
+        sim.add(m=1)
+        for i in range(5):
+            sim.add(m=0, P=1, e=0.1, f=i)
+        return sim
+    a, b = scene(), scene()
+    b.N_active = 1
+    for sim in (a, b):
+        HBVMIntegrator(sim, kepler=True, dt=0.1)
+        sim.integrate(1.0)
+    assert np.array_equal(_xv(a), _xv(b))
+    # one period later, back where it started (REBOUND's bound for WHFast here: 2e-14)
+    assert np.abs(_xv(a) - _xv(scene())).max() < 2e-14
+
+
+def test_the_field_is_the_same_method():
+    a = _outer(k=8, s=6)
+    b = outer_solar_system().to_rebound()
+    b.integrator = "hbvm"
+    b.integrator.kepler = 1
+    b.integrator.epsilon = 0            # fixed steps of sim.dt (IAS15's idiom)
+    b.dt = H
+    a.steps(8)
+    b.steps(8)
+    assert np.array_equal(_xv(a), _xv(b))
+
+
+def test_copy_and_archive_continue_bit_for_bit(tmp_path):
+    sim = _outer()
+    sim.integrate(10 * H)
+    path = str(tmp_path / "kepler.bin")
+    sim.save_to_file(path, delete_file=True)
+    copy = sim.copy()
+    sim.integrate(20 * H)
+    copy.integrate(20 * H)
+    loaded = rebound.Simulation(path)
+    assert loaded.integrator.kepler == 1
+    loaded.integrate(20 * H)
+    arch = rebound.Simulationarchive(path)[-1]
+    arch.integrate(20 * H)
+    for other in (copy, loaded, arch):
+        assert np.array_equal(_xv(other), _xv(sim))
+        assert HBVMIntegrator.of(other).resyncs == HBVMIntegrator.of(sim).resyncs
+
+
+def test_moved_particles_start_afresh_and_switching_back_is_plain_hbvm():
+    sim = _outer()
+    sim.steps(4)
+    sim.particles[1].x += 1e-3            # a user's change between runs: read afresh
+    sim.steps(2)
+    assert HBVMIntegrator.of(sim).resyncs == 2 and np.all(np.isfinite(_xv(sim)))
+    sim.integrator.kepler = 0             # plain HBVM from here (its own fixed step)
+    sim.steps(2)
+    assert HBVMIntegrator.of(sim).method == HBVM(8, 6) and sim.t == 8 * H
+
+
+def test_refusals_name_the_way_out():
+    sim = outer_solar_system().to_rebound()
+    with pytest.raises(ValueError, match="fixed steps only.*dt="):
+        HBVMIntegrator(sim, kepler=True, adaptive=True)
+    with pytest.raises(ValueError, match="method='hbvm' or kepler=False"):
+        HBVMIntegrator(sim, kepler=True, dt=H, method="equip")
+    with pytest.raises(TypeError, match="`kepler`"):
+        HBVMIntegrator(sim, kepler="yes", dt=H)
+    # REBOUND's default sim.dt (0.001 days here) without dt=: a warning naming dt=
+    with pytest.warns(RuntimeWarning, match=r"for long steps.*pass dt="):
+        HBVMIntegrator(sim.copy(), kepler=True)
+    assert sim.integrator == "ias15"                     # nothing changed by a refused attach
+    # the field with HBVM's default adaptive steps
+    sim.integrator = "hbvm"
+    sim.integrator.kepler = 1
+    with pytest.raises(ValueError, match=r"fixed steps of sim.dt only.*epsilon = 0"):
+        sim.integrate(1000.0)
+    # a force beyond Newtonian gravity would be left out of the perturbation
+    sim = outer_solar_system().to_rebound()
+    sim.additional_forces = lambda reb_sim: None
+    with pytest.raises(ValueError, match=r"additional_forces.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
+    # a body not bound to particle 0, a central body that does not dominate
+    sim = outer_solar_system().to_rebound()
+    sim.particles[4].vx *= 3.0
+    with pytest.raises(ValueError, match=r"particle 4 is not .*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1.0, a=1.0)
+    with pytest.raises(ValueError, match="dominant mass"):
+        HBVMIntegrator(sim, kepler=True, dt=0.01)
+    # a massive body past N_active (REBOUND's bodies that pull nothing) is not modelled
+    sim = outer_solar_system().to_rebound()
+    sim.N_active = 4
+    with pytest.raises(ValueError, match=r"particle 4 is past N_active=4.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
+
+
+def test_close_encounter_is_refused_before_it_is_stepped():
+    # systems.flow_composed's test scene: two planets on crossing orbits meet near t ~ pi/2
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, x=1.0, vy=1.0)
+    sim.add(m=1e-3, x=-1.02, vy=1 / np.sqrt(1.02))
+    HBVMIntegrator(sim, kepler=True, dt=0.1)
+    with pytest.raises(StepError, match=r"does not resolve the motion of (particle|the pert)"
+                       r".*kepler = 0 with adaptive steps") as err:
+        sim.integrate(4.0)
+    assert 0.9 < sim.t < 1.6                      # at the encounter, not before
+    before = _xv(sim)
+    assert err.value.encounter["distance"] < 0.2
+    with pytest.raises(StepError):
+        sim.integrate(4.0)
+    assert np.array_equal(_xv(sim), before)       # a refused step changes nothing
+
+
+def test_collisions_merge_and_the_run_goes_on():
+    # the encounter scene with radii: the planets merge (REBOUND's collision search after the
+    # step), the particles change, and the next step starts afresh from them
+    def scene(integrator):
+        sim = rebound.Simulation()
+        sim.add(m=1.0, r=0.005)
+        sim.add(m=1e-3, x=1.0, vy=1.0, r=0.05)
+        sim.add(m=1e-3, x=-1.02, vy=1 / np.sqrt(1.02), r=0.05)
+        sim.collision, sim.collision_resolve = "direct", "merge"
+        if integrator == "kepler":
+            HBVMIntegrator(sim, kepler=True, dt=0.01)
+        else:
+            sim.integrator = integrator
+        return sim
+    sim, ref = scene("kepler"), scene("ias15")
+    sim.integrate(2.0)
+    ref.integrate(2.0)
+    assert sim.N == ref.N == 2 and sim.particles[1].m == 2e-3
+    assert np.abs(_xv(sim) - _xv(ref)).max() < 1e-4        # (merged at slightly other times)
+    # the merged body falls onto the star: the last planet is gone, and kepler = 1 says so
+    with pytest.raises(ValueError, match=r"at least one more \(got 1 particles\).*kepler = 0"):
+        sim.integrate(4.0)
+
+
+def test_a_mass_changed_between_runs_starts_afresh():
+    a = _outer()
+    a.steps(4)
+    a.particles[1].m *= 1.001
+    b = a.copy()
+    HBVMIntegrator(b, kepler=True, dt=H)       # a new attach from the same particles
+    a.steps(4)
+    b.steps(4)
+    assert np.array_equal(_xv(a), _xv(b))
+
+
+def test_variational_particles_are_refused():
+    sim = outer_solar_system().to_rebound()
+    sim.add_variation()
+    with pytest.raises(ValueError, match=r"variational particles.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
+
+
+def test_time_set_between_runs_moves_no_body():
+    # a barycentre in motion: the bodies are written from its uniform motion since the start,
+    # so a sim.t set by the user must not move them (read afresh at the new time instead)
+    sim = outer_solar_system().to_rebound()
+    for p in sim.particles:
+        p.vx += 1e-3
+    HBVMIntegrator(sim, kepler=True, dt=H)
+    sim.steps(4)
+    sim.t = 0.0
+    fresh = sim.copy()
+    HBVMIntegrator(fresh, kepler=True, dt=H)
+    sim.steps(4)
+    fresh.steps(4)
+    assert np.array_equal(_xv(sim), _xv(fresh))
+
+
+def test_a_reboundx_force_is_refused_by_name_also_when_added_later():
+    reboundx = pytest.importorskip("reboundx")
+    sim = _outer()
+    sim.steps(2)
+    rebx = reboundx.Extras(sim)
+    gr = rebx.load_force("gr")
+    rebx.add_force(gr)
+    gr.params["c"] = 1e4
+    before = _xv(sim)
+    with pytest.raises(ValueError, match=r"REBOUNDx.*gr.*kepler = 0"):
+        sim.steps(2)
+    assert np.array_equal(_xv(sim), before) and sim.t == 2 * H
+    sim = outer_solar_system().to_rebound()
+    rebx = reboundx.Extras(sim)
+    rebx.add_force(rebx.load_force("gr"))
+    with pytest.raises(ValueError, match=r"REBOUNDx.*gr.*kepler = 0"):
+        HBVMIntegrator(sim, kepler=True, dt=H)
