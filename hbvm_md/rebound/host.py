@@ -990,8 +990,11 @@ def _prepare(sim, p: int) -> None:
         # above).  The energy alone starts afresh: the check computes it from the kept state
         # by the same function that computed the saved one at the last commit (loop.
         # energy_check), so an unchanged run continues bit for bit; EQUIP's alpha and slope
-        # (an initial guess and its slope) stay.
+        # (an initial guess and its slope) stay.  The run's start (the drift check's anchor,
+        # core.DRIFT_BOUND) starts afresh as well: measured from the saved start, a mass
+        # changed after loading would read as the run's drift
         sd[L.SL_EREF] = np.nan
+        sd[L.SL_EREF_RUN] = np.nan
     if not keep:
         if nb is not None:
             q0 = x.reshape(-1).copy()
