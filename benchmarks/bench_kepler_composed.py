@@ -151,15 +151,17 @@ def family(method):
     return "HBVM composed (kepler)" if "kepler" in method else "HBVM"
 
 
-def work_precision(repeat):
+def work_precision(repeat, command="python benchmarks/bench_kepler_composed.py"):
     title, scene, t_end, _, _ = SCENES[0]
     nb = scene()
     runs = [compare_rebound(_perturbed_scene(nb, r), t_end, hbvm=WP_PLAIN, peers=WP_PEERS,
                             kepler=WP_KEPLER, n_samples=200, reference=EXTENDED)
             for r in range(repeat)]
     rows = sorted(_medians(runs), key=lambda r: r["err"])
+    for r in rows:
+        r["settings"] = _settings(r)
     write_csv(rows, FIGURE + ".csv")
-    plot(rows, FIGURE + ".png", f"{title}, medians of {repeat} perturbed starts, 200 outputs")
+    plot(rows, FIGURE + ".png", f"{title}, medians of {repeat} perturbed starts, 200 outputs", command)
     lines = [f"## Work-precision: {title}", "",
              "Every method over a range of its own accuracy knob (steps; heyoka's tolerance; IAS15 at "
              "its default epsilon), sorted by energy error. The same rows are the figure "
@@ -173,11 +175,13 @@ def work_precision(repeat):
 
 def write_csv(rows, path):
     """The work-precision medians, one row a setting (what :func:`plot` draws)."""
-    with open(path, "w") as f:
-        f.write("family,method,settings,max_rel_energy_error,position_error_au,wall_s\n")
+    import csv
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(("family", "method", "settings", "max_rel_energy_error", "position_error_au", "wall_s"))
         for r in rows:
-            f.write(f"{family(r['method'])},{r['method']},{_settings(r)},{r['err']!r},{r['pos']!r},"
-                    f"{r['wall']!r}\n")
+            w.writerow((family(r["method"]), r["method"], _settings(r), repr(r["err"]), repr(r["pos"]),
+                        repr(r["wall"])))
 
 
 def read_csv(path):
@@ -199,7 +203,7 @@ def _front(points):
     return out
 
 
-def plot(rows, path, subtitle):
+def plot(rows, path, subtitle, command="python benchmarks/bench_kepler_composed.py --plot-only"):
     """Two panels against wall time, log-log: the max relative energy error over the run and
     the final position error (a method can keep the energy and still drift along the orbit).
     Every setting is a marker; each method's line joins its settings that no other of its
@@ -222,6 +226,13 @@ def plot(rows, path, subtitle):
                       alpha=0.45, markersize=5)
             fr = _front(pts)
             ax.loglog([p[0] for p in fr], [p[1] for p in fr], st, label=fam, markersize=6)
+            # (HBVM's knob is (k, s) and the step: say which, where the points spread apart)
+            if fam.startswith("HBVM") and key == "pos":
+                for r in rows:
+                    if family(r["method"]) == fam:
+                        ax.annotate(r["method"].split(" ")[0][4:] + " " + r["settings"].replace("dt=", "h="),
+                                    (r["wall"], max(r[key], floor)), textcoords="offset points",
+                                    xytext=(4, -3), fontsize=5.5, color=st[:2], alpha=0.8)
         ax.set_xlabel("wall time [s] (setup included)")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
@@ -229,8 +240,7 @@ def plot(rows, path, subtitle):
             lo, hi = ax.get_ylim()
             ax.set_ylim(min(lo, 1e-16), max(hi, 1e-7))
     axes[0].legend(fontsize=8)
-    fig.suptitle("Work-precision: " + subtitle + "\n(python benchmarks/bench_kepler_composed.py)",
-                 fontsize=10)
+    fig.suptitle(f"Work-precision: {subtitle}\n({command})", fontsize=10)
     fig.tight_layout()
     os.makedirs(os.path.dirname(path), exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -437,7 +447,7 @@ def main() -> None:
     compare_rebound("outer_solar_system", 1e4, hbvm=((8, None, 500.0),), peers=("ias15",),
                     kepler=((6, 8, 500.0),), n_samples=10)
     if args.wp_only:
-        print("\n".join(work_precision(repeat)), flush=True)
+        print("\n".join(work_precision(repeat, command + " --wp-only")), flush=True)
         return
     for i in ((0,) if args.quick else range(len(SCENES))):
         t0 = time.perf_counter()
@@ -452,7 +462,7 @@ def main() -> None:
     print("\n".join(lines), flush=True)
     out += lines
     if not args.quick:
-        lines = work_precision(repeat)
+        lines = work_precision(repeat, command)
         print("\n".join(lines), flush=True)
         out += lines
     name = "kepler_composed_quick.md" if args.quick else "kepler_composed.md"
