@@ -41,7 +41,9 @@ method does not keep: the physical energy's error is that of H_K(X) - p_tau, O(e
 step with eps the size of H_I against H_K (measured in benchmarks/results/kepler_composed.md).
 p_tau starts at H_K(x_0), so that H~ starts at H.
 
-The state as the step sees it: Y = (Q_1 .. Q_N, tau, P_1 .. P_N, p_tau), dim = 3N + 1,
+The state as the step sees it: Y = (Q_1 .. Q_N, c tau, P_1 .. P_N, p_tau / c), dim = 3N + 1,
+c the clock's rate (:class:`FlowComposed`'s ``clock_rate``, a power of 2, default 1: it scales
+the clock's rows exactly and moves only the iteration's stop rule),
 ``body_dim = 3`` (the step's own error estimate then judges each planet's block of Q and of P
 by itself, and the clock alone: :func:`integrators.core.resolution_error`).
 """
