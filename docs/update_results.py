@@ -64,6 +64,12 @@ def main() -> None:
     cost = ROOT / "benchmarks/results/md_cost.md"
     if cost.exists():
         parts["md_cost"] = cost.read_text().strip()
+    kc = ROOT / "benchmarks/results/kepler_composed.md"
+    if kc.exists():        # the issue-48 speed bars' table, with the run's header line
+        text = kc.read_text()
+        m = re.search(r"^## The issue's speed bars.*?$\n(.*?)(?=^## |\Z)", text, re.S | re.M)
+        if m:
+            parts["kepler_composed"] = text.splitlines()[2] + "\n\n" + m.group(1).strip()
     if len(sys.argv) > 1:
         demo = pathlib.Path(sys.argv[1]).read_text()
         t = tables(demo)

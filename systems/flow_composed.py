@@ -41,11 +41,15 @@ method does not keep: the physical energy's error is that of H_K(X) - p_tau, O(e
 step with eps the size of H_I against H_K (measured in benchmarks/results/kepler_composed.md).
 p_tau starts at H_K(x_0), so that H~ starts at H.
 
-The state as the step sees it: Y = (Q_1 .. Q_N, tau, P_1 .. P_N, p_tau), dim = 3N + 1,
+The state as the step sees it: Y = (Q_1 .. Q_N, c tau, P_1 .. P_N, p_tau / c), dim = 3N + 1,
+c the clock's rate (:class:`FlowComposed`'s ``clock_rate``, a power of 2, default 1: it scales
+the clock's rows exactly and moves only the iteration's stop rule),
 ``body_dim = 3`` (the step's own error estimate then judges each planet's block of Q and of P
 by itself, and the clock alone: :func:`integrators.core.resolution_error`).
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -55,9 +59,10 @@ from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler
 
 from .base import HamiltonianSystem
 
-# params: [N, G, m_0, m_1 .. m_N, n, i_1 .. i_n]: the masses, then the massive planets' indices
-# (0-based among the planets; the test particles, m = 0, are the others), so that a scene of
-# many test particles costs O(n N) pairs, not O(N^2)
+# params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n]: the masses; c the clock's rate
+# (FlowComposed's clock_rate, 1 by default); then the massive planets' indices (0-based among
+# the planets; the test particles, m = 0, are the others), so that a scene of many test
+# particles costs O(n N) pairs, not O(N^2)
 _HEAD = 3
 
 
@@ -79,11 +84,18 @@ def _weight(mi):
 
 
 @jit
+def _clock(params):
+    """The clock's rate c (the state holds c tau and p_tau / c: :class:`FlowComposed`'s
+    ``clock_rate``)."""
+    return params[_HEAD + int(params[0])]
+
+
+@jit
 def _massive(params):
     """The massive planets' indices (as floats) from params (layout above)."""
     N = int(params[0])
-    n = int(params[_HEAD + N])
-    return params[_HEAD + N + 1:_HEAD + N + 1 + n]
+    n = int(params[_HEAD + N + 1])
+    return params[_HEAD + N + 2:_HEAD + N + 2 + n]
 
 
 @jit
@@ -156,13 +168,14 @@ def composed_gradient(Y, params, out):
     which the step refuses."""
     N, G, m0, ms, mu, m = _header(params)
     massive = _massive(params)
+    rate = _clock(params)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     sv = np.empty((N, SAVED))
     gx = np.empty((N, 3))
     gp = np.empty(3)
     for r in range(Y.shape[0]):
-        tau = Y[r, m - 1]
+        tau = Y[r, m - 1] / rate
         for i in range(N):
             mi = _weight(ms[i])
             (x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2], it) = kepler_step_saved(
@@ -190,15 +203,16 @@ def composed_gradient(Y, params, out):
             out[r, m + 3 * i] = wu / mi
             out[r, m + 3 * i + 1] = wv / mi
             out[r, m + 3 * i + 2] = ww / mi
-        out[r, m - 1] = dkdt
-        out[r, 2 * m - 1] = 1.0
+        out[r, m - 1] = dkdt / rate
+        out[r, 2 * m - 1] = rate
 
 
 @jit
 def composed_energy(y, params):
     """H~(y) = H_I(phi_tau(X)) + p_tau for one state y (2m,)."""
     N, G, m0, ms, mu, m = _header(params)
-    tau = y[m - 1]
+    rate = _clock(params)
+    tau = y[m - 1] / rate
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     gx = np.empty((N, 3))
@@ -210,7 +224,8 @@ def composed_energy(y, params):
                                            y[m + 3 * i + 2] / mi, mu, tau)
         x[i, 0], x[i, 1], x[i, 2] = a, b, c
         v[i, 0], v[i, 1], v[i, 2] = d, e, f
-    return _interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params)) + y[2 * m - 1]
+    return (_interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params))
+            + rate * y[2 * m - 1])
 
 
 @jit
@@ -222,7 +237,8 @@ def composed_recentre(y, cy, gamma, h, params):
     are: the guess then describes the right-hand side in the new variables.  Returns 0, or
     1 + the index of a planet whose flow did not converge (nothing changed then)."""
     N, G, m0, ms, mu, m = _header(params)
-    dt = (y[m - 1] - cy[m - 1]) + 0.5 * h
+    rate = _clock(params)
+    dt = ((y[m - 1] - cy[m - 1]) + 0.5 * h * rate) / rate
     x0 = np.empty(3)
     v0 = np.empty(3)
     x = np.empty((N, 3))
@@ -254,7 +270,7 @@ def composed_recentre(y, cy, gamma, h, params):
                     sv += phi[i, 3 + a, b] * w[b]
                 vec[3 * i + a] = sq
                 vec[m + 3 * i + a] = mi * sv
-    y[m - 1] = -0.5 * h
+    y[m - 1] = -0.5 * h * rate
     cy[m - 1] = 0.0
     return 0
 
@@ -318,6 +334,16 @@ class FlowComposed(HamiltonianSystem):
         The step the integration will take: the first state is centred on the first step
         (tau = -h/2).  A step of another size afterwards stays exact (the flows are taken over
         each step's own tau), only not centred.
+    clock_rate : float, optional
+        c, a power of 2 (default 1): the state holds the clock as c tau and its momentum as
+        p_tau / c (H~ = K(X, tau) + c (p_tau / c)), so that every operation of the step on those
+        two rows is scaled exactly and only the iteration's stop rule sees c: it compares the
+        increments with max |gamma| over the state, whose largest entry is the clock's rate.
+        With c = 1 that scale is 1 in the scene's unit of time (4.5 sweeps a step on the outer
+        solar system in days, 3.2 in seconds, the same results to round-off); a larger c stops
+        the iteration earlier, as a longer unit of time does (measured:
+        ``benchmarks/bench_kepler_composed.py``, "Where the time goes").  Opt-in until a stop
+        rule that uses the iteration's measured contraction makes it unnecessary.
 
     Build it with :meth:`from_nbody`.  States: :meth:`extend` (from a barycentric
     :class:`systems.NBody` state) and :meth:`physical` (back, at the state's own tau).
@@ -331,7 +357,7 @@ class FlowComposed(HamiltonianSystem):
                         "controller's estimate; use fixed steps (integrate(..., h, steps)), "
                         "whose own error check (error_bound) still refuses an unresolved step")
 
-    def __init__(self, masses, G: float, h: float):
+    def __init__(self, masses, G: float, h: float, clock_rate: float = 1.0):
         ms = np.asarray(masses, dtype=float).reshape(-1)
         if ms.size < 2 or not np.all(np.isfinite(ms) & (ms >= 0)) or not ms[0] > 0:
             raise ValueError(f"`masses` must be the star's mass (> 0) then each planet's (>= 0: "
@@ -340,6 +366,13 @@ class FlowComposed(HamiltonianSystem):
             raise ValueError(f"`G` must be a positive number (got G={G!r})")
         if not (np.isfinite(h) and h != 0):
             raise ValueError(f"`h` must be the (nonzero, finite) step the run will take (got h={h!r})")
+        c = clock_rate
+        if (isinstance(c, bool) or not isinstance(c, (int, float, np.number)) or not np.isfinite(c)
+                or not c > 0 or math.frexp(float(c))[0] != 0.5 or not 2.0 ** -64 <= c <= 2.0 ** 64):
+            raise ValueError(f"`clock_rate` must be a power of 2 between 2**-64 and 2**64, so that "
+                             f"the clock's rows scale exactly (got clock_rate={clock_rate!r}); "
+                             f"1 is the default")
+        self.clock_rate = float(c)
         self.m0, self.planet_masses, self.G, self.h = float(ms[0]), ms[1:].copy(), float(G), float(h)
         self.N = ms.size - 1
         self.dim = 3 * self.N + 1
@@ -350,13 +383,13 @@ class FlowComposed(HamiltonianSystem):
         self.weights = np.where(ms > 0, ms, 1.0)
         massive = np.flatnonzero(self.planet_masses > 0)
         self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses,
-                                       [massive.size], massive])
+                                       [self.clock_rate, massive.size], massive])
         self._com = (np.zeros(3), np.zeros(3))
 
     @classmethod
-    def from_nbody(cls, nbody, h: float) -> "FlowComposed":
+    def from_nbody(cls, nbody, h: float, clock_rate: float = 1.0) -> "FlowComposed":
         """The system of an :class:`systems.NBody` whose first body is the star."""
-        return cls(nbody.body_masses, nbody.G, h)
+        return cls(nbody.body_masses, nbody.G, h, clock_rate)
 
     def full_kernels(self):
         return composed_gradient, composed_energy, self._params
@@ -391,7 +424,9 @@ class FlowComposed(HamiltonianSystem):
                           - self.G * self.m0 * self.planet_masses / np.linalg.norm(Q, axis=1)))
         tau0 = -0.5 * self.h
         X, W = kepler_flow(Q, V, self.G * self.m0, -tau0)
-        return np.concatenate([X.ravel(), [tau0], (W * self.weights[1:, None]).ravel(), [hk]])
+        c = self.clock_rate
+        return np.concatenate([X.ravel(), [c * tau0], (W * self.weights[1:, None]).ravel(),
+                               [hk / c]])
 
     def heliocentric(self, Y):
         """(Q, V), each (..., N, 3), of states Y (..., 2m) at their own time tau:
@@ -404,7 +439,7 @@ class FlowComposed(HamiltonianSystem):
         X = Y2[:, :m - 1].reshape(-1, 3)
         V = (Y2[:, m:2 * m - 1].reshape(-1, self.N, 3) / self.weights[1:, None]).reshape(-1, 3)
         mu = np.full(X.shape[0], self.G * self.m0)
-        taus = Y2[:, m - 1]
+        taus = Y2[:, m - 1] / self.clock_rate
         if np.all(taus == taus[0]):
             Q, W = kepler_flow(X, V, mu, float(taus[0]))
         else:

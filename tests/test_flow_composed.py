@@ -131,3 +131,34 @@ def test_adaptive_steps_are_refused_by_name():
     with pytest.raises(ValueError, match="adaptive steps are not available for FlowComposed"):
         integrate(HBVM(6, 4), fc, fc.extend(nb.initial_state()), 0.1, form="full",
                   adaptive=True, t_end=1.0, epsilon=1e-9)
+
+
+def test_clock_rate_scales_the_clock_exactly():
+    # c tau and p_tau / c with c a power of 2: the same physical states and energy to the bit
+    # at the start, the same run to round-off (only the iteration's stop rule sees c), fewer
+    # or as many sweeps
+    nb = two_planets(1e-3)
+    h, n = 0.25, 24
+    fc1 = FlowComposed.from_nbody(nb, h)
+    fcc = FlowComposed.from_nbody(nb, h, clock_rate=2.0 ** 10)
+    Y1, Yc = fc1.extend(nb.initial_state()), fcc.extend(nb.initial_state())
+    m = fc1.dim
+    assert Yc[m - 1] == 2.0 ** 10 * Y1[m - 1] and Yc[2 * m - 1] == Y1[2 * m - 1] / 2.0 ** 10
+    assert np.array_equal(fcc.physical(Yc), fc1.physical(Y1))
+    assert fcc.energy(Yc) == fc1.energy(Y1)
+    g1, gc = fc1.gradient(Y1)[0], fcc.gradient(Yc)[0]
+    assert np.array_equal(np.delete(gc, [m - 1, 2 * m - 1]), np.delete(g1, [m - 1, 2 * m - 1]))
+    assert gc[2 * m - 1] == 2.0 ** 10 and gc[m - 1] == g1[m - 1] / 2.0 ** 10
+    runs = [Stepper(HBVM(8, 6), fc, Y, form="full") for fc, Y in ((fc1, Y1), (fcc, Yc))]
+    for st in runs:
+        st.run(h, n, sample_every=n)
+    assert runs[1].y[m - 1] == -0.5 * h * 2.0 ** 10          # recentred in its own units
+    y1, yc = fc1.physical(runs[0].y, n * h), fcc.physical(runs[1].y, n * h)
+    assert np.abs(yc - y1).max() < 1e-13
+    assert runs[1].niter <= runs[0].niter
+
+
+@pytest.mark.parametrize("bad", [3.0, 0.0, -2.0, float("nan"), True, 2.0 ** 70, "2"])
+def test_clock_rate_must_be_a_power_of_two(bad):
+    with pytest.raises(ValueError, match="`clock_rate`"):
+        FlowComposed([1.0, 1e-3], 1.0, 0.1, clock_rate=bad)
