@@ -14,7 +14,7 @@ benchmarks time the same runs, :doc:`../results/engine`).
 
 At 25 steps a period an order-4 step misses more than a thousandth of the motion through
 pericentre: by default such a run is refused by the step's own error check
-(``UnresolvedStepError``), and a Gauss run whose energy ends up more than 1e-3 of |T| + |V|
+(``UnresolvedStepError``), and a Gauss run whose energy ends up more than 1e-3 of ``|T| + |V|``
 away from its start by the run's drift check (``EnergyDriftError``). A diagram measures each
 point's error against the exact solution, so these runs pass ``error_bound=None`` and
 ``energy_tol=None`` to keep the coarse points.
