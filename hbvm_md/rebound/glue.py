@@ -23,32 +23,28 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import carray
 
-from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, ERROR_BOUND, N_COUNTERS, OK,
-                              TINY_RATIO,
-                              copy1, copy2, select_extrapolation, test_particle_error)
+from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, ERROR_BOUND, OK, TINY_RATIO, copy1,
+                              copy2, select_extrapolation, test_particle_error)
 from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
-from integrators.records import (Adaptive, Extrapolation, Method, Newton, Options, State, System,
-                                 Tangents, Work)
+from integrators.records import Adaptive, Options, System, Tangents
 from hbvm_md.rebound.cabi import call_megno
-from hbvm_md.rebound.layout import (
-    A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
-    A_KINW, A_MINV, A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT,
-    A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC, D_PVAR,
-    D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST, A_TP, A_TO, D_KEPLER, SL_KEPLER,
-    BAD_DT, BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
-    D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES, N_SLOTS,
-    RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N,
-    R_NACTIVE, R_PARTICLES, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS,
-    SL_COUNTERS, SL_CTX, SL_ECHECK, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV,
-    SL_K, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_NSTEPS, SL_REJECTED, SL_RES,
-    SL_RESYNCS, SL_S,
-    SL_TOL, SL_T_FAIL, SL_Y, TEST_PARTICLE)
+from hbvm_md.rebound.layout import (A_HOST, A_KINW, A_MINV, A_PARAMS, A_WRITTEN, A_V, A_VT, A_DG,
+                                    A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC,
+                                    D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST,
+                                    A_TP, A_TO, BAD_DT, BAD_SETTINGS, D_M, D_N, D_P, D_PTR, D_S,
+                                    N_HEADER, N_HOST, N_RES, N_SLOTS, RESYNC, R_DT, R_DTL, R_G,
+                                    R_HEAD, R_M, R_NACTIVE, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE,
+                                    SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_ECHECK, SL_EPSILON,
+                                    SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_DT, SL_MAX_ITER,
+                                    SL_MIN_DT, SL_NSTEPS, SL_REJECTED, SL_RES, SL_RESYNCS, SL_TOL,
+                                    SL_T_FAIL, TEST_PARTICLE)
 from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, O_SIGMA,
                                     O_WIDTH, O_Y, P_N, P_NODES, P_ODE_DERIV_AT, P_ODES_HELD,
                                     P_ODES_WORD, call_void2, odes_at, odes_set)
-from hbvm_md.rebound.particles import (delta2, particles_match, read_tangents, reread_particles,
-                                       restore_particles, settings_ok, var_rows, write_tangents)
+from hbvm_md.rebound.particles import (context_current, delta2, particles_match, read_tangents,
+                                       reread_particles, restore_particles, settings_ok,
+                                       step_records, var_rows, write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
@@ -335,15 +331,9 @@ def core_step(r, p):
     N = ctx[D_N]
     if ctx[D_HOST] != 0:        # (N_odes is a word the checks below compare)
         odes_release(simi, carray(float64_pointer(ctx[A_PARAMS]), ctx[D_P]))
-    if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
+    if not context_current(simi, st, ctx):
         return RESYNC
-    if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
-            or st[SL_METHOD] != ctx[D_METHOD] or st[SL_KEPLER] != ctx[D_KEPLER]):
-        return RESYNC                              # the method was changed between runs
-    for i in range(N_CFG):
-        if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
-            return RESYNC                          # a setting HBVM checks was changed
-    s, m, kk = ctx[D_S], ctx[D_M], ctx[D_KK]
+    s, m = ctx[D_S], ctx[D_M]
     u = m                                          # the coefficients' width (separable)
 
     def f(slot, n):
@@ -355,32 +345,19 @@ def core_step(r, p):
     def f3(slot, a, b, c):
         return carray(float64_pointer(ctx[slot]), (a, b, c))
 
-    def z2(slot, a, b):
-        return carray(complex128_pointer(ctx[slot]), (a, b))
-
     if simi[ctx[R_PVAR]] != ctx[D_PVAR]:
         return RESYNC                              # the variational particles moved
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
     nv = ctx[D_NV]
     vidx = f2(A_VIDX, nv, 2)
     pv = carray(float64_pointer(ctx[D_PVAR]), (var_rows(vidx, N), ctx[R_STRIDE]))
+    state, trial, method, newton, work, ext = step_records(ctx, st, pa, m, u)
     return step_arrays(
         Rebound(simd, simi, view, ctx, ra, pv),
         Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES), f2(A_WRITTEN, N, 7),
              f(A_HOST, N_HOST), vidx, f3(A_DGS, nv, s, m)),
         System(False, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
-        State(carray(float64_pointer(st[SL_Y]), 2 * m),
-              carray(float64_pointer(st[SL_Y] + 16 * m), 2 * m),
-              carray(float64_pointer(st[SL_GAMMA]), (s, u)),
-              carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), f(A_CLOCK, 2)),
-        State(f(A_YT, 2 * m), f(A_CYT, 2 * m), f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF),
-              f(A_CLOCK, 2)),
-        Method(f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s), f3(A_WP, ctx[D_WPP], s, kk),
-               f3(A_CP, ctx[D_CPP], kk, s)),
-        Newton(z2(A_NV, s, s), z2(A_NVINV, s, s), carray(complex128_pointer(ctx[A_NM]), (0, m, m))),
-        Work(f(A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
-             carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS)),
-        Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s)),
+        state, trial, method, newton, work, ext,
         Tangents(f2(A_V, nv, 2 * m), f3(A_DG, nv, s, m), f2(A_VT, nv, 2 * m),
                  f3(A_DGT, nv, s, m), f(A_TW, ctx[D_TGF]),
                  carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),

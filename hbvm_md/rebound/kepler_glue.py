@@ -23,19 +23,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import carray
 
-from integrators.core import ERROR_BOUND, N_COUNTERS, NOT_FINITE, OK, copy1, copy2
-from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
-from integrators.records import Adaptive, Extrapolation, Method, Newton, Options, State, System, Work
-from hbvm_md.rebound.layout import (
-    A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_HOST,
-    A_NM, A_NV, A_NVINV, A_PARAMS, A_TN, A_TS, A_WORK, A_WP, A_WRITTEN, A_YT, BAD_DT,
-    BAD_SETTINGS, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER, D_KK, D_M, D_METHOD, D_N, D_NC, D_NF,
-    D_NODES, D_P, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_HOST, N_RES,
-    N_SLOTS, RESYNC, R_DT, R_DTL, R_G, R_HEAD, R_M, R_N, R_NACTIVE, R_PARTICLES, R_STRIDE, R_T,
-    R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_COUNTERS, SL_CTX, SL_ECHECK,
-    SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL, SL_H_PREV, SL_K, SL_KEPLER, SL_MAX_ITER,
-    SL_METHOD, SL_NODES, SL_NSTEPS, SL_RES, SL_S, SL_TOL, SL_T_FAIL, SL_Y)
-from hbvm_md.rebound.particles import particles_match, settings_ok
+from integrators.core import ERROR_BOUND, NOT_FINITE, OK, copy1, copy2
+from integrators.pointers import address_of, float64_pointer, int64_pointer
+from integrators.records import Adaptive, Options, System
+from hbvm_md.rebound.layout import (A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SETTINGS, D_M, D_N,
+                                    D_P, D_PTR, N_HEADER, N_HOST, N_RES, N_SLOTS, RESYNC, R_DT,
+                                    R_DTL, R_G, R_HEAD, R_M, R_NACTIVE, R_STRIDE, R_T, R_VX, R_X,
+                                    SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_ECHECK,
+                                    SL_EPSILON, SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_ITER,
+                                    SL_NSTEPS, SL_RES, SL_TOL, SL_T_FAIL, SL_Y)
+from hbvm_md.rebound.particles import context_current, particles_match, settings_ok, step_records
 from systems.flow_composed import composed_bodies
 
 GLUE_FUNCTIONS = ("kepler_step_arrays",)
@@ -120,48 +117,23 @@ def core_step(r, p):
     simd = carray(float64_pointer(ra), ctx[R_HEAD])
     simi = carray(int64_pointer(ra), ctx[R_HEAD])
     N = ctx[D_N]
-    if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != N:
+    if not context_current(simi, st, ctx):
         return RESYNC
-    if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
-            or st[SL_METHOD] != ctx[D_METHOD] or st[SL_KEPLER] != ctx[D_KEPLER]):
-        return RESYNC                              # the method was changed between runs
-    for i in range(N_CFG):
-        if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
-            return RESYNC                          # a setting HBVM checks was changed
-    s, kk = ctx[D_S], ctx[D_KK]
     m = ctx[D_M]
     u = 2 * m                                      # the coefficients' width (full form)
 
     def f(slot, n):
         return carray(float64_pointer(ctx[slot]), n)
 
-    def f2(slot, a, b):
-        return carray(float64_pointer(ctx[slot]), (a, b))
-
-    def f3(slot, a, b, c):
-        return carray(float64_pointer(ctx[slot]), (a, b, c))
-
-    def z2(slot, a, b):
-        return carray(complex128_pointer(ctx[slot]), (a, b))
-
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
-    ys = st[SL_Y]
     empty = carray(float64_pointer(ctx[A_PARAMS]), 0)
+    state, trial, method, newton, work, ext = step_records(ctx, st, pa, m, u)
     return kepler_step_arrays(
         simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES),
-        f2(A_WRITTEN, N, 7), f(A_HOST, N_HOST), carray(float64_pointer(ys + 32 * m), N_COM),
+        carray(float64_pointer(ctx[A_WRITTEN]), (N, 7)), f(A_HOST, N_HOST),
+        carray(float64_pointer(st[SL_Y] + 32 * m), N_COM),
         System(True, empty, empty, f(A_PARAMS, ctx[D_P])),
-        State(carray(float64_pointer(ys), 2 * m), carray(float64_pointer(ys + 16 * m), 2 * m),
-              carray(float64_pointer(st[SL_GAMMA]), (s, u)),
-              carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), f(A_CLOCK, 2)),
-        State(f(A_YT, 2 * m), f(A_CYT, 2 * m), f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF),
-              f(A_CLOCK, 2)),
-        Method(f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s), f3(A_WP, ctx[D_WPP], s, kk),
-               f3(A_CP, ctx[D_CPP], kk, s)),
-        Newton(z2(A_NV, s, s), z2(A_NVINV, s, s), carray(complex128_pointer(ctx[A_NM]), (0, u, u))),
-        Work(f(A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
-             carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS)),
-        Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s), f2(A_EZERO, s, s)))
+        state, trial, method, newton, work, ext)
 
 
 if TYPE_CHECKING:

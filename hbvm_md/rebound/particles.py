@@ -7,10 +7,18 @@ variant, :mod:`integrators.specialise`) links the same compiled functions instea
 its own copies (six REBOUND variants in the test suite compiled them six times).
 """
 import numpy as np
+from numba import carray
 
+from integrators.core import N_COUNTERS
 from integrators.jit import jit
-from hbvm_md.rebound.layout import (SL_ADAPTIVE, SL_EPSILON, SL_ETOL, SL_MAX_DT, SL_MAX_ITER,
-                                    SL_MIN_DT, SL_TOL)
+from integrators.pointers import complex128_pointer, float64_pointer
+from integrators.records import Extrapolation, Method, Newton, State, Work
+from hbvm_md.rebound.layout import (
+    A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_NM,
+    A_NV, A_NVINV, A_TN, A_TS, A_WORK, A_WP, A_YT, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER, D_KK,
+    D_METHOD, D_N, D_NC, D_NF, D_NODES, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF,
+    R_N, R_PARTICLES, SL_ADAPTIVE, SL_COUNTERS, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_K,
+    SL_KEPLER, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_S, SL_TOL, SL_Y)
 
 
 @jit
@@ -66,6 +74,61 @@ def restore_particles(view, written, ix, ivx):
         for c in range(3):
             view[i, ix + c] = written[i, c]
             view[i, ivx + c] = written[i, 3 + c]
+
+
+@jit
+def context_current(simi, st, ctx):
+    """Is the context block still the simulation's?  False (the step answers RESYNC, and the
+    host prepares afresh) when REBOUND's particle array moved or changed size, or the method
+    or a setting HBVM checks changed between runs: the one test of both REBOUND steps (plain,
+    :mod:`~hbvm_md.rebound.glue`, and composed, :mod:`~hbvm_md.rebound.kepler_glue`)."""
+    if simi[ctx[R_PARTICLES]] != ctx[D_PTR] or simi[ctx[R_N]] != ctx[D_N]:
+        return False
+    if (st[SL_S] != ctx[D_S] or st[SL_K] != ctx[D_K] or st[SL_NODES] != ctx[D_NODES]
+            or st[SL_METHOD] != ctx[D_METHOD] or st[SL_KEPLER] != ctx[D_KEPLER]):
+        return False
+    for i in range(N_CFG):
+        if simi[ctx[C_WORDS + i]] != ctx[C_VALUES + i]:
+            return False
+    return True
+
+
+@jit
+def step_records(ctx, st, pa, m, u):
+    """The step's records (:mod:`integrators.records`) over HBVM's state in REBOUND (``pa``:
+    its address; the double-double state y, cy at slot SL_Y, gamma (s, u) at SL_GAMMA, eref)
+    and the context block ``ctx``: (state, trial state, method, Newton, work, extrapolation),
+    for a state of 2m components whose coefficients are u wide (u = m in the separable form,
+    2m in the full form).  Both REBOUND steps bind them so."""
+    s, kk = ctx[D_S], ctx[D_KK]
+
+    def f(slot, n):
+        return carray(float64_pointer(ctx[slot]), n)
+
+    def f2(slot, a, b):
+        return carray(float64_pointer(ctx[slot]), (a, b))
+
+    def f3(slot, a, b, c):
+        return carray(float64_pointer(ctx[slot]), (a, b, c))
+
+    def z2(slot, a, b):
+        return carray(complex128_pointer(ctx[slot]), (a, b))
+
+    ys = st[SL_Y]
+    state = State(carray(float64_pointer(ys), 2 * m), carray(float64_pointer(ys + 16 * m), 2 * m),
+                  carray(float64_pointer(st[SL_GAMMA]), (s, u)),
+                  carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), f(A_CLOCK, 2))
+    trial = State(f(A_YT, 2 * m), f(A_CYT, 2 * m), f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF),
+                  f(A_CLOCK, 2))
+    method = Method(f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s),
+                    f3(A_WP, ctx[D_WPP], s, kk), f3(A_CP, ctx[D_CPP], kk, s))
+    newton = Newton(z2(A_NV, s, s), z2(A_NVINV, s, s),
+                    carray(complex128_pointer(ctx[A_NM]), (0, u, u)))
+    work = Work(f(A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
+                carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS))
+    ext = Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s),
+                        f2(A_EZERO, s, s))
+    return state, trial, method, newton, work, ext
 
 
 @jit
