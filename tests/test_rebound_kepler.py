@@ -339,10 +339,11 @@ def test_gr_potential_is_a_term_of_the_perturbation():
     ref, _, _ = _mercury("ias15")
     ref.integrate(sim.t)
     assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 1e-11
-    # the term matters at this tolerance (Newton alone is 1e-9 away after 5 years)
+    # the term matters at this tolerance (measured: Newton alone is 4e-5 AU away after 5 years;
+    # the run is 9e-13 from IAS15, its energy error 4e-15)
     newton, _, _ = _mercury(rebx_attached=False)
     newton.steps(n)
-    assert np.abs(_xv(sim)[:, :3] - _xv(newton)[:, :3]).max() > 1e-9
+    assert np.abs(_xv(sim)[:, :3] - _xv(newton)[:, :3]).max() > 1e-6
 
 
 def test_gr_potential_restarts_bit_for_bit(tmp_path):
