@@ -246,7 +246,7 @@ def test_gr_potential_term_is_plain_hbvms_with_the_potential():
     assert np.array_equal(yt[:9], y[:9])                     # it pulls nothing
 
 
-def test_gr_c_absent_is_the_run_without_it_and_bad_gr_c_is_named():
+def test_gr_c_absent_is_the_default_and_bad_gr_c_is_named():
     nb = two_planets(1e-3)
     runs = [integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), 0.25, 16, sample_every=16,
                       form="full").y[-1]
