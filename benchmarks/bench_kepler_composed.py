@@ -260,7 +260,7 @@ def _timers():
     hook and the energy (the step's energy check calls it once a step)."""
     from numba import njit
     from integrators.kepler_flow import SAVED, kepler_pullback, kepler_step_saved
-    from systems.flow_composed import (_header, _interaction_gradient, composed_energy,
+    from systems.flow_composed import (_header, _interaction_gradient, _massive, composed_energy,
                                        composed_gradient, composed_recentre)
     from systems.nbody import nbody_forces
 
@@ -309,6 +309,7 @@ def _timers():
         v = np.empty((N, 3))
         gx = np.empty((N, 3))
         gp = np.empty(3)
+        massive = _massive(params)
         for i in range(N):
             for a in range(3):
                 x[i, a] = Y[0, 3 * i + a]
@@ -317,7 +318,7 @@ def _timers():
         for _ in range(reps):
             for r in range(Y.shape[0]):
                 x[0, 0] += acc * 1e-300
-                acc += _interaction_gradient(x, v, ms, G, m0, gx, gp)
+                acc += _interaction_gradient(x, v, ms, G, m0, gx, gp, massive)
         return acc
 
     @njit

@@ -10,7 +10,8 @@ the barycentre's motion removed the Hamiltonian is exactly
     H = H_K + H_I,   H_K = sum_i |P_i|^2 / (2 m_i) - G m_0 m_i / |Q_i|,
                      H_I = -sum_{i<j} G m_i m_j / |Q_i - Q_j| + |sum_i P_i|^2 / (2 m_0),
 
-the split of WHFast's democratic heliocentric coordinates (REBOUND's
+(plus, with ``gr_c``, REBOUNDx's GR potential -sum_i 3 (G m_0)^2 m_i / (c^2 |Q_i|^2) in
+H_I: :func:`_gr_potential`), the split of WHFast's democratic heliocentric coordinates (REBOUND's
 ``reb_integrator_whfast`` with ``coordinates = "democraticheliocentric"``, whose Kepler drift
 uses mu = G m_0): H_K is N uncoupled Kepler problems with mu = G m_0, whose flow phi_t
 (all planets at once, :mod:`integrators.kepler_flow`) is known to round-off.
@@ -59,10 +60,11 @@ from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler
 
 from .base import HamiltonianSystem
 
-# params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n]: the masses; c the clock's rate
+# params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n, c_light]: the masses; c the clock's rate
 # (FlowComposed's clock_rate, 1 by default); then the massive planets' indices (0-based among
 # the planets; the test particles, m = 0, are the others), so that a scene of many test
-# particles costs O(n N) pairs, not O(N^2)
+# particles costs O(n N) pairs, not O(N^2); then the speed of light of the GR potential term
+# (FlowComposed's gr_c; 0: no such term, and not one operation more)
 _HEAD = 3
 
 
@@ -96,6 +98,38 @@ def _massive(params):
     N = int(params[0])
     n = int(params[_HEAD + N + 1])
     return params[_HEAD + N + 2:_HEAD + N + 2 + n]
+
+
+@jit
+def _light(params):
+    """The speed of light of the GR potential term (FlowComposed's ``gr_c``), 0 without it."""
+    N = int(params[0])
+    return params[_HEAD + N + 2 + int(params[_HEAD + N + 1])]
+
+
+@jit
+def _gr_potential(x, ms, mu, light, gx):
+    """The Nobili-Roxburgh potential of REBOUNDx's ``gr_potential`` (src/gr_potential.c), a
+    term of H_I: U = -sum_i 3 mu^2 m_i / (c^2 |Q_i|^2), mu = G m_0, Q_i the heliocentric
+    position (REBOUNDx's ``particles[i] - particles[0]``: always particle 0, no ``gr_source``).
+    Adds dU/dQ_i = 6 mu^2 m_i Q_i / (c^2 |Q_i|^4) to gx (per unit mass for a test particle,
+    whose rows are its own Hamiltonian's per unit mass: REBOUNDx accelerates it too) and returns
+    U (a test particle is in no term of it, as in REBOUNDx's potential, which weighs by m_i).
+    It depends on Q_i alone, so it leaves dH_I/dP (the star's momentum term) unchanged."""
+    c2 = light * light
+    pf = 6.0 * mu * mu / c2           # REBOUNDx's prefactors, as it writes them
+    pu = 3.0 * mu * mu / c2
+    u = 0.0
+    for i in range(x.shape[0]):
+        r2 = x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] + x[i, 2] * x[i, 2]
+        c = pf / (r2 * r2)
+        if ms[i] > 0.0:
+            c *= ms[i]
+            u -= pu * ms[i] / r2
+        gx[i, 0] += c * x[i, 0]
+        gx[i, 1] += c * x[i, 1]
+        gx[i, 2] += c * x[i, 2]
+    return u
 
 
 @jit
@@ -169,6 +203,7 @@ def composed_gradient(Y, params, out):
     N, G, m0, ms, mu, m = _header(params)
     massive = _massive(params)
     rate = _clock(params)
+    light = _light(params)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     sv = np.empty((N, SAVED))
@@ -182,6 +217,8 @@ def composed_gradient(Y, params, out):
                 Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
                 Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, mu, tau, sv, i)
         _interaction_gradient(x, v, ms, G, m0, gx, gp, massive)
+        if light != 0.0:
+            _gr_potential(x, ms, mu, light, gx)
         dkdt = 0.0
         for i in range(N):
             mi = _weight(ms[i])
@@ -209,7 +246,8 @@ def composed_gradient(Y, params, out):
 
 @jit
 def composed_energy(y, params):
-    """H~(y) = H_I(phi_tau(X)) + p_tau for one state y (2m,)."""
+    """H~(y) = H_I(phi_tau(X)) + p_tau for one state y (2m,) (H_I with the GR potential term
+    when params carry one)."""
     N, G, m0, ms, mu, m = _header(params)
     rate = _clock(params)
     tau = y[m - 1] / rate
@@ -224,8 +262,11 @@ def composed_energy(y, params):
                                            y[m + 3 * i + 2] / mi, mu, tau)
         x[i, 0], x[i, 1], x[i, 2] = a, b, c
         v[i, 0], v[i, 1], v[i, 2] = d, e, f
-    return (_interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params))
-            + rate * y[2 * m - 1])
+    hi = _interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params))
+    light = _light(params)
+    if light != 0.0:
+        hi += _gr_potential(x, ms, mu, light, gx)
+    return hi + rate * y[2 * m - 1]
 
 
 @jit
@@ -344,6 +385,14 @@ class FlowComposed(HamiltonianSystem):
         the iteration earlier, as a longer unit of time does (measured:
         ``benchmarks/bench_kepler_composed.py``, "Where the time goes").  Opt-in until a stop
         rule that uses the iteration's measured contraction makes it unnecessary.
+    gr_c : float, optional
+        The speed of light, in the scene's units, of a general-relativistic potential term
+        in H_I: REBOUNDx's ``gr_potential`` (Nobili and Roxburgh 1986; Tamayo et al. 2020),
+        U = -sum_i 3 (G m_0)^2 m_i / (c^2 |Q_i|^2) about the star, which gets the pericentre
+        precession right.  It is conservative and a function of the heliocentric positions
+        only, so the composed method keeps H~ with it as without it, and the physical energy is
+        REBOUND's ``sim.energy()`` plus REBOUNDx's ``gr_potential_potential``.  None (default):
+        no such term, and the same numbers bit for bit as before it existed.
 
     Build it with :meth:`from_nbody`.  States: :meth:`extend` (from a barycentric
     :class:`systems.NBody` state) and :meth:`physical` (back, at the state's own tau).
@@ -357,7 +406,8 @@ class FlowComposed(HamiltonianSystem):
                         "controller's estimate; use fixed steps (integrate(..., h, steps)), "
                         "whose own error check (error_bound) still refuses an unresolved step")
 
-    def __init__(self, masses, G: float, h: float, clock_rate: float = 1.0):
+    def __init__(self, masses, G: float, h: float, clock_rate: float = 1.0,
+                 gr_c: float | None = None):
         ms = np.asarray(masses, dtype=float).reshape(-1)
         if ms.size < 2 or not np.all(np.isfinite(ms) & (ms >= 0)) or not ms[0] > 0:
             raise ValueError(f"`masses` must be the star's mass (> 0) then each planet's (>= 0: "
@@ -373,6 +423,13 @@ class FlowComposed(HamiltonianSystem):
                              f"the clock's rows scale exactly (got clock_rate={clock_rate!r}); "
                              f"1 is the default")
         self.clock_rate = float(c)
+        if gr_c is not None and (isinstance(gr_c, bool)
+                                 or not isinstance(gr_c, (int, float, np.number))
+                                 or not np.isfinite(gr_c) or not gr_c > 0):
+            raise ValueError(f"`gr_c` must be the speed of light in the scene's units, a "
+                             f"positive finite number (got gr_c={gr_c!r}); None for no GR "
+                             f"potential term")
+        self.gr_c = None if gr_c is None else float(gr_c)
         self.m0, self.planet_masses, self.G, self.h = float(ms[0]), ms[1:].copy(), float(G), float(h)
         self.N = ms.size - 1
         self.dim = 3 * self.N + 1
@@ -383,13 +440,15 @@ class FlowComposed(HamiltonianSystem):
         self.weights = np.where(ms > 0, ms, 1.0)
         massive = np.flatnonzero(self.planet_masses > 0)
         self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses,
-                                       [self.clock_rate, massive.size], massive])
+                                       [self.clock_rate, massive.size], massive,
+                                       [0.0 if gr_c is None else self.gr_c]])
         self._com = (np.zeros(3), np.zeros(3))
 
     @classmethod
-    def from_nbody(cls, nbody, h: float, clock_rate: float = 1.0) -> "FlowComposed":
+    def from_nbody(cls, nbody, h: float, clock_rate: float = 1.0,
+                   gr_c: float | None = None) -> "FlowComposed":
         """The system of an :class:`systems.NBody` whose first body is the star."""
-        return cls(nbody.body_masses, nbody.G, h, clock_rate)
+        return cls(nbody.body_masses, nbody.G, h, clock_rate, gr_c)
 
     def full_kernels(self):
         return composed_gradient, composed_energy, self._params
@@ -466,13 +525,16 @@ class FlowComposed(HamiltonianSystem):
                                (v * self.weights[:, None]).reshape(lead + (-1,))], axis=-1)
 
     def physical_energy(self, Y) -> float:
-        """H = H_K + H_I at the physical state of Y (barycentric frame)."""
+        """H = H_K + H_I at the physical state of Y (barycentric frame), H_I with the GR potential
+        term when there is one (``gr_c``)."""
         Q, V = self.heliocentric(Y)
         ms = self.planet_masses
         hk = np.sum(0.5 * ms * np.sum(V * V, axis=1) - self.G * self.m0 * ms / np.linalg.norm(Q, axis=1))
         gx, gp = np.empty((self.N, 3)), np.empty(3)
-        return float(hk + _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp,
-                                                _massive(self._params)))
+        hi = _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp, _massive(self._params))
+        if self.gr_c is not None:
+            hi += _gr_potential(np.ascontiguousarray(Q), ms, self.G * self.m0, self.gr_c, gx)
+        return float(hk + hi)
 
     # -- the protocol (Python path) ----------------------------------------------------
     def energy(self, Y):

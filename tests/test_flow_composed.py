@@ -7,6 +7,7 @@ import pytest
 from integrators import HBVM, Stepper, UnresolvedStepError, integrate
 from integrators.kepler_flow import kepler_step_stm, kepler_step_vjp, orbit_state
 from systems import NBody
+from systems.base import SeparableSystem
 from systems.flow_composed import FlowComposed
 
 
@@ -162,3 +163,97 @@ def test_clock_rate_scales_the_clock_exactly():
 def test_clock_rate_must_be_a_power_of_two(bad):
     with pytest.raises(ValueError, match="`clock_rate`"):
         FlowComposed([1.0, 1e-3], 1.0, 0.1, clock_rate=bad)
+
+
+class _WithGRPotential(SeparableSystem):
+    """An NBody plus REBOUNDx's gr_potential about body 0, -sum_i 3 (G m_0)^2 m_i /
+    (c^2 |x_i - x_0|^2), written with numpy in the plain (barycentric) variables: plain HBVM's
+    reference for FlowComposed's gr_c."""
+
+    def __init__(self, nb, c):
+        self.nb, self.dim, self.masses = nb, nb.dim, nb.masses
+        self.m = nb.body_masses
+        self.k = 3 * (nb.G * self.m[0]) ** 2 / c ** 2
+
+    def _rel(self, q):
+        X = np.asarray(q, dtype=float).reshape(np.shape(q)[:-1] + (-1, 3))
+        d = X[..., 1:, :] - X[..., :1, :]
+        return X, d, np.sum(d * d, axis=-1)
+
+    def potential(self, q):
+        _, _, r2 = self._rel(q)
+        return self.nb.potential(q) - self.k * np.sum(self.m[1:] / r2, axis=-1)
+
+    def kinetic(self, p):
+        return self.nb.kinetic(p)          # (a test particle weighs nothing in H)
+
+    def forces(self, q):
+        # per unit mass on a test particle (NBody's p = v), with no reaction on the star
+        X, d, r2 = self._rel(q)
+        f = np.zeros_like(X)
+        w = np.where(self.m[1:] > 0, self.m[1:], 1.0)
+        fi = -2 * self.k * (w / r2 ** 2)[..., None] * d
+        f[..., 0, :] = -(fi * (self.m[1:] > 0)[:, None]).sum(axis=-2)
+        f[..., 1:, :] = fi
+        return self.nb.forces(q) + f.reshape(np.shape(q))
+
+
+def test_gr_potential_term_is_plain_hbvms_with_the_potential():
+    # a strong term (c = 20, G = 1: 3 mu / (c^2 r) ~ 1e-2) so that it moves the planets by far
+    # more than the tolerance
+    nb = two_planets(1e-3)
+    c = 20.0
+    ref_sys = _WithGRPotential(nb, c)
+    fc = FlowComposed.from_nbody(nb, 0.25, gr_c=c)
+    Y = fc.extend(nb.initial_state())
+    # H~ starts at H, which is Newton's (barycentric frame) plus the potential; the gradient is
+    # H~'s
+    y0 = nb.initial_state()
+    fc0 = FlowComposed.from_nbody(nb, 0.25)
+    U = ref_sys.potential(y0[:9]) - nb.potential(y0[:9])
+    assert fc.energy(Y) == pytest.approx(fc.physical_energy(Y), rel=1e-14)
+    newton_energy = fc0.physical_energy(fc0.extend(y0))
+    assert fc.physical_energy(Y) - newton_energy == pytest.approx(U, rel=1e-12)
+    g = fc.gradient(Y)[0]
+    for j in range(Y.size):
+        e = 1e-6
+        Yp, Ym = Y.copy(), Y.copy()
+        Yp[j] += e
+        Ym[j] -= e
+        fd = (fc.energy(Yp) - fc.energy(Ym)) / (2 * e)
+        assert abs(g[j] - fd) <= 1e-7 * max(1.0, abs(g[j])), j
+    T = 8.0
+    r = integrate(HBVM(8, 6), fc, Y, 0.25, 32, sample_every=32, form="full")
+    y = fc.physical(r.y[-1], T)
+    ref = integrate(HBVM(8, 6), ref_sys, y0, T / 400, 400, sample_every=400,
+                    form="full").y[-1]
+    newton = integrate(HBVM(8, 6), nb, nb.initial_state(), T / 400, 400, sample_every=400).y[-1]
+    assert np.abs(y[:9] - newton[:9]).max() > 1e-4          # the term matters
+    assert np.abs(y[:9] - ref[:9]).max() < 1e-12
+    assert ref_sys.energy(y) == pytest.approx(ref_sys.energy(y0), rel=1e-13)
+    # test particles: REBOUNDx accelerates them too, and they weigh nothing in H
+    tp = NBody([1.0, 1e-3, 1e-3 / 2, 0.0], 1.0,
+               positions=np.r_[nb.initial_state()[:9].reshape(3, 3), [[0, 1.3, 0]]],
+               velocities=np.r_[nb.initial_state()[9:18].reshape(3, 3) / nb.body_masses[:, None],
+                                [[-1 / np.sqrt(1.3), 0, 0]]])
+    fct = FlowComposed.from_nbody(tp, 0.25, gr_c=c)
+    rt = integrate(HBVM(8, 6), fct, fct.extend(tp.initial_state()), 0.25, 32, sample_every=32,
+                   form="full")
+    yt = fct.physical(rt.y[-1], T)
+    reft = _WithGRPotential(tp, c)
+    ref_tp = integrate(HBVM(8, 6), reft, tp.initial_state(), T / 400, 400, sample_every=400,
+                       form="full").y[-1]
+    assert np.abs(yt[:12] - ref_tp[:12]).max() < 1e-12
+    assert np.array_equal(yt[:9], y[:9])                     # it pulls nothing
+
+
+def test_gr_c_absent_is_the_default_and_bad_gr_c_is_named():
+    nb = two_planets(1e-3)
+    runs = [integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), 0.25, 16, sample_every=16,
+                      form="full").y[-1]
+            for fc in (FlowComposed.from_nbody(nb, 0.25),
+                       FlowComposed.from_nbody(nb, 0.25, gr_c=None))]
+    assert np.array_equal(runs[0], runs[1])
+    for bad in (0.0, -1.0, float("inf"), True, "3e8"):
+        with pytest.raises(ValueError, match="`gr_c`"):
+            FlowComposed([1.0, 1e-3], 1.0, 0.1, gr_c=bad)

@@ -288,3 +288,131 @@ def test_a_reboundx_force_is_refused_by_name_also_when_added_later():
     rebx.add_force(rebx.load_force("gr"))
     with pytest.raises(ValueError, match=r"REBOUNDx.*gr.*kepler = 0"):
         HBVMIntegrator(sim, kepler=True, dt=H)
+
+
+C_AU_YR = 63241.077        # the speed of light in AU/yr (REBOUNDx's GR examples)
+
+
+def _mercury(integrator="kepler", c=C_AU_YR, dt=0.01, rebx_attached=True):
+    """The inner planets, Jupiter and a test particle inside Mercury's orbit (yr, AU, Msun), with
+    REBOUNDx's gr_potential: the composed step (dt) or IAS15 at a tight epsilon."""
+    reboundx = pytest.importorskip("reboundx")
+    sim = rebound.Simulation()
+    sim.units = ("yr", "AU", "Msun")
+    sim.add(m=1.0)
+    sim.add(m=1.66e-7, a=0.387098, e=0.2056, inc=0.12)
+    sim.add(m=2.45e-6, a=0.723, e=0.0068, inc=0.06, Omega=1.0)
+    sim.add(m=3.0e-6, a=1.0, e=0.0167, f=2.0)
+    sim.add(m=9.5e-4, a=5.2, e=0.048, inc=0.02, f=4.0)
+    sim.add(m=0.0, a=0.3, e=0.3, inc=0.2, f=1.0)
+    sim.N_active = 5
+    sim.move_to_com()
+    rebx = gr = None
+    if rebx_attached:
+        rebx = reboundx.Extras(sim)
+        gr = rebx.load_force("gr_potential")
+        rebx.add_force(gr)
+        gr.params["c"] = c
+    if integrator == "kepler":
+        HBVMIntegrator(sim, kepler=True, dt=dt)
+    else:
+        sim.integrator = integrator
+        sim.integrator.epsilon = 1e-11
+    return sim, rebx, gr
+
+
+def test_gr_potential_is_a_term_of_the_perturbation():
+    """REBOUNDx's gr_potential with kepler = 1: FlowComposed's gr_c term (the engine's run bit
+    for bit), against IAS15 with the same force, and REBOUNDx's energy kept."""
+    sim, rebx, gr = _mercury()
+    nb = NBody.from_rebound(sim)
+    E0 = sim.energy() + rebx.gr_potential_potential(gr)
+    n = 500
+    sim.steps(n)
+    fc = FlowComposed.from_nbody(nb, 0.01, gr_c=C_AU_YR)
+    r = integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), 0.01, n, sample_every=n,
+                  form="full")
+    assert np.array_equal(_state(sim, fc.dim), r.y[-1])
+    E1 = sim.energy() + rebx.gr_potential_potential(gr)
+    assert abs(E1 / E0 - 1) < 2e-14
+    assert fc.physical_energy(r.y[-1]) == pytest.approx(E1, rel=1e-14)
+    ref, _, _ = _mercury("ias15")
+    ref.integrate(sim.t)
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 5e-12
+    # the term matters at this tolerance (measured: Newton alone is 4e-5 AU away after 5 years;
+    # the run is 9e-13 from IAS15, its energy error 4e-15)
+    newton, _, _ = _mercury(rebx_attached=False)
+    newton.steps(n)
+    assert np.abs(_xv(sim)[:, :3] - _xv(newton)[:, :3]).max() > 1e-6
+
+
+def test_gr_potential_restarts_bit_for_bit(tmp_path):
+    reboundx = pytest.importorskip("reboundx")
+    whole, _, _ = _mercury()
+    whole.steps(40)
+    half, rebx, gr = _mercury()
+    half.steps(20)
+    half.save_to_file(str(tmp_path / "s.bin"), delete_file=True)
+    rebx.save(str(tmp_path / "x.rebx"))
+    copy = half.copy()                       # (REBOUND's copy leaves REBOUNDx behind)
+    crebx = reboundx.Extras(copy)
+    cgr = crebx.load_force("gr_potential")
+    crebx.add_force(cgr)
+    cgr.params["c"] = C_AU_YR
+    loaded = rebound.Simulation(str(tmp_path / "s.bin"))
+    lrebx = reboundx.Extras(loaded, str(tmp_path / "x.rebx"))
+    assert loaded.integrator.kepler == 1
+    for other in (half, copy, loaded):
+        other.steps(20)
+        assert np.array_equal(_xv(other), _xv(whole))
+        assert HBVMIntegrator.of(other).resyncs == HBVMIntegrator.of(whole).resyncs
+    del lrebx
+
+
+def test_gr_potential_changed_or_dropped_between_runs_is_followed():
+    # c changed between runs (a number of REBOUNDx's, no word of REBOUND's): the step is
+    # prepared again from the particles and follows IAS15 with the new c
+    c2 = C_AU_YR / 30
+    sim, rebx, gr = _mercury()
+    ref, rrebx, rgr = _mercury("ias15")
+    for s in (sim, ref):
+        s.integrate(1.0)
+    gr.params["c"] = rgr.params["c"] = c2
+    before = HBVMIntegrator.of(sim).resyncs
+    for s in (sim, ref):
+        s.integrate(3.0)
+    assert HBVMIntegrator.of(sim).resyncs == before + 1
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 1e-11
+    # a copy without REBOUNDx is Newton's scene: it starts afresh, and follows IAS15 on it
+    copy = sim.copy()
+    plain = sim.copy()
+    plain.integrator = "ias15"
+    plain.integrator.epsilon = 1e-11
+    copy.integrate(4.0)
+    plain.integrate(4.0)
+    assert HBVMIntegrator.of(copy).resyncs == HBVMIntegrator.of(sim).resyncs + 1
+    assert np.abs(_xv(copy)[:, :3] - _xv(plain)[:, :3]).max() < 1e-11
+
+
+def test_other_reboundx_forces_beside_gr_potential_are_refused():
+    sim, rebx, gr = _mercury()
+    sim.steps(2)
+    for name in ("gr", "gr_potential"):
+        other = rebx.load_force(name)
+        rebx.add_force(other)
+        other.params["c"] = C_AU_YR
+        before = _xv(sim)
+        with pytest.raises(ValueError, match=(r"REBOUNDx 'gr'.*kepler = 0" if name == "gr" else
+                                              r"one REBOUNDx 'gr_potential' force \(got 2\)")):
+            sim.steps(2)
+        assert np.array_equal(_xv(sim), before)
+        rebx.remove_force(other)
+    sim.steps(2)                                   # (gr_potential alone again: it runs)
+    assert sim.t == pytest.approx(0.04)
+    # gr_potential without its c
+    sim, rebx, gr = _mercury(rebx_attached=False, integrator="ias15")
+    reboundx = pytest.importorskip("reboundx")
+    rebx = reboundx.Extras(sim)
+    rebx.add_force(rebx.load_force("gr_potential"))
+    with pytest.raises(ValueError, match=r"set force.params\['c'\]"):
+        HBVMIntegrator(sim, kepler=True, dt=0.01)

@@ -3,8 +3,9 @@ flows (issue 48).  The model, its variables and its step are the engine's
 (:class:`systems.flow_composed.FlowComposed`, bound with the one step by
 :class:`integrators.engine.Binding`); the step REBOUND calls is
 :mod:`hbvm_md.rebound.kepler_glue`.  Here: what the composed step cannot take (refused by
-name, with the way out), the state from the particles (or the saved one, when it is theirs:
-a copy or a loaded file continues bit for bit) and the context block."""
+name, with the way out; REBOUNDx's ``gr_potential`` is modelled, as a term of the perturbation),
+the state from the particles (or the saved one, when it is theirs: a copy or a loaded file
+continues bit for bit) and the context block."""
 from __future__ import annotations
 
 import ctypes
@@ -14,7 +15,7 @@ import numpy as np
 
 from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.checks import check_particles
-from hbvm_md.rebound.forces import host_reasons, ode_signature
+from hbvm_md.rebound.forces import host_reasons, ode_signature, reboundx_forces
 from hbvm_md.rebound.kepler_glue import N_COM
 from hbvm_md.rebound.memory import doubles
 from integrators.core import N_COUNTERS
@@ -26,18 +27,49 @@ from systems.nbody import NBody
 WAY_OUT = "use sim.integrator.kepler = 0 (HBVMIntegrator(sim, kepler=False)), plain HBVM"
 
 
+#: the REBOUNDx force the composed step models, as a term of its perturbation
+GR_POTENTIAL = "gr_potential"
+
+
+def gr_potential_c(sim) -> float | None:
+    """The speed of light ``c`` of the REBOUNDx ``gr_potential`` force attached to ``sim`` (the
+    term :class:`FlowComposed` takes as ``gr_c``), None when none is attached; a ValueError when
+    its ``c`` is not set or not a positive number, or when more than one is attached."""
+    forces = [a for name, a in (reboundx_forces(sim) or []) if name == GR_POTENTIAL]
+    if not forces:
+        return None
+    if len(forces) > 1:
+        raise ValueError(f"sim.integrator.kepler = 1 models one REBOUNDx 'gr_potential' force "
+                         f"(got {len(forces)}); attach one, or {WAY_OUT}")
+    import reboundx
+    try:
+        c = reboundx.extras.Force.from_address(forces[0]).params["c"]
+    except AttributeError:
+        c = None
+    if c is None or not (math.isfinite(c) and c > 0):
+        raise ValueError(f"REBOUNDx 'gr_potential' needs its speed of light in the simulation's "
+                         f"units: set force.params['c'] (got c={c!r}; 63241.077 in AU/yr)")
+    return float(c)
+
+
 def check_composed(sim) -> None:
     """Refuse, naming the reason and the way out, a simulation the composed step does not
-    model: anything beyond Newtonian gravity (it would be left out of the perturbation),
-    variational particles, massive bodies past N_active, fewer than two bodies, a particle 0 that is not the
-    dominant mass, or a body not bound to it."""
+    model: anything beyond Newtonian gravity and one REBOUNDx ``gr_potential`` (the rest would
+    be left out of the perturbation), variational particles, massive bodies past N_active,
+    fewer than two bodies, a particle 0 that is not the dominant mass, or a body not bound to
+    it."""
     reasons = host_reasons(sim)
+    # REBOUNDx's gr_potential is a potential of the heliocentric positions about particle 0,
+    # the composed step's central body: a term of H_I (systems.flow_composed._gr_potential)
+    if gr_potential_c(sim) is not None:
+        reasons.remove(f"REBOUNDx '{GR_POTENTIAL}'")
     if reasons:
         raise ValueError(
             f"sim.integrator.kepler = 1 composes HBVM with the Keplerian flows of Newtonian "
             f"gravity about particle 0, and its perturbation holds the planets' mutual gravity "
-            f"only; this simulation has {', '.join(reasons)}, which it would leave out: "
-            f"{WAY_OUT}, which runs them on REBOUND's own accelerations")
+            f"and REBOUNDx's 'gr_potential' only; this simulation has {', '.join(reasons)}, "
+            f"which it would leave out: {WAY_OUT}, which runs them on REBOUND's own "
+            f"accelerations")
     if sim.N_var > 0:
         raise ValueError(f"sim.integrator.kepler = 1 with {sim.N_var} variational particles: "
                          f"the tangent map is plain HBVM's; {WAY_OUT}")
@@ -107,7 +139,8 @@ def prepare_composed(sim, p: int, method) -> None:
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     view = doubles(ptr, N * stride).reshape(N, stride)
     nb = NBody.from_rebound(sim)
-    fc = FlowComposed.from_nbody(nb, h)
+    gr_c = gr_potential_c(sim)
+    fc = FlowComposed.from_nbody(nb, h, gr_c=gr_c)
     binding = Binding(method, fc, form="full", fast=None, glue="hbvm_md.rebound.kepler_glue")
     m, s = fc.dim, method.s
     size = 4 * m + N_COM
@@ -120,8 +153,12 @@ def prepare_composed(sim, p: int, method) -> None:
         # it gives are the particles bit for bit (the last step wrote them from it)
         out = np.empty((N, 6))
         bad = composed_bodies(y[:2 * m], fc._params, y[4 * m:], sim.t, out)
+        # ... and it was integrated with this model's GR term (com[8]: a copy loses REBOUNDx's
+        # forces, a user may change c between runs): else its reference energy and
+        # coefficients belong to another H, and it starts afresh, as after a mass change
         keep = (bad == 0 and np.array_equal(out[:, :3], view[:, ix:ix + 3])
-                and np.array_equal(out[:, 3:], view[:, ivx:ivx + 3]))
+                and np.array_equal(out[:, 3:], view[:, ivx:ivx + 3])
+                and y[4 * m + 8] == (gr_c or 0.0))
         if keep:
             y[4 * m + 7] = sim.t          # (the bodies are those of this time)
     if not keep:
@@ -133,6 +170,7 @@ def prepare_composed(sim, p: int, method) -> None:
         xcm, vcm = fc._com
         y[4 * m:4 * m + 3], y[4 * m + 3:4 * m + 6] = xcm, vcm
         y[4 * m + 6] = y[4 * m + 7] = sim.t
+        y[4 * m + 8] = gr_c or 0.0
         H._array(st, L.SL_GAMMA, L.SL_NGAMMA, s * 2 * m)[:] = 0.0
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
@@ -143,6 +181,9 @@ def prepare_composed(sim, p: int, method) -> None:
     H._context(st, binding, method, None, view, ptr, sim, ix, ivx, im, kepler=True)
     st[L.SL_CORE] = binding.step_code.core_step.address
     addr = ctypes.addressof(sim)
-    H._FORCES[addr] = ()
+    H._FORCES[addr] = tuple(reboundx_forces(sim) or ())
+    # (its c is read into the model: a change between runs prepares the step again,
+    # host._recheck_forces)
+    H._KEPLER_GR[addr] = gr_c
     H._ODES[addr] = ode_signature(sim)
     H._HOST_PATH.discard(addr)

@@ -414,12 +414,27 @@ def _recheck_forces(sim, addr: int) -> None:
     seen = _FORCES.get(addr)
     if seen is None or (not seen and not sim.extras):
         return
-    if tuple(reboundx_forces(sim) or ()) == seen:
+    if tuple(reboundx_forces(sim) or ()) == seen and (
+            addr not in _KEPLER_GR or _gr_c_unchanged(sim, _KEPLER_GR[addr])):
         return
     prepared = _prepared(addr)
     if prepared is not None:
         prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
     _FORCES.pop(addr, None)
+
+
+#: simulation address -> the speed of light of REBOUNDx's gr_potential (None: none) its composed
+#: step (kepler = 1) was last prepared with: FlowComposed holds it in its parameters, so a c
+#: changed between runs must prepare the step again (the plain step reads it at every stage)
+_KEPLER_GR: dict[int, float | None] = {}
+
+
+def _gr_c_unchanged(sim, c) -> bool:
+    from hbvm_md.rebound.composed import gr_potential_c
+    try:
+        return gr_potential_c(sim) == c
+    except ValueError:
+        return False            # (the preparation names what is wrong)
 
 
 #: simulation address -> the attached ODEs (forces.ode_signature) its step was last prepared with
@@ -1056,6 +1071,7 @@ def _prepare(sim, p: int) -> None:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
     _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
+    _KEPLER_GR.pop(ctypes.addressof(sim), None)
     _ODES[ctypes.addressof(sim)] = ode_signature(sim)
     if sim.extras:
         _warn_operators(sim, _operators(sim))

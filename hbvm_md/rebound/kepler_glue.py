@@ -12,8 +12,10 @@ particles together: the bodies from the state by :func:`systems.flow_composed.co
 A failed step changes nothing and records its step size, start and cause, as the plain glue's.
 
 What the host keeps (:mod:`hbvm_md.rebound.layout`): the saved array ``state`` holds y (2m),
-its low parts cy (2m) and com (8: the barycentre's position at time com[6], its velocity,
-com[6], and the time the bodies were last written, com[7]);
+its low parts cy (2m) and com (9: the barycentre's position at time com[6], its velocity,
+com[6], the time the bodies were last written, com[7], and the speed of light of the GR
+potential term the state was integrated with, com[8], 0 for none: a copy or a loaded file whose
+REBOUNDx ``gr_potential`` differs starts afresh from its particles, as after a mass change);
 ``gamma`` holds the last step's coefficients (s, 2m), already carried into the recentred
 variables by the hook; ``h_prev``, ``eref`` and the counts as for plain HBVM.  So a copy or a
 loaded file continues bit for bit.
@@ -41,8 +43,8 @@ GLUE_NEWTON = False
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.particles",
                 "systems.flow_composed", "integrators.kepler_flow")
-#: the width of the barycentre's record after y and cy in the saved state
-N_COM = 8
+#: the width of the barycentre's record after y and cy in the saved state (module docstring)
+N_COM = 9
 
 
 def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, system, state,
