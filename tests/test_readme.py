@@ -192,6 +192,27 @@ def _check_rebound_kepler(ns, out):
     assert float(out.split("energy error:")[1]) < 1e-13, out
 
 
+def _mercury():
+    """The gr_potential block's scene: the Sun and Mercury in years, AU and solar masses."""
+    import rebound
+
+    from hbvm_md import HBVMIntegrator
+    sim = rebound.Simulation()
+    sim.units = ("yr", "AU", "Msun")
+    sim.add(m=1.0)
+    sim.add(m=1.66e-7, a=0.387, e=0.2056)
+    sim.move_to_com()
+    return {"sim": sim, "HBVMIntegrator": HBVMIntegrator}
+
+
+def _check_rebound_gr(ns, out):
+    sim = ns["sim"]
+    e0 = sim.energy() + ns["rebx"].gr_potential_potential(ns["gr"])
+    sim.integrate(2.0)                              # eight orbits of Mercury, the force on
+    e1 = sim.energy() + ns["rebx"].gr_potential_potential(ns["gr"])
+    assert "kepler=1" in repr(sim.integrator) and abs(e1 - e0) < 1e-12 * abs(e0)
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -206,6 +227,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "kepler_flow_into(x, v, mu, 0.3, x, v)": ((), None, _check_kepler_flow),
     "FlowComposed.from_nbody(nb, h)": ((), None, _check_flow_composed),
     "HBVMIntegrator(sim, kepler=True, dt=500.0)": ((), None, _check_rebound_kepler),
+    'rebx.load_force("gr_potential")': ((), _mercury, _check_rebound_gr),
     "hbvm_md.audit(atoms": ((), None, _check_audit),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),
