@@ -52,7 +52,9 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
     energy_flow`) above 1.  Returns the largest ratio over the steps with rel above the floor
     (``worst``; 0 when the rule examined none), their number (``examined``) and the largest
     rel (``largest_change``)."""
-    st = Stepper(method, system, np.asarray(y0, dtype=float), energy_tol=None, **options)
+    # (all checks off: the same steps a checked run takes until it would refuse, measured)
+    st = Stepper(method, system, np.asarray(y0, dtype=float), energy_tol=None, error_bound=None,
+                 **options)
     kin_w = st.binding.kin_w
     m = kin_w.shape[0]
     (_, _), (Wp, Cp) = method_arrays(method)
@@ -62,7 +64,8 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
     y = st.y.copy()
     T0 = weighted_kinetic(y[m:], kin_w)
     H0 = float(system.energy(y))
-    worst, examined, largest = 0.0, 0, 0.0
+    H_start = H0
+    worst, examined, largest, drift = 0.0, 0, 0.0, 0.0
     for _ in range(steps):
         y1 = st.step(h)
         gamma = st.save_state()[2]
@@ -71,12 +74,14 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
         change = abs(H1 - H0)
         rel = change / (abs(T1) + abs(H1 - T1))
         largest = max(largest, rel)
+        # the run's drift (integrators.core.DRIFT_BOUND): H against its start, over |T| + |V|
+        drift = max(drift, abs(H1 - H_start) / (abs(T1) + abs(H1 - T1)))
         if rel > floor:
             examined += 1
             flow = energy_flow(False, y, kin_w, h, gamma, W, I, np.zeros((0, 0)))
             worst = max(worst, change / (frac * flow) if flow > 0 else np.inf)
         y, T0, H0 = y1, T1, H1
-    return dict(worst=worst, examined=examined, largest_change=largest)
+    return dict(worst=worst, examined=examined, largest_change=largest, drift=drift)
 
 
 def engine_scenes():
@@ -192,13 +197,16 @@ def scenes_main(ase: bool) -> int:
              f"{load[0]:.1f} on {os.cpu_count()} cores).  Every fixed-step setting of the "
              "benchmarks, reports, examples and hard cases whose energy error is above round-off "
              "(the steps the rule of a method not exact for H examines), at its recorded setting "
-             "with the default check (`energy_tol=\"auto\"`).  *margin*: the largest "
+             "with the default checks (`energy_tol=\"auto\"`, and the step's own error estimate: "
+             "the coarse Gauss points the diagrams measure with the checks off are refused by it).  "
+             "*largest drift*: the run's energy against its start over |T| + |V|, the checks off "
+             "(integrators.core.DRIFT_BOUND refuses above 1e-3).  *margin*: the largest "
              "|dH| / (FLOW_FRACTION x the energy the step moved between T and V) over the steps "
              f"whose |dH| / (|T| + |V|) exceeds NOT_A_SOLUTION = {NOT_A_SOLUTION:g}, the check off "
              "(a step is refused above 1; 0: the rule examined no step), over the first *margin "
              f"steps* of the run.  FLOW_FRACTION (s = 1, 2, >= 3) = {FLOW_FRACTION}.", "",
              "| from | setting | steps | refused | max rel. energy error | margin | examined steps "
-             "| margin steps |", "|---|---|---|---|---|---|---|---|"]
+             "| margin steps | largest drift |", "|---|---|---|---|---|---|---|---|---|"]
     refusals = 0
     for src, setting, method, system, y0, h, steps, msteps in engine_scenes():
         try:
@@ -213,7 +221,7 @@ def scenes_main(ase: bool) -> int:
             refusals += 1
         mg = flow_margin(method, system, y0, h, msteps)
         lines.append(f"| {src} | {setting} | {steps} | {refused} | {err} | {mg['worst']:.3g} | "
-                     f"{mg['examined']} | {msteps} |")
+                     f"{mg['examined']} | {msteps} | {mg['drift']:.2g} |")
         print(lines[-1], flush=True)
     if ase:
         for src, setting, make, s, k, dt, steps in ase_scenes():
@@ -221,7 +229,7 @@ def scenes_main(ase: bool) -> int:
             refusals += refused is not None
             lines.append(f"| {src} | {setting} | {steps} | {'no' if refused is None else '**yes**: ' + refused} "
                          f"| {err:.2e} ({per_atom:.1e} eV/atom) | {mg['worst']:.3g} | "
-                         f"{mg['examined']} | {steps} |")
+                         f"{mg['examined']} | {steps} | {mg['drift']:.2g} |")
             print(lines[-1], flush=True)
     lines += ["", f"Refused: {refusals}."]
     RESULTS.write_text("\n".join(lines) + "\n")
