@@ -6,6 +6,9 @@ them and give their files on the command line::
     git clone --depth 1 https://github.com/dtamayo/reboundx
     python benchmarks/bench_reboundx_tests.py reboundx/reboundx/tests/test_tides_spin*.py
 
+REBOUND's own tests run the same way (``rebound/tests/test_*.py`` of REBOUND's repository, or
+of the installed package's ``rebound/tests``, which match the installed version).
+
 Each file runs twice in a fresh Python process, with ``unittest``: as written (IAS15, REBOUND's
 default), and with every simulation it creates starting with ``sim.integrator = "hbvm"`` (a
 simulation it loads from a file keeps the integrator it was saved with).  Each test's outcome
@@ -74,7 +77,7 @@ def run(path: str, integ: str) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("files", nargs="+", help="REBOUNDx test files (test_*.py)")
+    ap.add_argument("files", nargs="+", help="REBOUNDx or REBOUND test files (test_*.py)")
     args = ap.parse_args()
     worse = 0
     print("| test | IAS15 | HBVM | time HBVM / IAS15 |")

@@ -16,6 +16,8 @@ kind it will use:
   no gravity), forces of positions only;
 * ``"rebound-forces-velocities"``: the same for forces that read the velocities
   (``sim.force_is_velocity_dependent``: REBOUNDx ``gr``, tides, drag);
+* ``"kepler"``: ``sim.integrator.kepler = 1``, HBVM composed with the Keplerian flows (its own
+  kernels and glue, :mod:`hbvm_md.rebound.kepler_glue`; planets and a test particle);
 * ``"ase"``: :class:`hbvm_md.HBVMDynamics` (the compiled pieces its step calls).
 
 The caches are then filled for every later process that uses the same folders, the same
@@ -39,7 +41,7 @@ def _drag(reb_sim):
 
 
 def _rebound(test_particles: bool = False, variational: bool = False, method: str = "hbvm",
-             host_forces: str | None = None):
+             host_forces: str | None = None, kepler: bool = False):
     import importlib
 
     import rebound
@@ -61,6 +63,9 @@ def _rebound(test_particles: bool = False, variational: bool = False, method: st
     sim.integrator = "hbvm"
     if method != "hbvm":
         sim.integrator.method = method
+    if kepler:                           # (the composed step takes fixed steps only)
+        sim.integrator.kepler = 1
+        sim.integrator.epsilon = 0.0
     sim.dt = 0.05
     sim.steps(2)
 
@@ -84,6 +89,7 @@ SCENES = {
     "equip": lambda: _rebound(method="equip"),
     "rebound-forces": lambda: _rebound(host_forces="positions"),
     "rebound-forces-velocities": lambda: _rebound(host_forces="velocities"),
+    "kepler": lambda: _rebound(test_particles=True, kepler=True),
     "ase": _ase,
 }
 
@@ -96,7 +102,8 @@ def precompile(scenes=DEFAULT_SCENES) -> dict[str, float]:
     ----------
     scenes : iterable of str
         Any of ``"rebound"``, ``"test-particles"``, ``"variational"``, ``"equip"``,
-        ``"rebound-forces"``, ``"rebound-forces-velocities"``, ``"ase"``, or ``"all"``
+        ``"rebound-forces"``, ``"rebound-forces-velocities"``, ``"kepler"``, ``"ase"``, or
+        ``"all"``
         (default: ``("rebound", "ase")``).
 
     Examples
