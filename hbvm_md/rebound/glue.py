@@ -42,9 +42,10 @@ from hbvm_md.rebound.layout import (A_HOST, A_KINW, A_MINV, A_PARAMS, A_WRITTEN,
 from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, O_SIGMA,
                                     O_WIDTH, O_Y, P_N, P_NODES, P_ODE_DERIV_AT, P_ODES_HELD,
                                     P_ODES_WORD, call_void2, odes_at, odes_set)
-from hbvm_md.rebound.particles import (context_current, delta2, particles_match, read_tangents,
-                                       reread_particles, restore_particles, settings_ok,
-                                       step_records, var_rows, write_tangents)
+from hbvm_md.rebound.particles import (context_current, ctx_1, ctx_2, ctx_3, delta2,
+                                       particles_match, read_tangents, reread_particles,
+                                       restore_particles, settings_ok, step_records, var_rows,
+                                       write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
@@ -335,33 +336,27 @@ def core_step(r, p):
         return RESYNC
     s, m = ctx[D_S], ctx[D_M]
     u = m                                          # the coefficients' width (separable)
-
-    def f(slot, n):
-        return carray(float64_pointer(ctx[slot]), n)
-
-    def f2(slot, a, b):
-        return carray(float64_pointer(ctx[slot]), (a, b))
-
-    def f3(slot, a, b, c):
-        return carray(float64_pointer(ctx[slot]), (a, b, c))
-
     if simi[ctx[R_PVAR]] != ctx[D_PVAR]:
         return RESYNC                              # the variational particles moved
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
     nv = ctx[D_NV]
-    vidx = f2(A_VIDX, nv, 2)
+    vidx = ctx_2(ctx, A_VIDX, nv, 2)
     pv = carray(float64_pointer(ctx[D_PVAR]), (var_rows(vidx, N), ctx[R_STRIDE]))
     state, trial, method, newton, work, ext = step_records(ctx, st, pa, m, u)
     return step_arrays(
         Rebound(simd, simi, view, ctx, ra, pv),
-        Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES), f2(A_WRITTEN, N, 7),
-             f(A_HOST, N_HOST), vidx, f3(A_DGS, nv, s, m)),
-        System(False, f(A_MINV, u), f(A_KINW, m), f(A_PARAMS, ctx[D_P])),
+        Host(st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES),
+             ctx_2(ctx, A_WRITTEN, N, 7), ctx_1(ctx, A_HOST, N_HOST), vidx,
+             ctx_3(ctx, A_DGS, nv, s, m)),
+        System(False, ctx_1(ctx, A_MINV, u), ctx_1(ctx, A_KINW, m),
+               ctx_1(ctx, A_PARAMS, ctx[D_P])),
         state, trial, method, newton, work, ext,
-        Tangents(f2(A_V, nv, 2 * m), f3(A_DG, nv, s, m), f2(A_VT, nv, 2 * m),
-                 f3(A_DGT, nv, s, m), f(A_TW, ctx[D_TGF]),
-                 carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]), f(A_TCOUNT, 3),
-                 f2(A_TP, nv, 6 * N + 3), f2(A_TO, nv, 3)))
+        Tangents(ctx_2(ctx, A_V, nv, 2 * m), ctx_3(ctx, A_DG, nv, s, m),
+                 ctx_2(ctx, A_VT, nv, 2 * m), ctx_3(ctx, A_DGT, nv, s, m),
+                 ctx_1(ctx, A_TW, ctx[D_TGF]), carray(complex128_pointer(ctx[A_TCW]), ctx[D_TGC]),
+                 ctx_1(ctx, A_TCOUNT, 3), ctx_2(ctx, A_TP, nv, 6 * N + 3),
+                 ctx_2(ctx, A_TO, nv, 3)))
+
 
 if TYPE_CHECKING:
     # integrators.specialise compiles this text after the step's (integrators.loop, and

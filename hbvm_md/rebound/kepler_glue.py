@@ -34,7 +34,8 @@ from hbvm_md.rebound.layout import (A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SET
                                     SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_ECHECK,
                                     SL_EPSILON, SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_ITER,
                                     SL_NSTEPS, SL_RES, SL_TOL, SL_T_FAIL, SL_Y)
-from hbvm_md.rebound.particles import context_current, particles_match, settings_ok, step_records
+from hbvm_md.rebound.particles import (context_current, ctx_1, particles_match, settings_ok,
+                                       step_records)
 from systems.flow_composed import composed_bodies
 
 GLUE_FUNCTIONS = ("kepler_step_arrays",)
@@ -123,18 +124,14 @@ def core_step(r, p):
         return RESYNC
     m = ctx[D_M]
     u = 2 * m                                      # the coefficients' width (full form)
-
-    def f(slot, n):
-        return carray(float64_pointer(ctx[slot]), n)
-
     view = carray(float64_pointer(ctx[D_PTR]), (N, ctx[R_STRIDE]))
     empty = carray(float64_pointer(ctx[A_PARAMS]), 0)
     state, trial, method, newton, work, ext = step_records(ctx, st, pa, m, u)
     return kepler_step_arrays(
         simd, simi, view, ctx, st, sd, carray(float64_pointer(pa + 8 * SL_RES), N_RES),
-        carray(float64_pointer(ctx[A_WRITTEN]), (N, 7)), f(A_HOST, N_HOST),
+        carray(float64_pointer(ctx[A_WRITTEN]), (N, 7)), ctx_1(ctx, A_HOST, N_HOST),
         carray(float64_pointer(st[SL_Y] + 32 * m), N_COM),
-        System(True, empty, empty, f(A_PARAMS, ctx[D_P])),
+        System(True, empty, empty, ctx_1(ctx, A_PARAMS, ctx[D_P])),
         state, trial, method, newton, work, ext)
 
 

@@ -77,6 +77,30 @@ def restore_particles(view, written, ix, ivx):
 
 
 @jit
+def ctx_1(ctx, slot, n):
+    """The context block's array at header word ``slot``, n doubles."""
+    return carray(float64_pointer(ctx[slot]), n)
+
+
+@jit
+def ctx_2(ctx, slot, a, b):
+    """... (a, b) doubles."""
+    return carray(float64_pointer(ctx[slot]), (a, b))
+
+
+@jit
+def ctx_3(ctx, slot, a, b, c):
+    """... (a, b, c) doubles."""
+    return carray(float64_pointer(ctx[slot]), (a, b, c))
+
+
+@jit
+def ctx_z2(ctx, slot, a, b):
+    """... (a, b) complex numbers."""
+    return carray(complex128_pointer(ctx[slot]), (a, b))
+
+
+@jit
 def context_current(simi, st, ctx):
     """Is the context block still the simulation's?  False (the step answers RESYNC, and the
     host prepares afresh) when REBOUND's particle array moved or changed size, or the method
@@ -101,33 +125,20 @@ def step_records(ctx, st, pa, m, u):
     for a state of 2m components whose coefficients are u wide (u = m in the separable form,
     2m in the full form).  Both REBOUND steps bind them so."""
     s, kk = ctx[D_S], ctx[D_KK]
-
-    def f(slot, n):
-        return carray(float64_pointer(ctx[slot]), n)
-
-    def f2(slot, a, b):
-        return carray(float64_pointer(ctx[slot]), (a, b))
-
-    def f3(slot, a, b, c):
-        return carray(float64_pointer(ctx[slot]), (a, b, c))
-
-    def z2(slot, a, b):
-        return carray(complex128_pointer(ctx[slot]), (a, b))
-
     ys = st[SL_Y]
     state = State(carray(float64_pointer(ys), 2 * m), carray(float64_pointer(ys + 16 * m), 2 * m),
                   carray(float64_pointer(st[SL_GAMMA]), (s, u)),
-                  carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), f(A_CLOCK, 2))
-    trial = State(f(A_YT, 2 * m), f(A_CYT, 2 * m), f2(A_GAMMAT, s, u), f(A_EREFT, N_EREF),
-                  f(A_CLOCK, 2))
-    method = Method(f2(A_TN, 2, ctx[D_TNC]), f2(A_TS, ctx[D_TSR], s),
-                    f3(A_WP, ctx[D_WPP], s, kk), f3(A_CP, ctx[D_CPP], kk, s))
-    newton = Newton(z2(A_NV, s, s), z2(A_NVINV, s, s),
+                  carray(float64_pointer(pa + 8 * SL_EREF), N_EREF), ctx_1(ctx, A_CLOCK, 2))
+    trial = State(ctx_1(ctx, A_YT, 2 * m), ctx_1(ctx, A_CYT, 2 * m), ctx_2(ctx, A_GAMMAT, s, u),
+                  ctx_1(ctx, A_EREFT, N_EREF), ctx_1(ctx, A_CLOCK, 2))
+    method = Method(ctx_2(ctx, A_TN, 2, ctx[D_TNC]), ctx_2(ctx, A_TS, ctx[D_TSR], s),
+                    ctx_3(ctx, A_WP, ctx[D_WPP], s, kk), ctx_3(ctx, A_CP, ctx[D_CPP], kk, s))
+    newton = Newton(ctx_z2(ctx, A_NV, s, s), ctx_z2(ctx, A_NVINV, s, s),
                     carray(complex128_pointer(ctx[A_NM]), (0, u, u)))
-    work = Work(f(A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
+    work = Work(ctx_1(ctx, A_WORK, ctx[D_NF]), carray(complex128_pointer(ctx[A_CWORK]), ctx[D_NC]),
                 carray(float64_pointer(st[SL_COUNTERS]), N_COUNTERS))
-    ext = Extrapolation(f2(A_E1, s, s), f(A_ET, s), f(A_EW, s), f2(A_EBUF, s, s),
-                        f2(A_EZERO, s, s))
+    ext = Extrapolation(ctx_2(ctx, A_E1, s, s), ctx_1(ctx, A_ET, s), ctx_1(ctx, A_EW, s),
+                        ctx_2(ctx, A_EBUF, s, s), ctx_2(ctx, A_EZERO, s, s))
     return state, trial, method, newton, work, ext
 
 
