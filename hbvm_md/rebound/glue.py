@@ -33,19 +33,19 @@ from hbvm_md.rebound.layout import (A_HOST, A_KINW, A_MINV, A_PARAMS, A_WRITTEN,
                                     A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC,
                                     D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST,
                                     A_TP, A_TO, BAD_DT, BAD_SETTINGS, D_M, D_N, D_P, D_PTR, D_S,
-                                    N_HEADER, N_HOST, N_RES, N_SLOTS, RESYNC, R_DT, R_DTL, R_G,
-                                    R_HEAD, R_M, R_NACTIVE, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE,
-                                    SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_ECHECK, SL_EPSILON,
-                                    SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_DT, SL_MAX_ITER,
-                                    SL_MIN_DT, SL_NSTEPS, SL_REJECTED, SL_RES, SL_RESYNCS, SL_TOL,
-                                    SL_T_FAIL, TEST_PARTICLE)
+                                    N_HOST, N_RES, RESYNC, R_DT, R_DTL, R_G, R_M, R_NACTIVE,
+                                    R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR,
+                                    SL_CAUSE_STATUS, SL_ECHECK, SL_EPSILON, SL_ETOL, SL_H_FAIL,
+                                    SL_H_PREV, SL_MAX_DT, SL_MAX_ITER, SL_MIN_DT, SL_NSTEPS,
+                                    SL_REJECTED, SL_RES, SL_RESYNCS, SL_TOL, SL_T_FAIL,
+                                    TEST_PARTICLE)
 from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, O_SIGMA,
                                     O_WIDTH, O_Y, P_N, P_NODES, P_ODE_DERIV_AT, P_ODES_HELD,
                                     P_ODES_WORD, call_void2, odes_at, odes_set)
-from hbvm_md.rebound.particles import (context_current, ctx_1, ctx_2, ctx_3, delta2,
-                                       particles_match, read_tangents, reread_particles,
-                                       restore_particles, settings_ok, step_records, var_rows,
-                                       write_tangents)
+from hbvm_md.rebound.particles import (context_current, context_views, record_failure, ctx_1, ctx_2,
+                                       ctx_3, delta2, particles_match, read_tangents,
+                                       reread_particles, restore_particles, settings_ok,
+                                       step_records, var_rows, write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
@@ -250,10 +250,7 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             simd[ctx[R_T]] = t_start
         if nodes > 0:       # (each ODE's y, and what its post_timestep writes, as before)
             odes_set(params, y[m + 3 * int(params[P_N]):], cy, False)
-        sd[SL_H_FAIL] = res[0]
-        sd[SL_T_FAIL] = t_start
-        sd[SL_CAUSE_ERR] = res[3]
-        sd[SL_CAUSE_STATUS] = res[4]
+        record_failure(sd, res, t_start)
         return status
     h_done = res[0]
     hp = sd[SL_H_PREV]
@@ -324,11 +321,7 @@ def core_step(r, p):
     block's addresses in ``p``'s slot SL_CTX); RESYNC also when the particle array moved or
     changed size."""
     ra, pa = address_of(r), address_of(p)
-    st = carray(int64_pointer(pa), N_SLOTS)
-    sd = carray(float64_pointer(pa), N_SLOTS)
-    ctx = carray(int64_pointer(st[SL_CTX]), N_HEADER)
-    simd = carray(float64_pointer(ra), ctx[R_HEAD])
-    simi = carray(int64_pointer(ra), ctx[R_HEAD])
+    st, sd, ctx, simd, simi = context_views(ra, pa)
     N = ctx[D_N]
     if ctx[D_HOST] != 0:        # (N_odes is a word the checks below compare)
         odes_release(simi, carray(float64_pointer(ctx[A_PARAMS]), ctx[D_P]))

@@ -26,16 +26,15 @@ import numpy as np
 from numba import carray
 
 from integrators.core import ERROR_BOUND, NOT_FINITE, OK, copy1, copy2
-from integrators.pointers import address_of, float64_pointer, int64_pointer
+from integrators.pointers import address_of, float64_pointer
 from integrators.records import Adaptive, Options, System
 from hbvm_md.rebound.layout import (A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SETTINGS, D_M, D_N,
-                                    D_P, D_PTR, N_HEADER, N_HOST, N_RES, N_SLOTS, RESYNC, R_DT,
-                                    R_DTL, R_G, R_HEAD, R_M, R_NACTIVE, R_STRIDE, R_T, R_VX, R_X,
-                                    SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX, SL_ECHECK,
+                                    D_P, D_PTR, N_HOST, N_RES, RESYNC, R_DT, R_DTL, R_G, R_M,
+                                    R_NACTIVE, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_ECHECK,
                                     SL_EPSILON, SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_ITER,
-                                    SL_NSTEPS, SL_RES, SL_TOL, SL_T_FAIL, SL_Y)
-from hbvm_md.rebound.particles import (context_current, ctx_1, particles_match, settings_ok,
-                                       step_records)
+                                    SL_NSTEPS, SL_RES, SL_TOL, SL_Y)
+from hbvm_md.rebound.particles import (context_current, context_views, record_failure, ctx_1,
+                                       particles_match, settings_ok, step_records)
 from systems.flow_composed import composed_bodies
 
 GLUE_FUNCTIONS = ("kepler_step_arrays",)
@@ -85,10 +84,7 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
         if composed_bodies(yt, system.params, com, t_start + res[0], out) != 0:
             status = NOT_FINITE     # (a flow that did not converge: nothing committed)
     if status != OK:
-        sd[SL_H_FAIL] = res[0]
-        sd[SL_T_FAIL] = t_start
-        sd[SL_CAUSE_ERR] = res[3]
-        sd[SL_CAUSE_STATUS] = res[4]
+        record_failure(sd, res, t_start)
         return status
     h_done = res[0]
     y, cy, gamma, eref, _ = state
@@ -114,11 +110,7 @@ def core_step(r, p):
     """:func:`kepler_step_arrays` on REBOUND's simulation ``r`` and HBVM's state ``p``; RESYNC
     also when the particle array moved or changed size, or a setting changed."""
     ra, pa = address_of(r), address_of(p)
-    st = carray(int64_pointer(pa), N_SLOTS)
-    sd = carray(float64_pointer(pa), N_SLOTS)
-    ctx = carray(int64_pointer(st[SL_CTX]), N_HEADER)
-    simd = carray(float64_pointer(ra), ctx[R_HEAD])
-    simi = carray(int64_pointer(ra), ctx[R_HEAD])
+    st, sd, ctx, simd, simi = context_views(ra, pa)
     N = ctx[D_N]
     if not context_current(simi, st, ctx):
         return RESYNC

@@ -11,14 +11,17 @@ from numba import carray
 
 from integrators.core import N_COUNTERS
 from integrators.jit import jit
-from integrators.pointers import complex128_pointer, float64_pointer
+from integrators.pointers import complex128_pointer, float64_pointer, int64_pointer
 from integrators.records import Extrapolation, Method, Newton, State, Work
-from hbvm_md.rebound.layout import (
-    A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET, A_EW, A_EZERO, A_GAMMAT, A_NM,
-    A_NV, A_NVINV, A_TN, A_TS, A_WORK, A_WP, A_YT, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER, D_KK,
-    D_METHOD, D_N, D_NC, D_NF, D_NODES, D_PTR, D_S, D_TNC, D_TSR, D_WPP, N_CFG, N_EREF,
-    R_N, R_PARTICLES, SL_ADAPTIVE, SL_COUNTERS, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_K,
-    SL_KEPLER, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT, SL_NODES, SL_S, SL_TOL, SL_Y)
+from hbvm_md.rebound.layout import (A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF, A_EREFT, A_ET,
+                                    A_EW, A_EZERO, A_GAMMAT, A_NM, A_NV, A_NVINV, A_TN, A_TS,
+                                    A_WORK, A_WP, A_YT, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER,
+                                    D_KK, D_METHOD, D_N, D_NC, D_NF, D_NODES, D_PTR, D_S, D_TNC,
+                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N,
+                                    R_PARTICLES, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX,
+                                    SL_COUNTERS, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL,
+                                    SL_K, SL_KEPLER, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT,
+                                    SL_NODES, SL_S, SL_TOL, SL_T_FAIL, SL_Y)
 
 
 @jit
@@ -77,6 +80,18 @@ def restore_particles(view, written, ix, ivx):
 
 
 @jit
+def context_views(ra, pa):
+    """(st, sd, ctx, simd, simi): HBVM's state at address ``pa`` as int64 and float64 slots, its
+    context block's header, and REBOUND's simulation at ``ra`` as words of both kinds (as far
+    as the header's R_HEAD reaches): what both REBOUND steps read first."""
+    st = carray(int64_pointer(pa), N_SLOTS)
+    sd = carray(float64_pointer(pa), N_SLOTS)
+    ctx = carray(int64_pointer(st[SL_CTX]), N_HEADER)
+    return (st, sd, ctx, carray(float64_pointer(ra), ctx[R_HEAD]),
+            carray(int64_pointer(ra), ctx[R_HEAD]))
+
+
+@jit
 def ctx_1(ctx, slot, n):
     """The context block's array at header word ``slot``, n doubles."""
     return carray(float64_pointer(ctx[slot]), n)
@@ -98,6 +113,17 @@ def ctx_3(ctx, slot, a, b, c):
 def ctx_z2(ctx, slot, a, b):
     """... (a, b) complex numbers."""
     return carray(complex128_pointer(ctx[slot]), (a, b))
+
+
+@jit
+def record_failure(sd, res, t_start):
+    """What a failed step leaves for the host's error (:func:`hbvm_md.rebound.host.
+    _step_failure`): its size, its start, and its cause's estimate and status (``res``:
+    loop.attempt's)."""
+    sd[SL_H_FAIL] = res[0]
+    sd[SL_T_FAIL] = t_start
+    sd[SL_CAUSE_ERR] = res[3]
+    sd[SL_CAUSE_STATUS] = res[4]
 
 
 @jit
