@@ -843,6 +843,15 @@ class Stepper(Counted):
         state.pop("_busy", None)          # (a lock does not pickle; a copy gets its own)
         return state
 
+    def __setstate__(self, state: dict) -> None:
+        eref = state.get("_eref")
+        if eref is not None and eref.shape[0] < N_EREF:
+            # a Stepper pickled before the run's start joined eref (core.N_EREF): the compiled
+            # step indexes eref[EREF_RUN] unchecked, so the array is padded; nan starts the run's
+            # drift afresh from the next step
+            state["_eref"] = np.concatenate([eref, np.full(N_EREF - eref.shape[0], np.nan)])
+        self.__dict__.update(state)
+
     @_one_thread
     def step(self, h: float) -> np.ndarray:
         """Advance by one step of size h and return (a copy of) the new state.

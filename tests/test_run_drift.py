@@ -135,3 +135,20 @@ def test_a_calculator_jump_moves_the_run_s_start():
     # own error (the energy is 12.9 eV: 1e-6 eV is 8e-8 of it)
     moved = dyn._stepper._eref[EREF_RUN] - e0
     assert moved == pytest.approx(dyn.jumps[0].energy, abs=1e-6)
+
+
+def test_a_stepper_pickled_before_the_run_s_start_joined_eref_steps_safely():
+    """A Stepper pickled by an earlier version (eref of 3: energy, EQUIP's alpha and slope) is
+    padded when loaded, since the compiled step writes eref[EREF_RUN] unchecked; it continues
+    as a fresh one from its state would."""
+    import pickle
+    kep, y0 = _kepler(0.6, 0.0)
+    st = Stepper(HBVM(3, 3), kep, y0)
+    st.step(P / 200)
+    state = st.__getstate__()
+    state["_eref"] = state["_eref"][:3].copy()          # the older layout
+    old = Stepper.__new__(Stepper)
+    old.__setstate__(pickle.loads(pickle.dumps(state)))
+    assert old._eref.shape == (4,) and np.isnan(old._eref[EREF_RUN])
+    ref = pickle.loads(pickle.dumps(st))
+    assert np.array_equal(old.step(P / 200), ref.step(P / 200))
