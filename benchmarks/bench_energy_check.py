@@ -62,7 +62,6 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
     frac = FLOW_FRACTION[min(method.s, 3) - 1]
     floor = NOT_A_SOLUTION if method.s > 1 else NOT_A_SOLUTION_S1
     y = st.y.copy()
-    T0 = weighted_kinetic(y[m:], kin_w)
     H0 = float(system.energy(y))
     H_start = H0
     worst, examined, largest, drift = 0.0, 0, 0.0, 0.0
@@ -80,7 +79,7 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
             examined += 1
             flow = energy_flow(False, y, kin_w, h, gamma, W, I, np.zeros((0, 0)))
             worst = max(worst, change / (frac * flow) if flow > 0 else np.inf)
-        y, T0, H0 = y1, T1, H1
+        y, H0 = y1, H1
     return dict(worst=worst, examined=examined, largest_change=largest, drift=drift)
 
 

@@ -46,11 +46,11 @@ _WAY_OUT_KEPLER = ("use a smaller sim.dt, or sim.integrator.kepler = 0 with adap
                    "encounters")
 _HINTS = {"diverged": _WAY_OUT + ", or a larger max_iter",
           "not_finite": _WAY_OUT + "; check for particles at the same position",
-          "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps",
-          # (a run's drift: not the step's size but the quadrature, which the default k makes
-          # exact to round-off)
-          "drifted": "leave k unset (HBVMIntegrator(sim, s=...) then chooses k so that H is "
-                     "kept to round-off) or give more nodes, k >= 2s"}
+          "unresolved": _WAY_OUT + ", or pass energy_tol=None to accept such steps"}
+#: the way out of a run's drift (EnergyDriftError): not the step's size nor an encounter, but
+#: the quadrature, which the default k makes exact to round-off
+_DRIFTED_HINT = ("leave k unset (HBVMIntegrator(sim, s=...) then chooses k so that H is kept "
+                 "to round-off) or give more nodes, k >= 2s")
 _REB_GENERIC_ERROR = 1            # enum REB_STATUS
 _PENDING: dict = {}               # simulation address -> the exception of its failed step
 _REG = None                       # what registration keeps alive (see register)
@@ -823,7 +823,7 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                    "through encounters)")
         hints = {k: near + (v.replace(_WAY_OUT, _WAY_OUT_KEPLER) if kepler else v)
                  for k, v in _HINTS.items()}
-        hints["drifted"] = _HINTS["drifted"]     # (the run's drift: no encounter to name)
+        hints["drifted"] = _DRIFTED_HINT
         if status == NOT_RESOLVED and sim is not None:
             body = int(counters[C_WORST])
             if kepler:

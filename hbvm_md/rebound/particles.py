@@ -1,6 +1,9 @@
-"""REBOUND's particles seen from the compiled step: the helpers of :mod:`hbvm_md.rebound.glue`
-that do not depend on the force kernel or the method (does the simulation hold what the last
-step wrote, read it afresh, restore it, the settings' ranges, the variational particles).
+"""REBOUND's particles seen from the compiled step: the helpers of both REBOUND steps
+(:mod:`hbvm_md.rebound.glue`, :mod:`hbvm_md.rebound.kepler_glue`) that do not depend on the
+force kernel or the method (the views of HBVM's state, the context block and the simulation;
+is the context block still the simulation's; the step's records; a failure's record; does the
+simulation hold what the last step wrote, read it afresh, restore it, the settings' ranges,
+the variational particles).
 
 They are an ordinary compiled module, cached once: every generated step module (one per scene
 variant, :mod:`integrators.specialise`) links the same compiled functions instead of compiling
