@@ -60,12 +60,17 @@ from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler
 
 from .base import HamiltonianSystem
 
-# params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n, c_light]: the masses; c the clock's rate
+# params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n, c_light, J2, J4, R_eq, w_x, w_y, w_z, A,
+# gamma]: the masses; c the clock's rate
 # (FlowComposed's clock_rate, 1 by default); then the massive planets' indices (0-based among
 # the planets; the test particles, m = 0, are the others), so that a scene of many test
 # particles costs O(n N) pairs, not O(N^2); then the speed of light of the GR potential term
-# (FlowComposed's gr_c; 0: no such term, and not one operation more)
+# (FlowComposed's gr_c; 0: no such term, and not one operation more); then the star's
+# gravitational harmonics [J2, J4, R_eq, w_x, w_y, w_z] (FlowComposed's harmonics, w the unit
+# spin axis; J2 = 0: no such term) and its central force [A, gamma] (FlowComposed's central;
+# A = 0: none): _FORCE_TERMS entries, each term skipped, not computed as zero, when absent
 _HEAD = 3
+_FORCE_TERMS = 9
 
 
 @jit
@@ -101,10 +106,92 @@ def _massive(params):
 
 
 @jit
-def _light(params):
-    """The speed of light of the GR potential term (FlowComposed's ``gr_c``), 0 without it."""
+def _terms(params):
+    """The force terms' block of params (layout above): [c_light, J2, J4, R_eq, w (3), A,
+    gamma]."""
     N = int(params[0])
-    return params[_HEAD + N + 2 + int(params[_HEAD + N + 1])]
+    k = _HEAD + N + 2 + int(params[_HEAD + N + 1])
+    return params[k:k + _FORCE_TERMS]
+
+
+@jit
+def _harmonics(x, ms, mu, t, gx):
+    """The star's zonal harmonics of REBOUNDx's ``gravitational_harmonics``
+    (src/gravitational_harmonics.c) about the spin axis w (its ``Omega``, normalised as it
+    does), a term of H_I: U = sum_i mu m_i [J2 R^2 P2(cos th) / r^3 + J4 R^4 P4(cos th) / r^5],
+    r = |Q_i|, cos th = Q_i . w / r, t = [J2, J4, R_eq, w_x, w_y, w_z].  REBOUNDx applies the
+    opposite force times m_i / m_0 to the star, so the pair's force is -grad of U(x_i - x_0) and
+    U(Q_i) is exact in these coordinates.  Adds dU/dQ_i (per unit mass for a test particle,
+    which REBOUNDx accelerates and whose mass weighs it out of U) to gx and returns U.  J4 = 0:
+    no J4 term (REBOUNDx skips it, as it skips J2 = 0)."""
+    j2, j4, R = t[0], t[1], t[2]
+    wx, wy, wz = t[3], t[4], t[5]
+    R2 = R * R
+    u = 0.0
+    for i in range(x.shape[0]):
+        r2 = x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] + x[i, 2] * x[i, 2]
+        r = np.sqrt(r2)
+        w = x[i, 0] * wx + x[i, 1] * wy + x[i, 2] * wz
+        c2 = (w / r) * (w / r)
+        # the acceleration a = fq Q + fw w of REBOUNDx's j2_func / j4_func, written in the
+        # frame of the scene (it rotates to the body's and back: the same vector)
+        f1 = 1.5 * mu * j2 * R2 / (r2 * r2 * r)
+        fq = f1 * (5.0 * c2 - 1.0)
+        fw = -2.0 * f1 * w
+        pot = mu * j2 * R2 / (r2 * r) * 0.5 * (3.0 * c2 - 1.0)
+        if j4 != 0.0:
+            f4 = 0.625 * mu * j4 * R2 * R2 / (r2 * r2 * r2 * r)
+            f2 = 63.0 * c2 * c2 - 42.0 * c2 + 3.0
+            fq += f4 * f2
+            fw += f4 * (-28.0 * c2 + 12.0) * w
+            pot += mu * j4 * R2 * R2 / (r2 * r2 * r) * 0.125 * (35.0 * c2 * c2 - 30.0 * c2 + 3.0)
+        wi = 1.0
+        if ms[i] > 0.0:
+            wi = ms[i]
+            u += ms[i] * pot
+        gx[i, 0] -= wi * (fq * x[i, 0] + fw * wx)
+        gx[i, 1] -= wi * (fq * x[i, 1] + fw * wy)
+        gx[i, 2] -= wi * (fq * x[i, 2] + fw * wz)
+    return u
+
+
+@jit
+def _central_force(x, ms, A, gamma, gx):
+    """REBOUNDx's ``central_force`` from the star (src/central_force.c), a term of H_I: the
+    acceleration A r^(gamma - 1) Q_i on each body, the opposite times m_i / m_0 on the star (so
+    exact as U(Q_i) here, as :func:`_harmonics`), U = -sum_i m_i A r^(gamma + 1) / (gamma + 1)
+    (-m_i A ln r when |gamma + 1| < DBL_EPSILON, as REBOUNDx's potential).  Adds dU/dQ_i (per
+    unit mass for a test particle) to gx and returns U."""
+    log = abs(gamma + 1.0) < 2.220446049250313e-16
+    u = 0.0
+    for i in range(x.shape[0]):
+        r2 = x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] + x[i, 2] * x[i, 2]
+        pre = A * r2 ** ((gamma - 1.0) / 2.0)
+        wi = 1.0
+        if ms[i] > 0.0:
+            wi = ms[i]
+            if log:
+                u -= ms[i] * A * np.log(np.sqrt(r2))
+            else:
+                u -= ms[i] * A * r2 ** ((gamma + 1.0) / 2.0) / (gamma + 1.0)
+        gx[i, 0] -= wi * pre * x[i, 0]
+        gx[i, 1] -= wi * pre * x[i, 1]
+        gx[i, 2] -= wi * pre * x[i, 2]
+    return u
+
+
+@jit
+def _potential_terms(x, ms, mu, t, gx):
+    """The potentials of params' force block t (:func:`_terms`) at heliocentric positions x:
+    their gradients added to gx, their sum returned; an absent term costs one comparison."""
+    u = 0.0
+    if t[0] != 0.0:
+        u += _gr_potential(x, ms, mu, t[0], gx)
+    if t[1] != 0.0:
+        u += _harmonics(x, ms, mu, t[1:7], gx)
+    if t[7] != 0.0:
+        u += _central_force(x, ms, t[7], t[8], gx)
+    return u
 
 
 @jit
@@ -203,7 +290,7 @@ def composed_gradient(Y, params, out):
     N, G, m0, ms, mu, m = _header(params)
     massive = _massive(params)
     rate = _clock(params)
-    light = _light(params)
+    terms = _terms(params)
     x = np.empty((N, 3))
     v = np.empty((N, 3))
     sv = np.empty((N, SAVED))
@@ -217,8 +304,7 @@ def composed_gradient(Y, params, out):
                 Y[r, 3 * i], Y[r, 3 * i + 1], Y[r, 3 * i + 2], Y[r, m + 3 * i] / mi,
                 Y[r, m + 3 * i + 1] / mi, Y[r, m + 3 * i + 2] / mi, mu, tau, sv, i)
         _interaction_gradient(x, v, ms, G, m0, gx, gp, massive)
-        if light != 0.0:
-            _gr_potential(x, ms, mu, light, gx)
+        _potential_terms(x, ms, mu, terms, gx)
         dkdt = 0.0
         for i in range(N):
             mi = _weight(ms[i])
@@ -263,9 +349,7 @@ def composed_energy(y, params):
         x[i, 0], x[i, 1], x[i, 2] = a, b, c
         v[i, 0], v[i, 1], v[i, 2] = d, e, f
     hi = _interaction_gradient(x, v, ms, G, m0, gx, gp, _massive(params))
-    light = _light(params)
-    if light != 0.0:
-        hi += _gr_potential(x, ms, mu, light, gx)
+    hi += _potential_terms(x, ms, mu, _terms(params), gx)
     return hi + rate * y[2 * m - 1]
 
 
@@ -359,6 +443,40 @@ def composed_bodies(y, params, com, t, out):
     return bad
 
 
+def _real(v) -> bool:
+    return (not isinstance(v, bool) and isinstance(v, (int, float, np.number))
+            and bool(np.isfinite(v)))
+
+
+def _check_harmonics(harmonics) -> tuple:
+    """FlowComposed's ``harmonics`` as the params' six numbers (J2, J4, R_eq, w), w the unit
+    spin axis computed as REBOUNDx's uvw() does; a ValueError naming what is wrong."""
+    hint = ("`harmonics` must be (J2, J4, R_eq) or (J2, J4, R_eq, Omega): J2 != 0, J4 and "
+            "R_eq > 0 finite numbers, Omega the star's spin axis, 3 finite numbers not all 0")
+    if not isinstance(harmonics, (tuple, list)) or len(harmonics) not in (3, 4):
+        raise ValueError(f"{hint} (got harmonics={harmonics!r})")
+    j2, j4, R = harmonics[:3]
+    omega = harmonics[3] if len(harmonics) == 4 else (0.0, 0.0, 1.0)
+    try:
+        om = [float(o) for o in omega]
+    except (TypeError, ValueError):
+        om = []
+    if (not (_real(j2) and _real(j4) and _real(R)) or j2 == 0 or not R > 0 or len(om) != 3
+            or not all(math.isfinite(o) for o in om) or not any(om)):
+        raise ValueError(f"{hint} (got harmonics={harmonics!r})")
+    w = math.sqrt(om[0] * om[0] + om[1] * om[1] + om[2] * om[2])
+    return (float(j2), float(j4), float(R), om[0] / w, om[1] / w, om[2] / w)
+
+
+def _check_central(central) -> tuple:
+    """FlowComposed's ``central`` as the params' two numbers (A, gamma)."""
+    if (not isinstance(central, (tuple, list)) or len(central) != 2
+            or not all(_real(v) for v in central) or central[0] == 0):
+        raise ValueError(f"`central` must be (A, gamma), REBOUNDx's Acentral (finite, != 0) and "
+                         f"gammacentral (finite) of the star (got central={central!r})")
+    return (float(central[0]), float(central[1]))
+
+
 def _no_recentre(y, cy, gamma, h, params):      # pragma: no cover - the stand-in's shape
     return 0
 
@@ -393,6 +511,20 @@ class FlowComposed(HamiltonianSystem):
         only, so the composed method keeps H~ with it as without it, and the physical energy is
         REBOUND's ``sim.energy()`` plus REBOUNDx's ``gr_potential_potential``.  None (default):
         no such term, and the same numbers bit for bit as before it existed.
+    harmonics : tuple, optional
+        The star's zonal harmonics (J2, J4, R_eq) or (J2, J4, R_eq, Omega), Omega its spin
+        axis (3,) (any length; default the z axis): REBOUNDx's ``gravitational_harmonics``
+        with the star's ``J2``, ``J4``, ``R_eq`` and ``Omega``, U = sum_i G m_0 m_i [J2 R_eq^2
+        P2(cos th) / r^3 + J4 R_eq^4 P4(cos th) / r^5] in H_I (:func:`_harmonics`), its energy
+        REBOUNDx's ``gravitational_harmonics_potential``.  J4 = 0: J2 alone.  None (default):
+        no such term.
+    central : tuple, optional
+        (A, gamma): REBOUNDx's ``central_force`` from the star (its ``Acentral`` and
+        ``gammacentral``), the acceleration A r^(gamma - 1) Q_i on each body, a potential in
+        H_I (:func:`_central_force`), its energy REBOUNDx's ``central_force_potential``.  None
+        (default): no such term.  Each of the three terms is exact in these coordinates because
+        REBOUNDx applies the reaction on the star (m_i / m_0 times the opposite force); they
+        add up in H_I when several are given.
 
     Build it with :meth:`from_nbody`.  States: :meth:`extend` (from a barycentric
     :class:`systems.NBody` state) and :meth:`physical` (back, at the state's own tau).
@@ -407,7 +539,8 @@ class FlowComposed(HamiltonianSystem):
                         "whose own error check (error_bound) still refuses an unresolved step")
 
     def __init__(self, masses, G: float, h: float, clock_rate: float = 1.0,
-                 gr_c: float | None = None):
+                 gr_c: float | None = None, harmonics: tuple | None = None,
+                 central: tuple | None = None):
         ms = np.asarray(masses, dtype=float).reshape(-1)
         if ms.size < 2 or not np.all(np.isfinite(ms) & (ms >= 0)) or not ms[0] > 0:
             raise ValueError(f"`masses` must be the star's mass (> 0) then each planet's (>= 0: "
@@ -430,6 +563,8 @@ class FlowComposed(HamiltonianSystem):
                              f"positive finite number (got gr_c={gr_c!r}); None for no GR "
                              f"potential term")
         self.gr_c = None if gr_c is None else float(gr_c)
+        self.harmonics = None if harmonics is None else _check_harmonics(harmonics)
+        self.central = None if central is None else _check_central(central)
         self.m0, self.planet_masses, self.G, self.h = float(ms[0]), ms[1:].copy(), float(G), float(h)
         self.N = ms.size - 1
         self.dim = 3 * self.N + 1
@@ -441,14 +576,17 @@ class FlowComposed(HamiltonianSystem):
         massive = np.flatnonzero(self.planet_masses > 0)
         self._params = np.concatenate([[self.N, self.G, self.m0], self.planet_masses,
                                        [self.clock_rate, massive.size], massive,
-                                       [0.0 if gr_c is None else self.gr_c]])
+                                       [0.0 if gr_c is None else self.gr_c],
+                                       self.harmonics or np.zeros(6),
+                                       self.central or np.zeros(2)])
         self._com = (np.zeros(3), np.zeros(3))
 
     @classmethod
     def from_nbody(cls, nbody, h: float, clock_rate: float = 1.0,
-                   gr_c: float | None = None) -> "FlowComposed":
+                   gr_c: float | None = None, harmonics: tuple | None = None,
+                   central: tuple | None = None) -> "FlowComposed":
         """The system of an :class:`systems.NBody` whose first body is the star."""
-        return cls(nbody.body_masses, nbody.G, h, clock_rate, gr_c)
+        return cls(nbody.body_masses, nbody.G, h, clock_rate, gr_c, harmonics, central)
 
     def full_kernels(self):
         return composed_gradient, composed_energy, self._params
@@ -532,8 +670,8 @@ class FlowComposed(HamiltonianSystem):
         hk = np.sum(0.5 * ms * np.sum(V * V, axis=1) - self.G * self.m0 * ms / np.linalg.norm(Q, axis=1))
         gx, gp = np.empty((self.N, 3)), np.empty(3)
         hi = _interaction_gradient(Q, V, ms, self.G, self.m0, gx, gp, _massive(self._params))
-        if self.gr_c is not None:
-            hi += _gr_potential(np.ascontiguousarray(Q), ms, self.G * self.m0, self.gr_c, gx)
+        hi += _potential_terms(np.ascontiguousarray(Q), ms, self.G * self.m0,
+                               _terms(self._params), gx)
         return float(hk + hi)
 
     # -- the protocol (Python path) ----------------------------------------------------

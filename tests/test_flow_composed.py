@@ -255,3 +255,46 @@ def test_gr_c_absent_is_the_default_and_bad_gr_c_is_named():
     for bad in (0.0, -1.0, float("inf"), True, "3e8"):
         with pytest.raises(ValueError, match="`gr_c`"):
             FlowComposed([1.0, 1e-3], 1.0, 0.1, gr_c=bad)
+
+
+# REBOUNDx's gravitational_harmonics (J2, J4 about a tilted spin axis) and central_force of the
+# star, strong enough (G = 1, R_eq = 0.1 at r ~ 1: J2 R^2 / r^2 ~ 1e-3) that an error in a
+# formula would show
+HARMONICS = (0.1, -0.02, 0.1, (0.0, -np.sin(1.0), np.cos(1.0)))
+
+
+@pytest.mark.parametrize("central", [(3e-3, 0.5), (2e-3, -1.0)])
+def test_harmonics_and_central_force_are_the_energys_gradient(central):
+    """The kernel's gradient is H~'s with both terms (and gr_c: the three compose in H_I), the
+    log potential of gamma = -1 included, and each term moves the planets."""
+    nb = two_planets(1e-3)
+    fc = FlowComposed.from_nbody(nb, 0.25, gr_c=20.0, harmonics=HARMONICS, central=central)
+    Y = fc.extend(nb.initial_state())
+    assert fc.energy(Y) == pytest.approx(fc.physical_energy(Y), rel=1e-14)
+    _assert_gradient_of_energy(fc, Y)
+    ends = [integrate(HBVM(8, 6), f, f.extend(nb.initial_state()), 0.25, 16, sample_every=16,
+                      form="full").y[-1]
+            for f in (fc, FlowComposed.from_nbody(nb, 0.25, gr_c=20.0, harmonics=HARMONICS),
+                      FlowComposed.from_nbody(nb, 0.25, gr_c=20.0, central=central))]
+    assert np.abs(ends[0] - ends[1]).max() > 1e-5 and np.abs(ends[0] - ends[2]).max() > 1e-5
+    assert fc.energy(ends[0]) == pytest.approx(fc.energy(Y), rel=1e-13)
+
+
+def test_harmonics_absent_is_the_default_and_bad_terms_are_named():
+    nb = two_planets(1e-3)
+    runs = [integrate(HBVM(8, 6), fc, fc.extend(nb.initial_state()), 0.25, 16, sample_every=16,
+                      form="full").y[-1]
+            for fc in (FlowComposed.from_nbody(nb, 0.25),
+                       FlowComposed.from_nbody(nb, 0.25, harmonics=None, central=None))]
+    assert np.array_equal(runs[0], runs[1])
+    # Omega's length does not matter (REBOUNDx normalises it); the z axis is the default
+    a = FlowComposed([1.0, 1e-3], 1.0, 0.1, harmonics=(0.1, 0.0, 0.1))
+    b = FlowComposed([1.0, 1e-3], 1.0, 0.1, harmonics=(0.1, 0.0, 0.1, (0, 0, 7.0)))
+    assert np.array_equal(a._params, b._params)
+    for bad in ((0.0, 0.0, 0.1), (0.1, 0.0, -0.1), (0.1, 0.0, 0.1, (0, 0, 0)), (0.1, 0.1),
+                (0.1, float("nan"), 0.1), "J2"):
+        with pytest.raises(ValueError, match="`harmonics`"):
+            FlowComposed([1.0, 1e-3], 1.0, 0.1, harmonics=bad)
+    for bad in ((0.0, 1.0), (1e-3, float("inf")), (1e-3,), (True, 1.0)):
+        with pytest.raises(ValueError, match="`central`"):
+            FlowComposed([1.0, 1e-3], 1.0, 0.1, central=bad)

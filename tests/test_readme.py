@@ -213,6 +213,29 @@ def _check_rebound_gr(ns, out):
     assert "kepler=1" in repr(sim.integrator) and abs(e1 - e0) < 1e-12 * abs(e0)
 
 
+def _j2_example():
+    """The harmonics block's scene: REBOUNDx's J2 example, a star and a planet at a = 0.1
+    (G = 1), REBOUNDx imported."""
+    import rebound
+    import reboundx
+
+    from hbvm_md import HBVMIntegrator
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=3e-6, a=0.1, e=0.01, inc=0.5236)
+    sim.move_to_com()
+    return {"sim": sim, "HBVMIntegrator": HBVMIntegrator, "reboundx": reboundx}
+
+
+def _check_rebound_harmonics(ns, out):
+    sim, rebx = ns["sim"], ns["rebx"]
+    e0 = sim.energy() + rebx.gravitational_harmonics_potential()
+    sim.integrate(2.0)                              # ten orbits, the star's J2 on
+    e1 = sim.energy() + rebx.gravitational_harmonics_potential()
+    assert "kepler=1" in repr(sim.integrator) and abs(e1 - e0) < 1e-12 * abs(e0)
+    assert rebx.gravitational_harmonics_potential() != 0.0
+
+
 README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "# 1. The core engine": ((), None, _check_api),
     "except StepError as err": ((), _failing_run, _check_failure),
@@ -228,6 +251,7 @@ README_BLOCKS = {   # phrase: (substitutions, setup, check)
     "FlowComposed.from_nbody(nb, h)": ((), None, _check_flow_composed),
     "HBVMIntegrator(sim, kepler=True, dt=500.0)": ((), None, _check_rebound_kepler),
     'rebx.load_force("gr_potential")': ((), _mercury, _check_rebound_gr),
+    'load_force("gravitational_harmonics")': ((), _j2_example, _check_rebound_harmonics),
     "hbvm_md.audit(atoms": ((), None, _check_audit),
     "compare_rebound(": ((("t_end=2e4", "t_end=2e3"), ("steps=100", "steps=20")), None,
                          _check_comparison),

@@ -416,3 +416,144 @@ def test_other_reboundx_forces_beside_gr_potential_are_refused():
     rebx.add_force(rebx.load_force("gr_potential"))
     with pytest.raises(ValueError, match=r"set force.params\['c'\]"):
         HBVMIntegrator(sim, kepler=True, dt=0.01)
+
+
+def _j2_scene(integrator="kepler", dt=0.004, forces=("gravitational_harmonics", "central_force",
+                                                    "gr_potential")):
+    """REBOUNDx's J2 example (G = 1: a star with J2, J4 and R_eq about a tilted spin axis, a
+    planet at a = 0.1 inclined by pi/6), with a second planet, a test particle, the star's
+    central force (CentralForce example's gamma = -1) and gr_potential: the composed step (dt),
+    plain HBVM (kepler=False, dt) or IAS15 at a tight epsilon."""
+    reboundx = pytest.importorskip("reboundx")
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=3e-6, a=0.1, e=0.01, inc=np.pi / 6)
+    sim.add(m=1e-5, a=0.17, e=0.05, inc=0.1, f=2.0)
+    sim.add(m=0.0, a=0.13, e=0.1, inc=0.3, f=4.0)
+    sim.N_active = 3
+    sim.move_to_com()
+    rebx = reboundx.Extras(sim)
+    p0 = sim.particles[0]
+    for name in forces:
+        force = rebx.load_force(name)
+        rebx.add_force(force)
+        if name == "gr_potential":
+            force.params["c"] = 300.0
+    if "gravitational_harmonics" in forces:
+        p0.params["J2"], p0.params["J4"], p0.params["R_eq"] = 0.01, -1e-3, 1 / 200
+        p0.params["Omega"] = [0.0, -np.sin(np.pi / 3), np.cos(np.pi / 3)]
+    if "central_force" in forces:
+        p0.params["gammacentral"], p0.params["Acentral"] = -1.0, 1e-4
+    if integrator == "ias15":
+        sim.integrator = "ias15"
+        sim.integrator.epsilon = 1e-11
+    else:
+        HBVMIntegrator(sim, kepler=integrator == "kepler", dt=dt)
+    return sim, rebx
+
+
+def _rebx_energy(sim, rebx):
+    """REBOUND's energy plus the potentials of the REBOUNDx forces attached."""
+    e = sim.energy() + rebx.gravitational_harmonics_potential() + rebx.central_force_potential()
+    return e + rebx.gr_potential_potential(rebx.get_force("gr_potential"))
+
+
+def test_harmonics_and_central_force_are_terms_of_the_perturbation():
+    """REBOUNDx's gravitational_harmonics and central_force of the star, with gr_potential,
+    under kepler = 1: plain HBVM's run on REBOUNDx's own accelerations and IAS15's to round-off,
+    REBOUNDx's energy kept, and the engine's energy is REBOUNDx's potentials'."""
+    from hbvm_md.rebound.composed import force_terms
+    sim, rebx = _j2_scene()
+    E0 = _rebx_energy(sim, rebx)
+    nb = NBody.from_rebound(sim)
+    gr_c, harmonics, central = force_terms(sim)
+    assert (gr_c, central) == (300.0, (1e-4, -1.0)) and harmonics[:3] == (0.01, -1e-3, 1 / 200)
+    sim.integrate(1.0)
+    fc = FlowComposed.from_nbody(nb, 0.004, gr_c=gr_c, harmonics=harmonics, central=central)
+    E1 = _rebx_energy(sim, rebx)
+    assert fc.physical_energy(_state(sim, fc.dim)) == pytest.approx(E1, rel=1e-13)
+    assert abs(E1 / E0 - 1) < 1e-14
+    plain, _ = _j2_scene("plain", dt=0.002)
+    ias, _ = _j2_scene("ias15")
+    newton, _ = _j2_scene(forces=())
+    for other in (plain, ias, newton):
+        other.integrate(1.0)
+    # (measured: 6.9e-15 from plain HBVM, 8.2e-15 from IAS15; Newton alone is 3.7e-3 away)
+    assert np.abs(_xv(sim)[:, :3] - _xv(plain)[:, :3]).max() < 5e-14
+    assert np.abs(_xv(sim)[:, :3] - _xv(ias)[:, :3]).max() < 5e-14
+    assert np.abs(_xv(sim)[:, :3] - _xv(newton)[:, :3]).max() > 1e-4
+
+
+def test_harmonics_and_central_force_restart_bit_for_bit(tmp_path):
+    reboundx = pytest.importorskip("reboundx")
+    whole, _ = _j2_scene()
+    whole.steps(40)
+    half, rebx = _j2_scene()
+    half.steps(20)
+    half.save_to_file(str(tmp_path / "s.bin"), delete_file=True)
+    rebx.save(str(tmp_path / "x.rebx"))
+    loaded = rebound.Simulation(str(tmp_path / "s.bin"))
+    lrebx = reboundx.Extras(loaded, str(tmp_path / "x.rebx"))
+    assert loaded.integrator.kepler == 1
+    for other in (half, loaded):
+        other.steps(20)
+        assert np.array_equal(_xv(other), _xv(whole))
+        assert HBVMIntegrator.of(other).resyncs == HBVMIntegrator.of(whole).resyncs
+    del lrebx
+
+
+@pytest.mark.parametrize("param, value", [("J2", 0.02), ("Omega", [0.0, 0.0, 1.0]),
+                                          ("Acentral", 3e-4), ("gammacentral", 0.5)])
+def test_harmonics_or_central_force_changed_between_runs_is_followed(param, value):
+    sim, _ = _j2_scene()
+    ref, _ = _j2_scene("ias15")
+    for s in (sim, ref):
+        s.integrate(0.5)
+        s.particles[0].params[param] = value
+    before = HBVMIntegrator.of(sim).resyncs
+    for s in (sim, ref):
+        s.integrate(1.0)
+    assert HBVMIntegrator.of(sim).resyncs == before + 1
+    assert np.abs(_xv(sim)[:, :3] - _xv(ref)[:, :3]).max() < 5e-14
+    # a copy without REBOUNDx is Newton's scene: it starts afresh
+    copy = sim.copy()
+    copy.integrate(1.2)
+    assert HBVMIntegrator.of(copy).resyncs == HBVMIntegrator.of(sim).resyncs + 1
+
+
+def test_harmonics_or_central_force_of_a_planet_are_refused_by_name():
+    sim, rebx = _j2_scene()
+    sim.steps(2)
+    p1 = sim.particles[1]
+    for param, value, match in (
+            ("J2", 1e-3, r"'gravitational_harmonics' of particle 0 only; particle 1 has J2"),
+            ("Acentral", 1e-3, r"'central_force' from particle 0 only; particle 1 has Acentral")):
+        p1.params[param] = value
+        if param == "J2":
+            p1.params["R_eq"] = 1e-4
+        else:
+            p1.params["gammacentral"] = -2.0
+        before = _xv(sim)
+        with pytest.raises(ValueError, match=match + r".*kepler = 0"):
+            sim.steps(2)
+        assert np.array_equal(_xv(sim), before)
+        p1.params[param] = 0.0            # (J2 = 0, A = 0: REBOUNDx applies nothing)
+    sim.steps(2)
+    assert sim.t == pytest.approx(0.016)
+    # a planet's J2 (REBOUNDx's own example sets J4 on a planet without J2: no force, accepted)
+    # with the way out: plain HBVM runs it on REBOUNDx's accelerations
+    p1.params["J2"] = 1e-3
+    sim.integrator.kepler = 0
+    sim.steps(2)
+    # two of a kind, and a parameter that is not a finite number
+    sim, rebx = _j2_scene()
+    rebx.add_force(rebx.load_force("central_force"))
+    with pytest.raises(ValueError, match=r"one REBOUNDx 'central_force' force \(got 2\)"):
+        sim.steps(1)
+    sim, rebx = _j2_scene()
+    sim.particles[0].params["R_eq"] = -1.0
+    with pytest.raises(ValueError, match=r"R_eq of particle 0 must be > 0"):
+        sim.steps(1)
+    sim.particles[0].params["R_eq"] = float("nan")
+    with pytest.raises(ValueError, match=r"R_eq of particle 0 must be a finite number"):
+        sim.steps(1)

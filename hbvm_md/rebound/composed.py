@@ -3,7 +3,8 @@ flows (issue 48).  The model, its variables and its step are the engine's
 (:class:`systems.flow_composed.FlowComposed`, bound with the one step by
 :class:`integrators.engine.Binding`); the step REBOUND calls is
 :mod:`hbvm_md.rebound.kepler_glue`.  Here: what the composed step cannot take (refused by
-name, with the way out; REBOUNDx's ``gr_potential`` is modelled, as a term of the perturbation),
+name, with the way out; REBOUNDx's ``gr_potential``, and ``gravitational_harmonics`` and
+``central_force`` from particle 0, are modelled, as terms of the perturbation),
 the state from the particles (or the saved one, when it is theirs: a copy or a loaded file
 continues bit for bit) and the context block."""
 from __future__ import annotations
@@ -52,6 +53,99 @@ def gr_potential_c(sim) -> float | None:
     return float(c)
 
 
+#: REBOUNDx's forces from particle 0 that are potentials of the heliocentric positions, with
+#: the reaction on it, and the particle parameters that set them: terms of H_I
+HARMONICS, CENTRAL = "gravitational_harmonics", "central_force"
+MODELLED = (GR_POTENTIAL, HARMONICS, CENTRAL)
+
+
+def _one(sim, name):
+    """True when exactly one REBOUNDx force ``name`` is attached (False: none); a ValueError
+    when several are (REBOUNDx would apply each)."""
+    n = sum(1 for f, _ in (reboundx_forces(sim) or []) if f == name)
+    if n > 1:
+        raise ValueError(f"sim.integrator.kepler = 1 models one REBOUNDx '{name}' force "
+                         f"(got {n}); attach one, or {WAY_OUT}")
+    return n == 1
+
+
+def _param(p, name):
+    try:
+        return p.params[name]
+    except AttributeError:          # (REBOUNDx's "Parameter not found on object")
+        return None
+
+
+def _number(i, name, v, fix):
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"REBOUNDx parameter {name} of particle {i} must be a finite number "
+                         f"(got {name}={v!r}); {fix}")
+    return float(v)
+
+
+def force_terms(sim) -> tuple:
+    """The REBOUNDx forces the composed step models as terms of H_I, as
+    :class:`FlowComposed` takes them: (gr_c, harmonics, central), each None when absent
+    (``gr_potential``'s c; ``gravitational_harmonics`` with particle 0's J2, J4, R_eq, Omega;
+    ``central_force`` with its Acentral, gammacentral).  A ValueError names what it cannot
+    take: a harmonic or a central force from another particle (its reaction moves that
+    particle, not the star of the Keplerian flows), a parameter that is not a finite number."""
+    gr_c = gr_potential_c(sim)
+    harm = _one(sim, HARMONICS)
+    cent = _one(sim, CENTRAL)
+    harmonics = central = None
+    if not (harm or cent):
+        return gr_c, None, None
+    ps = sim.particles
+    for i in range(sim.N):
+        p = ps[i]
+        if not p.ap:
+            continue                # (no REBOUNDx parameter on it)
+        if harm:
+            # REBOUNDx applies the harmonics of a particle with J2 != 0 and R_eq set
+            j2 = _number(i, "J2", _param(p, "J2"), f"set it, or {WAY_OUT}")
+            R = _number(i, "R_eq", _param(p, "R_eq"), f"set it, or {WAY_OUT}")
+            if j2 not in (None, 0.0) and R is not None:
+                if i != 0:
+                    raise ValueError(
+                        f"sim.integrator.kepler = 1 models REBOUNDx's '{HARMONICS}' of "
+                        f"particle 0 only; particle {i} has J2={j2!r}: its harmonics pull the "
+                        f"star off the Keplerian flows' centre; set its J2 to 0, or {WAY_OUT}")
+                j4 = _number(i, "J4", _param(p, "J4"), f"set it, or {WAY_OUT}") or 0.0
+                omega = _param(p, "Omega")
+                if not R > 0:
+                    raise ValueError(f"REBOUNDx parameter R_eq of particle 0 must be > 0 (got "
+                                     f"R_eq={R!r}); set it, or {WAY_OUT}")
+                if omega is not None and not (
+                        len(omega) == 3 and all(math.isfinite(o) for o in omega) and any(omega)):
+                    raise ValueError(f"REBOUNDx parameter Omega of particle 0 (the spin axis of "
+                                     f"its harmonics) must be 3 finite numbers, not all 0 (got "
+                                     f"Omega={omega!r}); {WAY_OUT}")
+                harmonics = (j2, j4, R) + (() if omega is None else (tuple(omega),))
+        if cent:
+            A = _number(i, "Acentral", _param(p, "Acentral"), f"set it, or {WAY_OUT}")
+            gamma = _number(i, "gammacentral", _param(p, "gammacentral"),
+                            f"set it, or {WAY_OUT}")
+            # REBOUNDx applies the force of a particle with both set (A = 0: no force)
+            if A not in (None, 0.0) and gamma is not None:
+                if i != 0:
+                    raise ValueError(
+                        f"sim.integrator.kepler = 1 models REBOUNDx's '{CENTRAL}' from "
+                        f"particle 0 only; particle {i} has Acentral={A!r}: its reaction moves "
+                        f"that particle, not the Keplerian flows' centre; {WAY_OUT}")
+                central = (A, gamma)
+    return gr_c, harmonics, central
+
+
+def terms_record(fc) -> np.ndarray:
+    """The force terms' block of FlowComposed's params (its layout: c_light, J2, J4, R_eq, the
+    unit spin axis, A, gamma): what the saved state records it was integrated with."""
+    from systems.flow_composed import _terms
+    return np.array(_terms(fc._params))
+
+
 def check_composed(sim) -> None:
     """Refuse, naming the reason and the way out, a simulation the composed step does not
     model: anything beyond Newtonian gravity and one REBOUNDx ``gr_potential`` (the rest would
@@ -59,15 +153,19 @@ def check_composed(sim) -> None:
     fewer than two bodies, a particle 0 that is not the dominant mass, or a body not bound to
     it."""
     reasons = host_reasons(sim)
-    # REBOUNDx's gr_potential is a potential of the heliocentric positions about particle 0,
-    # the composed step's central body: a term of H_I (systems.flow_composed._gr_potential)
-    if gr_potential_c(sim) is not None:
-        reasons.remove(f"REBOUNDx '{GR_POTENTIAL}'")
+    # REBOUNDx's gr_potential, gravitational_harmonics and central_force from particle 0 are
+    # potentials of the heliocentric positions about it, the composed step's central body:
+    # terms of H_I (systems.flow_composed._potential_terms); force_terms refuses the rest
+    force_terms(sim)
+    for name in MODELLED:
+        if f"REBOUNDx '{name}'" in reasons:
+            reasons.remove(f"REBOUNDx '{name}'")
     if reasons:
         raise ValueError(
             f"sim.integrator.kepler = 1 composes HBVM with the Keplerian flows of Newtonian "
             f"gravity about particle 0, and its perturbation holds the planets' mutual gravity "
-            f"and REBOUNDx's 'gr_potential' only; this simulation has {', '.join(reasons)}, "
+            f"and REBOUNDx's {', '.join(repr(n) for n in MODELLED)} from particle 0 only; this "
+            f"simulation has {', '.join(reasons)}, "
             f"which it would leave out: {WAY_OUT}, which runs them on REBOUND's own "
             f"accelerations")
     if sim.N_var > 0:
@@ -139,8 +237,9 @@ def prepare_composed(sim, p: int, method) -> None:
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     view = doubles(ptr, N * stride).reshape(N, stride)
     nb = NBody.from_rebound(sim)
-    gr_c = gr_potential_c(sim)
-    fc = FlowComposed.from_nbody(nb, h, gr_c=gr_c)
+    terms = force_terms(sim)
+    fc = FlowComposed.from_nbody(nb, h, gr_c=terms[0], harmonics=terms[1], central=terms[2])
+    record = terms_record(fc)
     binding = Binding(method, fc, form="full", fast=None, glue="hbvm_md.rebound.kepler_glue")
     m, s = fc.dim, method.s
     size = 4 * m + N_COM
@@ -153,12 +252,12 @@ def prepare_composed(sim, p: int, method) -> None:
         # it gives are the particles bit for bit (the last step wrote them from it)
         out = np.empty((N, 6))
         bad = composed_bodies(y[:2 * m], fc._params, y[4 * m:], sim.t, out)
-        # ... and it was integrated with this model's GR term (com[8]: a copy loses REBOUNDx's
-        # forces, a user may change c between runs): else its reference energy and
+        # ... and it was integrated with this model's force terms (com[8:]: a copy loses
+        # REBOUNDx's forces, a user may change c, J2, Acentral between runs): else its reference energy and
         # coefficients belong to another H, and it starts afresh, as after a mass change
         keep = (bad == 0 and np.array_equal(out[:, :3], view[:, ix:ix + 3])
                 and np.array_equal(out[:, 3:], view[:, ivx:ivx + 3])
-                and y[4 * m + 8] == (gr_c or 0.0))
+                and np.array_equal(y[4 * m + 8:], record))
         if keep:
             y[4 * m + 7] = sim.t          # (the bodies are those of this time)
     if not keep:
@@ -170,7 +269,7 @@ def prepare_composed(sim, p: int, method) -> None:
         xcm, vcm = fc._com
         y[4 * m:4 * m + 3], y[4 * m + 3:4 * m + 6] = xcm, vcm
         y[4 * m + 6] = y[4 * m + 7] = sim.t
-        y[4 * m + 8] = gr_c or 0.0
+        y[4 * m + 8:] = record
         H._array(st, L.SL_GAMMA, L.SL_NGAMMA, s * 2 * m)[:] = 0.0
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
@@ -182,8 +281,8 @@ def prepare_composed(sim, p: int, method) -> None:
     st[L.SL_CORE] = binding.step_code.core_step.address
     addr = ctypes.addressof(sim)
     H._FORCES[addr] = tuple(reboundx_forces(sim) or ())
-    # (its c is read into the model: a change between runs prepares the step again,
+    # (their parameters are read into the model: a change between runs prepares the step again,
     # host._recheck_forces)
-    H._KEPLER_GR[addr] = gr_c
+    H._KEPLER_GR[addr] = terms
     H._ODES[addr] = ode_signature(sim)
     H._HOST_PATH.discard(addr)

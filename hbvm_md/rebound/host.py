@@ -415,7 +415,7 @@ def _recheck_forces(sim, addr: int) -> None:
     if seen is None or (not seen and not sim.extras):
         return
     if tuple(reboundx_forces(sim) or ()) == seen and (
-            addr not in _KEPLER_GR or _gr_c_unchanged(sim, _KEPLER_GR[addr])):
+            addr not in _KEPLER_GR or _kepler_terms_unchanged(sim, _KEPLER_GR[addr])):
         return
     prepared = _prepared(addr)
     if prepared is not None:
@@ -423,16 +423,17 @@ def _recheck_forces(sim, addr: int) -> None:
     _FORCES.pop(addr, None)
 
 
-#: simulation address -> the speed of light of REBOUNDx's gr_potential (None: none) its composed
-#: step (kepler = 1) was last prepared with: FlowComposed holds it in its parameters, so a c
-#: changed between runs must prepare the step again (the plain step reads it at every stage)
-_KEPLER_GR: dict[int, float | None] = {}
+#: simulation address -> the REBOUNDx force terms (composed.force_terms: gr_potential's c, the
+#: star's harmonics, its central force) its composed step (kepler = 1) was last prepared with:
+#: FlowComposed holds them in its parameters, so one changed between runs must prepare the step
+#: again (the plain step reads them at every stage)
+_KEPLER_GR: dict[int, tuple] = {}
 
 
-def _gr_c_unchanged(sim, c) -> bool:
-    from hbvm_md.rebound.composed import gr_potential_c
+def _kepler_terms_unchanged(sim, terms) -> bool:
+    from hbvm_md.rebound.composed import force_terms
     try:
-        return gr_potential_c(sim) == c
+        return force_terms(sim) == terms
     except ValueError:
         return False            # (the preparation names what is wrong)
 

@@ -12,10 +12,12 @@ particles together: the bodies from the state by :func:`systems.flow_composed.co
 A failed step changes nothing and records its step size, start and cause, as the plain glue's.
 
 What the host keeps (:mod:`hbvm_md.rebound.layout`): the saved array ``state`` holds y (2m),
-its low parts cy (2m) and com (9: the barycentre's position at time com[6], its velocity,
-com[6], the time the bodies were last written, com[7], and the speed of light of the GR
-potential term the state was integrated with, com[8], 0 for none: a copy or a loaded file whose
-REBOUNDx ``gr_potential`` differs starts afresh from its particles, as after a mass change);
+its low parts cy (2m) and com (17: the barycentre's position at time com[6], its velocity,
+com[6], the time the bodies were last written, com[7], and the force terms the state was
+integrated with, com[8:17], FlowComposed's params block (c of the GR potential, the star's J2,
+J4, R_eq and unit spin axis, its central force's A and gamma; 0 for an absent term): a copy or
+a loaded file whose REBOUNDx ``gr_potential``, ``gravitational_harmonics`` or
+``central_force`` differs starts afresh from its particles, as after a mass change);
 ``gamma`` holds the last step's coefficients (s, 2m), already carried into the recentred
 variables by the hook; ``h_prev``, ``eref`` and the counts as for plain HBVM.  So a copy or a
 loaded file continues bit for bit.
@@ -44,7 +46,7 @@ GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.particles",
                 "systems.flow_composed", "integrators.kepler_flow")
 #: the width of the barycentre's record after y and cy in the saved state (module docstring)
-N_COM = 9
+N_COM = 17
 
 
 def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, system, state,
