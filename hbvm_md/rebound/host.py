@@ -198,6 +198,7 @@ def _create() -> int:
     sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_H_PREV]] = (
         d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan)
     sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, alpha, slope, run's start: unknown
+    sd[L.SL_T_WRITTEN] = np.nan                        # (sim.t is then taken as it is)
     st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
     return p
 
