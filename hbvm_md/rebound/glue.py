@@ -8,8 +8,9 @@ reads the addresses, sizes and REBOUND's offsets from the context block the host
 (:mod:`hbvm_md.rebound.layout`), checks that G, N_active and the masses are those it wrote
 (else RESYNC: the host reads them afresh) and reads positions and velocities changed since
 its last commit itself (:func:`reread_particles`), takes the core's step on trial arrays (adaptive
-steps retried smaller inside it) and commits state, particles, ``t``, ``dt_last_done``, the
-proposed ``dt`` and the counts together.  A failed step changes nothing and records its step
+steps retried smaller inside it) and commits state, particles, ``t`` (a compensated sum of
+the steps, :func:`~hbvm_md.rebound.particles.step_end`), ``dt_last_done``, the proposed ``dt``
+and the counts together.  A failed step changes nothing and records its step
 size, start and cause in the state.  No numerics here.  HBVM and EQUIP differ only in the
 method's packed arrays (their shapes in the context block's header) and in the length of eref
 (the energy, EQUIP's alpha and slope: all of it committed with the step).
