@@ -8,8 +8,9 @@ reads the addresses, sizes and REBOUND's offsets from the context block the host
 (:mod:`hbvm_md.rebound.layout`), checks that G, N_active and the masses are those it wrote
 (else RESYNC: the host reads them afresh) and reads positions and velocities changed since
 its last commit itself (:func:`reread_particles`), takes the core's step on trial arrays (adaptive
-steps retried smaller inside it) and commits state, particles, ``t``, ``dt_last_done``, the
-proposed ``dt`` and the counts together.  A failed step changes nothing and records its step
+steps retried smaller inside it) and commits state, particles, ``t`` (a compensated sum of
+the steps, :func:`~hbvm_md.rebound.particles.step_end`), ``dt_last_done``, the proposed ``dt``
+and the counts together.  A failed step changes nothing and records its step
 size, start and cause in the state.  No numerics here.  HBVM and EQUIP differ only in the
 method's packed arrays (their shapes in the context block's header) and in the length of eref
 (the energy, EQUIP's alpha and slope: all of it committed with the step).
@@ -42,10 +43,11 @@ from hbvm_md.rebound.layout import (A_HOST, A_KINW, A_MINV, A_PARAMS, A_WRITTEN,
 from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, O_SIGMA,
                                     O_WIDTH, O_Y, P_N, P_NODES, P_ODE_DERIV_AT, P_ODES_HELD,
                                     P_ODES_WORD, call_void2, odes_at, odes_set)
-from hbvm_md.rebound.particles import (context_current, context_views, record_failure, ctx_1, ctx_2,
-                                       ctx_3, delta2, particles_match, read_tangents,
-                                       reread_particles, restore_particles, settings_ok,
-                                       step_records, var_rows, write_tangents)
+from hbvm_md.rebound.particles import (commit_clock, context_current, context_views,
+                                       record_failure, ctx_1, ctx_2, ctx_3, delta2,
+                                       particles_match, read_tangents, reread_particles,
+                                       restore_particles, settings_ok, step_end, step_records,
+                                       var_rows, write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
@@ -298,7 +300,10 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
             written[i, 3 + c] = view[i, ivx + c]
     if nodes > 0:
         odes_set(params, y[m + 3 * int(params[P_N]):], cy, False)
-    simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
+    # REBOUND's time is the step's to advance: compensated, so that sim.t (and the forces that
+    # read it at the next step) stays n dt to an ulp after any number of steps
+    t_end, ct = step_end(sd, t_start, h_done)
+    commit_clock(simd, ctx, sd, t_end, ct)
     simd[ctx[R_DTL]] = h_done
     if adaptive:
         h_next = res[1]                        # the next step proposed
@@ -309,7 +314,7 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
         write_tangents(pv, vidx, N, ix, ivx, minv, V)
         if megno:
             t0 = simd[ctx[R_MEGNO_T0]]
-            dY = (t_start - t0 + (t_start + h_done - t0)) * 0.5 * (
+            dY = (t_start - t0 + (t_end - t0)) * 0.5 * (
                 np.log(delta2(pv, N, ix, ivx)) - np.log(d2_0))
             call_megno(ctx[D_MEGNO_FN], r, dY, h_done)
     st[SL_NSTEPS] += 1

@@ -35,8 +35,9 @@ from hbvm_md.rebound.layout import (A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SET
                                     R_NACTIVE, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_ECHECK,
                                     SL_EPSILON, SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_ITER,
                                     SL_NSTEPS, SL_RES, SL_TOL, SL_Y)
-from hbvm_md.rebound.particles import (context_current, context_views, record_failure, ctx_1,
-                                       particles_match, settings_ok, step_records)
+from hbvm_md.rebound.particles import (commit_clock, context_current, context_views, ctx_1,
+                                       particles_match, record_failure, settings_ok, step_end,
+                                       step_records)
 from systems.flow_composed import composed_bodies
 
 GLUE_FUNCTIONS = ("kepler_step_arrays",)
@@ -82,8 +83,11 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
     yt = trial.y
     N = view.shape[0]
     out = np.empty((N, 6))
+    # the step's end on the compensated clock (particles.step_end): the barycentre moves
+    # uniformly to it, and sim.t shows it
+    t_end, ct = step_end(sd, t_start, res[0])
     if status == OK:
-        if composed_bodies(yt, system.params, com, t_start + res[0], out) != 0:
+        if composed_bodies(yt, system.params, com, t_end, out) != 0:
             status = NOT_FINITE     # (a flow that did not converge: nothing committed)
     if status != OK:
         record_failure(sd, res, t_start)
@@ -101,8 +105,8 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
             view[i, ivx + c] = out[i, 3 + c]
             written[i, c] = out[i, c]
             written[i, 3 + c] = out[i, 3 + c]
-    simd[ctx[R_T]] = t_start + h_done          # REBOUND's time is the step's to advance
-    com[7] = simd[ctx[R_T]]
+    commit_clock(simd, ctx, sd, t_end, ct)     # REBOUND's time is the step's to advance
+    com[7] = t_end
     simd[ctx[R_DTL]] = h_done
     st[SL_NSTEPS] += 1
     return OK

@@ -59,7 +59,15 @@ SL_MAX_DT = SL_RES + N_RES
 #: file saved before it existed loads it as 0 (REBOUND leaves a field it does not find at the
 #: value ``create`` gave it)
 SL_KEPLER = SL_MAX_DT + 1
-N_SLOTS = SL_KEPLER + 1
+#: saved: REBOUND's clock kept compensated (integrators.core.tick's compensation: the exact time
+#: is sim.t - t_comp), and the sim.t the last step wrote.  A double sum t + dt loses up to half
+#: an ulp of t a step (fixed steps of 0.1 for 1e6 steps: sim.t off n dt by 1e-7); the step
+#: adds dt with this compensation.  A step that finds sim.t other than it wrote (the user set
+#: it, or a file saved before these slots existed: t_written loads as ``create``'s nan) takes
+#: sim.t as exact (t_comp 0).  After SL_KEPLER for the same reason as it
+SL_T_COMP = SL_KEPLER + 1
+SL_T_WRITTEN = SL_KEPLER + 2
+N_SLOTS = SL_T_WRITTEN + 1
 #: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
 #: starts) and the energy at the run's start (the anchor of core.DRIFT_BOUND's rule), in the
 #: consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN.  Saved fields are found by name
@@ -104,6 +112,9 @@ SAVED = (
     ("alpha", SL_ALPHA, _DOUBLE, None, ""),
     ("slope", SL_SLOPE, _DOUBLE, None, ""),
     ("eref_run", SL_EREF_RUN, _DOUBLE, None, ""),
+    ("t_comp", SL_T_COMP, _DOUBLE, None, "Compensation of sim.t's sum of steps (the exact "
+     "time is sim.t - t_comp); 0 after the user sets sim.t."),
+    ("t_written", SL_T_WRITTEN, _DOUBLE, None, ""),
     ("nsteps", SL_NSTEPS, _INT64, None, "Steps committed."),
     ("rejected", SL_REJECTED, _INT64, None, "Adaptive trial steps rejected and retried smaller."),
     ("resyncs", SL_RESYNCS, _INT64, None, "Times the state was read afresh from the particles."),

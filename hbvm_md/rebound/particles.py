@@ -12,7 +12,7 @@ its own copies (six REBOUND variants in the test suite compiled them six times).
 import numpy as np
 from numba import carray
 
-from integrators.core import N_COUNTERS
+from integrators.core import N_COUNTERS, tick
 from integrators.jit import jit
 from integrators.pointers import complex128_pointer, float64_pointer, int64_pointer
 from integrators.records import Extrapolation, Method, Newton, State, Work
@@ -20,11 +20,12 @@ from hbvm_md.rebound.layout import (A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF,
                                     A_EW, A_EZERO, A_GAMMAT, A_NM, A_NV, A_NVINV, A_TN, A_TS,
                                     A_WORK, A_WP, A_YT, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER,
                                     D_KK, D_METHOD, D_N, D_NC, D_NF, D_NODES, D_PTR, D_S, D_TNC,
-                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N,
+                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N, R_T,
                                     R_PARTICLES, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX,
                                     SL_COUNTERS, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL,
                                     SL_K, SL_KEPLER, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT,
-                                    SL_NODES, SL_S, SL_TOL, SL_T_FAIL, SL_Y)
+                                    SL_NODES, SL_S, SL_TOL, SL_T_COMP, SL_T_FAIL,
+                                    SL_T_WRITTEN, SL_Y)
 
 
 @jit
@@ -127,6 +128,26 @@ def record_failure(sd, res, t_start):
     sd[SL_T_FAIL] = t_start
     sd[SL_CAUSE_ERR] = res[3]
     sd[SL_CAUSE_STATUS] = res[4]
+
+
+@jit
+def step_end(sd, t_start, h):
+    """The step's end time and the clock's compensation after it (as the engine's Stepper
+    keeps its clock, :func:`integrators.core.tick`): ``t_start`` + ``h`` with the compensation
+    of the sum of steps so far (saved, layout.SL_T_COMP), or with none when ``t_start`` is not
+    the sim.t the last step wrote (the user set sim.t: it is taken as exact).  Nothing is
+    stored: :func:`commit_clock` does, with the step."""
+    ct = sd[SL_T_COMP] if t_start == sd[SL_T_WRITTEN] else 0.0
+    return tick(t_start, ct, h)
+
+
+@jit
+def commit_clock(simd, ctx, sd, t_end, ct):
+    """sim.t <- the step's end (:func:`step_end`), and the compensation and the t written kept
+    in HBVM's saved state; sim.dt_last_done is the caller's (the step's size)."""
+    simd[ctx[R_T]] = t_end
+    sd[SL_T_COMP] = ct
+    sd[SL_T_WRITTEN] = t_end
 
 
 @jit
