@@ -63,6 +63,11 @@ from integrators.kepler_flow_dd import kepler_refine_dd
 
 from .base import HamiltonianSystem
 
+#: the modules whose compiled functions the kernels call (integrators.specialise hashes them
+#: into the generated step's name, so that a change there is compiled afresh)
+KERNEL_DEPENDS = ("integrators.kepler_flow", "integrators.kepler_flow_dd",
+                  "integrators.double_double")
+
 # params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n, c_light]: the masses; c the clock's rate
 # (FlowComposed's clock_rate, 1 by default); then the massive planets' indices (0-based among
 # the planets; the test particles, m = 0, are the others), so that a scene of many test
