@@ -96,8 +96,8 @@ def main():
     lines = []
     for days in a.days:
         lines += [f"## outer solar system, t_end = {days:.0e} days, medians over {a.starts} starts",
-                  "", "| method | h (days) | recentring | max rel. energy error | position error (AU) "
-                  "| wall (s) |", "|---|---|---|---|---|---|"]
+                  "", "| method | h (days) | recentring | max rel. energy error "
+                  "| position error (AU) | wall (s) |", "|---|---|---|---|---|---|"]
         res = {}
         refs = []
         for rep in range(a.starts):

@@ -1,6 +1,7 @@
-"""Double-double arithmetic: a number as an unevaluated sum hi + lo of two doubles, |lo| <= ulp(hi) / 2,
-about 106 bits (Dekker 1971; Bailey's QD library; Hida, Li and Bailey, "Library for
-double-double and quad-double arithmetic", 2007, whose "accurate" addition is used here).
+"""Double-double arithmetic: a number as an unevaluated sum hi + lo of two doubles,
+|lo| <= ulp(hi) / 2, about 106 bits (Dekker 1971; Bailey's QD library; Hida, Li and Bailey,
+"Library for double-double and quad-double arithmetic", 2007, whose "accurate" addition is used
+here).
 
 For the few places where one rounding of a double a step is the error that remains: the
 compensated recentring of the flow-composed methods (:mod:`integrators.kepler_flow_dd`).

@@ -52,7 +52,8 @@ def _dd_flows(x0, v0, dt, n):
         it, X, kp = kepler_step_stm_x(xh, vh, 1.0, dt, xs, vs, phi)
         assert it > 0 and kepler_refine_dd(xh, xl, vh, vl, 1.0, dt, 0.0, X, kp, *out) > 0
         xh, xl, vh, vl = (o.copy() for o in out)
-        xd[:], vd[:] = (np.array(c) for c in np.split(np.array(kepler_step(*xd, *vd, 1.0, dt)[:6]), 2))
+        flowed = kepler_step(*xd, *vd, 1.0, dt)
+        xd, vd = np.array(flowed[:3]), np.array(flowed[3:6])
     return (xh, xl, vh, vl), (xd, vd)
 
 
