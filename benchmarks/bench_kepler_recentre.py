@@ -13,7 +13,11 @@ a run (the steps and the samples, median over the starts; both recentrings in tu
 process, so their ratio is the comparison) and of one recentring (best of 5 x 2000 calls, the
 state after one step of HBVM(8,6)).
 
-    python benchmarks/bench_kepler_recentre.py [--starts 5] [--days 1e5 1e6]
+A last table follows the max energy error of HBVM(10,8) at 500 days over 1e5 .. 1e8 days
+(``--growth``): the double recentring's Brouwer's law, eps sqrt(steps), against the
+double-double one.
+
+    python benchmarks/bench_kepler_recentre.py [--starts 5] [--days 1e5 1e6] [--growth 1e5 .. 1e8]
 """
 from __future__ import annotations
 
@@ -91,6 +95,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--starts", type=int, default=5)
     ap.add_argument("--days", type=float, nargs="+", default=[1e5, 1e6])
+    ap.add_argument("--growth", type=float, nargs="*", default=[1e5, 1e6, 1e7, 1e8],
+                    help="t_end of the growth table (max energy error against the steps)")
     a = ap.parse_args()
     n = 3 * (outer_solar_system().body_masses.size)
     lines = []
@@ -114,6 +120,20 @@ def main():
                          f"{np.median(v[:, 1]):.1e} | {np.median(v[:, 2]):.3f} |")
         lines.append("")
         print("\n".join(lines[-len(res) - 5:]), flush=True)
+    if a.growth:
+        lines += [f"## Growth with the number of steps: HBVM(10,8) kepler, h = 500 days, medians "
+                  f"over {a.starts} starts", "",
+                  "| t_end (days) | steps | double | double-double |", "|---|---|---|---|"]
+        for days in a.growth:
+            errs = {"double": [], "double-double": []}
+            for rep in range(a.starts):
+                nb, y0 = start(rep)
+                for name, cls in (("double", DoubleRecentring), ("double-double", FlowComposed)):
+                    errs[name].append(run(cls, nb, y0, 8, 10, 500.0, days)[0])
+            lines.append(f"| {days:.0e} | {int(round(days / 500))} | "
+                         f"{np.median(errs['double']):.2e} | {np.median(errs['double-double']):.2e} |")
+            print(lines[-1], flush=True)
+        lines.append("")
     t_old, t_new = recentre_time(DoubleRecentring), recentre_time(FlowComposed)
     lines.append(f"One recentring (5 planets): double {1e6 * t_old:.2f} us, double-double "
                  f"{1e6 * t_new:.2f} us ({t_new / t_old:.2f}x).")
