@@ -503,10 +503,20 @@ def beta_slopes(beta, X, G2, G3):
 
 @jit
 def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
+    """The flow of one body over dt and its Jacobian, the state transition matrix
+    (:func:`kepler_step_stm_x`, its iterations only)."""
+    it, X, kp = kepler_step_stm_x(x0, v0, mu, dt, x1, v1, phi)
+    return it
+
+
+@jit
+def kepler_step_stm_x(x0, v0, mu, dt, x1, v1, phi):
     """The flow of one body over dt and its Jacobian, the state transition matrix.
 
     ``x0``, ``v0``, ``x1``, ``v1``: (3,) arrays; ``phi``: (6, 6), written with
-    d(x1, v1) / d(x0, v0).  Returns the iterations (< 0: no convergence; outputs NaN).
+    d(x1, v1) / d(x0, v0).  Returns the iterations (< 0: no convergence; outputs NaN), the
+    universal anomaly X and the period reduction k P (0: none) of the flow (the start of its
+    double-double refinement, :func:`integrators.kepler_flow_dd.kepler_refine_dd`).
 
     The derivative of x1 = f x0 + g v0, v1 = fdot x0 + gdot v0 through the scalars r0, eta0,
     beta, zeta0 and X (Kepler's equation differentiated implicitly:
@@ -521,7 +531,7 @@ def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
             x1[i] = math.nan
             v1[i] = math.nan
         phi[:, :] = math.nan
-        return -abs(it) - 1
+        return -abs(it) - 1, X, kp
     G0, G1b, G2b, G3b = beta_slopes(beta, X, G2, G3)
     fm1, g, fd, gdm1 = gauss_fg(mu, r0, r, dtr, G1, G2, G3)
     (x1[0], x1[1], x1[2], v1[0], v1[1], v1[2]) = new_state(
@@ -560,7 +570,7 @@ def kepler_step_stm(x0, v0, mu, dt, x1, v1, phi):
         else:
             phi[j - 3, j] += g
             phi[j, j] += 1.0 + gdm1
-    return it
+    return it, X, kp
 
 
 SAVED = 12                # the scalars kepler_step_saved keeps for kepler_pullback

@@ -159,13 +159,24 @@ def _source_hash(refs, glue=None, frefs=NO_FOLLOWERS, variant=(None, None, False
     for mod, name in list(refs) + list(frefs):
         h.update(f"{mod}:{name}".encode())
         h.update(Path(sys.modules[mod].__file__).read_bytes())
+        _hash_kernel_depends(h, mod)
     h.update(f"{numba.__version__} {sys.version} full={variant[0]} equip={variant[1]}".encode())
     if variant[2]:           # (the stage-velocity variant: the plain variants keep their names)
         h.update(b" stage velocities")
     if rref is not None:     # (a recentring hook: the plain variants keep their names)
         h.update(f" recentre {rref[0]}:{rref[1]}".encode())
         h.update(Path(sys.modules[rref[0]].__file__).read_bytes())
+        _hash_kernel_depends(h, rref[0])
     return h.hexdigest()[:24]
+
+
+def _hash_kernel_depends(h, mod):
+    """Hash the sources a kernel's module names in ``KERNEL_DEPENDS`` (modules whose compiled
+    functions its kernels call): numba's cache checks only the cached function's own file, so
+    a change there must rename the generated step.  (A module without it: nothing hashed, the
+    names of its variants unchanged.)"""
+    for dep in getattr(sys.modules[mod], "KERNEL_DEPENDS", ()):
+        h.update(Path(importlib.import_module(dep).__file__).read_bytes())
 
 
 def _variant_lines(refs, glue, frefs, variant) -> str:

@@ -54,12 +54,19 @@ import math
 
 import numpy as np
 
+from integrators.core import two_sum
+from integrators.double_double import dd_add_d, dd_div, dd_mul_d
 from integrators.jit import jit
 from integrators.kepler_flow import (SAVED, kepler_flow, kepler_pullback, kepler_step,
-                                     kepler_step_saved, kepler_step_stm)
+                                     kepler_step_saved, kepler_step_stm, kepler_step_stm_x)
+from integrators.kepler_flow_dd import kepler_refine_dd
 
 from .base import HamiltonianSystem
 
+#: the modules whose compiled functions the kernels call (integrators.specialise hashes them
+#: into the generated step's name, so that a change there is compiled afresh)
+KERNEL_DEPENDS = ("integrators.kepler_flow", "integrators.kepler_flow_dd",
+                  "integrators.double_double")
 # params: [N, G, m_0, m_1 .. m_N, c, n, i_1 .. i_n, c_light, J2, J4, R_eq, w_x, w_y, w_z, A,
 # gamma]: the masses; c the clock's rate
 # (FlowComposed's clock_rate, 1 by default); then the massive planets' indices (0-based among
@@ -356,11 +363,74 @@ def composed_energy(y, params):
 @jit
 def composed_recentre(y, cy, gamma, h, params):
     """After a committed step of size h: X <- phi_{tau + h/2}(X), tau <- -h/2 (the next step's
-    start, centred as in the module docstring; the same physical state).  The state's low
-    parts cy (the step keeps y - cy) and the coefficients gamma (the next step's initial
-    guess extrapolates them) are carried by the flow's state transition matrix, as derivatives
-    are: the guess then describes the right-hand side in the new variables.  Returns 0, or
-    1 + the index of a planet whose flow did not converge (nothing changed then)."""
+    start, centred as in the module docstring; the same physical state).
+
+    The flow is taken in double-double from the double-double state y - cy
+    (:func:`integrators.kepler_flow_dd.kepler_refine_dd`) and written back as y - cy exactly:
+    the state is then rounded nowhere between two steps (the double flow,
+    :func:`composed_recentre_double`, rounded it here once a step, and the physical energy's
+    error grew as eps sqrt(steps)).  The coefficients gamma (the next step's initial guess
+    extrapolates them) are carried by the flow's state transition matrix, as derivatives are:
+    the guess then describes the right-hand side in the new variables.  Returns 0, or 1 + the
+    index of a planet whose flow did not converge (nothing changed then)."""
+    N, G, m0, ms, mu, m = _header(params)
+    rate = _clock(params)
+    # dt = tau + h/2 in double-double (rate a power of 2: its products and quotients exact)
+    th, tl = two_sum(y[m - 1], -cy[m - 1])
+    th, tl = dd_add_d(th, tl, 0.5 * h * rate)
+    dth, dtl = th / rate, tl / rate
+    xh = np.empty(3)
+    xl = np.empty(3)
+    vh = np.empty(3)
+    vl = np.empty(3)
+    xs = np.empty(3)
+    vs = np.empty(3)
+    out = np.empty((N, 4, 3))           # x1 high, x1 low, v1 high, v1 low
+    phi = np.empty((N, 6, 6))
+    for i in range(N):
+        mi = _weight(ms[i])
+        for a in range(3):
+            xh[a] = y[3 * i + a]
+            xl[a] = -cy[3 * i + a]
+            vh[a], vl[a] = dd_div(y[m + 3 * i + a], -cy[m + 3 * i + a], mi, 0.0)
+        it, X, kp = kepler_step_stm_x(xh, vh, mu, dth, xs, vs, phi[i])
+        if it < 0 or kepler_refine_dd(xh, xl, vh, vl, mu, dth, dtl, X, kp, out[i, 0],
+                                      out[i, 1], out[i, 2], out[i, 3]) < 0:
+            return 1 + i
+    w = np.empty(6)
+    for i in range(N):
+        mi = _weight(ms[i])
+        for a in range(3):
+            y[3 * i + a] = out[i, 0, a]
+            cy[3 * i + a] = -out[i, 1, a]
+            ph, pl = dd_mul_d(out[i, 2, a], out[i, 3, a], mi)
+            y[m + 3 * i + a] = ph
+            cy[m + 3 * i + a] = -pl
+        # (dQ, dP) -> Phi_c (dQ, dP), Phi_c = diag(1, m) Phi diag(1, 1/m) the canonical STM
+        for row in range(gamma.shape[0]):
+            vec = gamma[row]
+            for a in range(3):
+                w[a] = vec[3 * i + a]
+                w[3 + a] = vec[m + 3 * i + a] / mi
+            for a in range(3):
+                sq = 0.0
+                sv = 0.0
+                for b in range(6):
+                    sq += phi[i, a, b] * w[b]
+                    sv += phi[i, 3 + a, b] * w[b]
+                vec[3 * i + a] = sq
+                vec[m + 3 * i + a] = mi * sv
+    y[m - 1] = -0.5 * h * rate
+    cy[m - 1] = 0.0
+    return 0
+
+
+@jit
+def composed_recentre_double(y, cy, gamma, h, params):
+    """:func:`composed_recentre` with the flow in double (the recentring before issue 48's
+    compensated one), the baseline of ``benchmarks/bench_kepler_composed.py`` and of the tests:
+    the low parts cy are carried by the state transition matrix, and the state is rounded
+    once a step.  Returns 0, or 1 + the index of a planet whose flow did not converge."""
     N, G, m0, ms, mu, m = _header(params)
     rate = _clock(params)
     dt = ((y[m - 1] - cy[m - 1]) + 0.5 * h * rate) / rate

@@ -45,7 +45,8 @@ GLUE_FUNCTIONS = ("kepler_step_arrays",)
 GLUE_NEWTON = False
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
 GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.particles",
-                "systems.flow_composed", "integrators.kepler_flow")
+                "systems.flow_composed", "integrators.kepler_flow", "integrators.kepler_flow_dd",
+                "integrators.double_double")
 #: the width of the barycentre's record after y and cy in the saved state (module docstring)
 N_COM = 17
 
