@@ -46,8 +46,8 @@ from hbvm_md.rebound.forces import (CLOCK, O_COL, O_DERIV, O_LEN, O_ODE, O_PRE, 
 from hbvm_md.rebound.particles import (commit_clock, context_current, context_views,
                                        record_failure, ctx_1, ctx_2, ctx_3, delta2,
                                        particles_match, read_tangents, reread_particles,
-                                       restore_particles, settings_ok, step_end, step_records,
-                                       var_rows, write_tangents)
+                                       landing_step, restore_particles, settings_ok, step_end,
+                                       step_records, var_rows, write_tangents)
 
 GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
@@ -212,6 +212,8 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     max_dt = sd[SL_MAX_DT] if adaptive else 0.0
     if max_dt > 0.0 and abs(h) > max_dt:       # (the user's bound, e.g. for an operator)
         h = max_dt if h > 0.0 else -max_dt
+    else:       # (exact_finish_time's last step ends at tmax on the compensated clock)
+        h = landing_step(simi, ctx, sd, t_start, h)
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     # the step's own error estimate (integrators.core.resolution_error, every body of three
     # coordinates), on with the energy check (energy_tol=None switches both off)

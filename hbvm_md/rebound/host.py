@@ -1291,8 +1291,10 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
     header[[L.D_NV, L.D_TGF, L.D_TGC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
             L.R_MEGNO_T0]] = (nv, nf, nc, pvar, _REG["megno_update"], pvar_at,
                               megno_at, t0_at)
+    header[L.R_STATUS] = _REG["status_at"]
     header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1,
-                           type(sim)._N_odes.offset // 8 + 1)   # (the step hides the ODEs)
+                           type(sim)._N_odes.offset // 8 + 1,   # (the step hides the ODEs)
+                           _REG["status_at"] // 8 + 1)
     words = _REG["config_words"]
     header[L.C_WORDS:L.C_VALUES] = words
     sim_words = int64s(ctypes.addressof(sim), max(words) + 1)

@@ -36,8 +36,8 @@ from hbvm_md.rebound.layout import (A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SET
                                     SL_EPSILON, SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_ITER,
                                     SL_NSTEPS, SL_RES, SL_TOL, SL_Y)
 from hbvm_md.rebound.particles import (commit_clock, context_current, context_views, ctx_1,
-                                       particles_match, record_failure, settings_ok, step_end,
-                                       step_records)
+                                       landing_step, particles_match, record_failure, settings_ok,
+                                       step_end, step_records)
 from systems.flow_composed import composed_bodies
 
 GLUE_FUNCTIONS = ("kepler_step_arrays",)
@@ -73,6 +73,7 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
     if not (abs(h) < np.inf and h != 0.0):
         sd[SL_H_FAIL] = h
         return BAD_DT
+    h = landing_step(simi, ctx, sd, t_start, h)     # (exact_finish_time's last step: tmax)
     etol = sd[SL_ETOL] if st[SL_ECHECK] > 0 else 0.0
     # the step's own error estimate per body block (integrators.core.resolution_error), on
     # with the energy check as in the plain glue (energy_tol=None switches both off)

@@ -167,7 +167,10 @@ A_TO = A_TP + 1
 #: systems.flow_composed's), 0 the plain one; a step finding ``sim.integrator.kepler`` changed
 #: answers RESYNC
 D_KEPLER = A_TO + 1
-N_HEADER = D_KEPLER + 1
+#: REBOUND's ``status`` (a C int; its offset in bytes): REB_STATUS_LAST_STEP marks the step
+#: that ``exact_finish_time`` shortened to end at the run's tmax (particles.landing_step)
+R_STATUS = D_KEPLER + 1
+N_HEADER = R_STATUS + 1
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")

@@ -20,7 +20,7 @@ from hbvm_md.rebound.layout import (A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF,
                                     A_EW, A_EZERO, A_GAMMAT, A_NM, A_NV, A_NVINV, A_TN, A_TS,
                                     A_WORK, A_WP, A_YT, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER,
                                     D_KK, D_METHOD, D_N, D_NC, D_NF, D_NODES, D_PTR, D_S, D_TNC,
-                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N, R_T,
+                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N, R_STATUS, R_T,
                                     R_PARTICLES, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX,
                                     SL_COUNTERS, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL,
                                     SL_K, SL_KEPLER, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT,
@@ -139,6 +139,26 @@ def step_end(sd, t_start, h):
     stored: :func:`commit_clock` does, with the step."""
     ct = sd[SL_T_COMP] if t_start == sd[SL_T_WRITTEN] else 0.0
     return tick(t_start, ct, h)
+
+
+#: REBOUND's REB_STATUS_LAST_STEP (-2) as the low 32 bits of its word
+LAST_STEP_BITS = 0xFFFFFFFE
+
+
+@jit
+def landing_step(simi, ctx, sd, t_start, h):
+    """The step to take for REBOUND's sim.dt ``h``: ``h`` itself, except on the last step of an
+    ``exact_finish_time`` run (REBOUND's status REB_STATUS_LAST_STEP, its dt set to tmax -
+    sim.t), where the compensated clock's time is sim.t - ct (:func:`step_end`): there the step
+    is h + ct, so that the bodies end at tmax itself and sim.t shows tmax exactly, as REBOUND's
+    own integrators leave it (a run's output times are where the user asked).  ct is below an
+    ulp of t, and 0 while every step so far summed exactly (dt = 500 days: the same numbers)."""
+    w = ctx[R_STATUS]
+    if (simi[w // 8] >> (8 * (w % 8))) & 0xFFFFFFFF != LAST_STEP_BITS:
+        return h
+    if t_start != sd[SL_T_WRITTEN]:          # (sim.t set by the user: taken as exact)
+        return h
+    return h + sd[SL_T_COMP]
 
 
 @jit
