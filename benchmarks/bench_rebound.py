@@ -74,7 +74,7 @@ SCENES = (
      (("saba(10,6,4)", 4332.6 / 20), ("whfast", 4332.6 / 100))),
     ("Sun and 8 planets (J2000), t_end = 1e5 days", lambda: solar_system(bodies=PLANETS), 1e5,
      ((6, None, 2.0), (6, None, 3.0), (6, None, 4.0), (6, None, 5.0), (8, None, 5.0), (8, None, 6.0),
-      (8, None, 8.0), (10, None, 12.5), (11, None, 15.625), (11, 12, 15.625)),
+      (8, None, 8.0), (10, None, 12.5), (11, None, 15.625), (11, 12, 15.625), (11, 11, 15.625)),
      (("saba(10,6,4)", 88.0 / 20), ("whfast", 88.0 / 100))),
 )
 
