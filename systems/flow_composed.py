@@ -361,6 +361,24 @@ def composed_energy(y, params):
 
 
 @jit
+def _carry(vec, phi, i, m, mi, w):
+    """Body i's block of a derivative-like vector (the coefficients gamma, or cy) carried through
+    the flow: (dQ, dP) -> Phi_c (dQ, dP), Phi_c = diag(1, m) Phi diag(1, 1/m) the canonical state
+    transition matrix of Phi = phi (6, 6); w (6,) scratch."""
+    for a in range(3):
+        w[a] = vec[3 * i + a]
+        w[3 + a] = vec[m + 3 * i + a] / mi
+    for a in range(3):
+        sq = 0.0
+        sv = 0.0
+        for b in range(6):
+            sq += phi[a, b] * w[b]
+            sv += phi[3 + a, b] * w[b]
+        vec[3 * i + a] = sq
+        vec[m + 3 * i + a] = mi * sv
+
+
+@jit
 def composed_recentre(y, cy, gamma, h, params):
     """After a committed step of size h: X <- phi_{tau + h/2}(X), tau <- -h/2 (the next step's
     start, centred as in the module docstring; the same physical state).
@@ -406,20 +424,8 @@ def composed_recentre(y, cy, gamma, h, params):
             ph, pl = dd_mul_d(out[i, 2, a], out[i, 3, a], mi)
             y[m + 3 * i + a] = ph
             cy[m + 3 * i + a] = -pl
-        # (dQ, dP) -> Phi_c (dQ, dP), Phi_c = diag(1, m) Phi diag(1, 1/m) the canonical STM
         for row in range(gamma.shape[0]):
-            vec = gamma[row]
-            for a in range(3):
-                w[a] = vec[3 * i + a]
-                w[3 + a] = vec[m + 3 * i + a] / mi
-            for a in range(3):
-                sq = 0.0
-                sv = 0.0
-                for b in range(6):
-                    sq += phi[i, a, b] * w[b]
-                    sv += phi[i, 3 + a, b] * w[b]
-                vec[3 * i + a] = sq
-                vec[m + 3 * i + a] = mi * sv
+            _carry(gamma[row], phi[i], i, m, mi, w)
     y[m - 1] = -0.5 * h * rate
     cy[m - 1] = 0.0
     return 0
@@ -451,20 +457,8 @@ def composed_recentre_double(y, cy, gamma, h, params):
         for a in range(3):
             y[3 * i + a] = x[i, a]
             y[m + 3 * i + a] = mi * v[i, a]
-        # (dQ, dP) -> Phi_c (dQ, dP), Phi_c = diag(1, m) Phi diag(1, 1/m) the canonical STM
         for row in range(-1, gamma.shape[0]):
-            vec = cy if row < 0 else gamma[row]
-            for a in range(3):
-                w[a] = vec[3 * i + a]
-                w[3 + a] = vec[m + 3 * i + a] / mi
-            for a in range(3):
-                sq = 0.0
-                sv = 0.0
-                for b in range(6):
-                    sq += phi[i, a, b] * w[b]
-                    sv += phi[i, 3 + a, b] * w[b]
-                vec[3 * i + a] = sq
-                vec[m + 3 * i + a] = mi * sv
+            _carry(cy if row < 0 else gamma[row], phi[i], i, m, mi, w)
     y[m - 1] = -0.5 * h * rate
     cy[m - 1] = 0.0
     return 0
