@@ -508,6 +508,7 @@ def composed_bodies(y, params, com, t, out):
 
 
 def _real(v) -> bool:
+    """A finite real number (not a bool): the arguments' common test."""
     return (not isinstance(v, bool) and isinstance(v, (int, float, np.number))
             and bool(np.isfinite(v)))
 
@@ -614,15 +615,13 @@ class FlowComposed(HamiltonianSystem):
         if not (np.isfinite(h) and h != 0):
             raise ValueError(f"`h` must be the (nonzero, finite) step the run will take (got h={h!r})")
         c = clock_rate
-        if (isinstance(c, bool) or not isinstance(c, (int, float, np.number)) or not np.isfinite(c)
-                or not c > 0 or math.frexp(float(c))[0] != 0.5 or not 2.0 ** -64 <= c <= 2.0 ** 64):
+        if (not _real(c) or not c > 0 or math.frexp(float(c))[0] != 0.5
+                or not 2.0 ** -64 <= c <= 2.0 ** 64):
             raise ValueError(f"`clock_rate` must be a power of 2 between 2**-64 and 2**64, so that "
                              f"the clock's rows scale exactly (got clock_rate={clock_rate!r}); "
                              f"1 is the default")
         self.clock_rate = float(c)
-        if gr_c is not None and (isinstance(gr_c, bool)
-                                 or not isinstance(gr_c, (int, float, np.number))
-                                 or not np.isfinite(gr_c) or not gr_c > 0):
+        if gr_c is not None and (not _real(gr_c) or not gr_c > 0):
             raise ValueError(f"`gr_c` must be the speed of light in the scene's units, a "
                              f"positive finite number (got gr_c={gr_c!r}); None for no GR "
                              f"potential term")

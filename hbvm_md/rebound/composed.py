@@ -283,6 +283,6 @@ def prepare_composed(sim, p: int, method) -> None:
     H._FORCES[addr] = tuple(reboundx_forces(sim) or ())
     # (their parameters are read into the model: a change between runs prepares the step again,
     # host._recheck_forces)
-    H._KEPLER_GR[addr] = terms
+    H._KEPLER_TERMS[addr] = terms
     H._ODES[addr] = ode_signature(sim)
     H._HOST_PATH.discard(addr)

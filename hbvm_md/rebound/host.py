@@ -416,7 +416,7 @@ def _recheck_forces(sim, addr: int) -> None:
     if seen is None or (not seen and not sim.extras):
         return
     if tuple(reboundx_forces(sim) or ()) == seen and (
-            addr not in _KEPLER_GR or _kepler_terms_unchanged(sim, _KEPLER_GR[addr])):
+            addr not in _KEPLER_TERMS or _kepler_terms_unchanged(sim, _KEPLER_TERMS[addr])):
         return
     prepared = _prepared(addr)
     if prepared is not None:
@@ -428,7 +428,7 @@ def _recheck_forces(sim, addr: int) -> None:
 #: star's harmonics, its central force) its composed step (kepler = 1) was last prepared with:
 #: FlowComposed holds them in its parameters, so one changed between runs must prepare the step
 #: again (the plain step reads them at every stage)
-_KEPLER_GR: dict[int, tuple] = {}
+_KEPLER_TERMS: dict[int, tuple] = {}
 
 
 def _kepler_terms_unchanged(sim, terms) -> bool:
@@ -1078,7 +1078,7 @@ def _prepare(sim, p: int) -> None:
         _PYTHON_STEPS[p] = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
     _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
-    _KEPLER_GR.pop(ctypes.addressof(sim), None)
+    _KEPLER_TERMS.pop(ctypes.addressof(sim), None)
     _ODES[ctypes.addressof(sim)] = ode_signature(sim)
     if sim.extras:
         _warn_operators(sim, _operators(sim))

@@ -20,8 +20,8 @@ from hbvm_md.rebound.layout import (A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF,
                                     A_EW, A_EZERO, A_GAMMAT, A_NM, A_NV, A_NVINV, A_TN, A_TS,
                                     A_WORK, A_WP, A_YT, C_VALUES, C_WORDS, D_CPP, D_K, D_KEPLER,
                                     D_KK, D_METHOD, D_N, D_NC, D_NF, D_NODES, D_PTR, D_S, D_TNC,
-                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N, R_STATUS, R_T,
-                                    R_PARTICLES, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX,
+                                    D_TSR, D_WPP, N_CFG, N_EREF, N_HEADER, N_SLOTS, R_HEAD, R_N,
+                                    R_STATUS, R_T, R_PARTICLES, SL_ADAPTIVE, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_CTX,
                                     SL_COUNTERS, SL_EPSILON, SL_EREF, SL_ETOL, SL_GAMMA, SL_H_FAIL,
                                     SL_K, SL_KEPLER, SL_MAX_DT, SL_MAX_ITER, SL_METHOD, SL_MIN_DT,
                                     SL_NODES, SL_S, SL_TOL, SL_T_COMP, SL_T_FAIL,
@@ -131,14 +131,20 @@ def record_failure(sd, res, t_start):
 
 
 @jit
+def clock_comp(sd, t_start):
+    """The compensation of the clock at sim.t = ``t_start`` (the exact time is t_start minus
+    it): the saved one (layout.SL_T_COMP) while sim.t is what the last step wrote, else 0 (the
+    user set sim.t: it is taken as exact)."""
+    return sd[SL_T_COMP] if t_start == sd[SL_T_WRITTEN] else 0.0
+
+
+@jit
 def step_end(sd, t_start, h):
     """The step's end time and the clock's compensation after it (as the engine's Stepper
     keeps its clock, :func:`integrators.core.tick`): ``t_start`` + ``h`` with the compensation
-    of the sum of steps so far (saved, layout.SL_T_COMP), or with none when ``t_start`` is not
-    the sim.t the last step wrote (the user set sim.t: it is taken as exact).  Nothing is
-    stored: :func:`commit_clock` does, with the step."""
-    ct = sd[SL_T_COMP] if t_start == sd[SL_T_WRITTEN] else 0.0
-    return tick(t_start, ct, h)
+    of the sum of steps so far (:func:`clock_comp`).  Nothing is stored: :func:`commit_clock`
+    does, with the step."""
+    return tick(t_start, clock_comp(sd, t_start), h)
 
 
 #: REBOUND's REB_STATUS_LAST_STEP (-2) as the low 32 bits of its word
@@ -156,9 +162,7 @@ def landing_step(simi, ctx, sd, t_start, h):
     w = ctx[R_STATUS]
     if (simi[w // 8] >> (8 * (w % 8))) & 0xFFFFFFFF != LAST_STEP_BITS:
         return h
-    if t_start != sd[SL_T_WRITTEN]:          # (sim.t set by the user: taken as exact)
-        return h
-    return h + sd[SL_T_COMP]
+    return h + clock_comp(sd, t_start)
 
 
 @jit
