@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numba
 
-from . import (absent, core, equip_core, followers, jit as _jitmod, loop, pointers as _pointersmod,
+from . import (absent, ccore, core, equip_core, followers, jit as _jitmod, loop, pointers as _pointersmod,
                records as _recordsmod, tangent)
 
 # the step's features, each a function of its own (integrators.loop.run's docstring), inlined
@@ -376,6 +376,13 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
                         recentre)
         out.kind = "python"
         return out
+    if _is_compiled(force) and _is_compiled(potential):
+        # the compiled core (integrators.ccore) for the kernels and the variant it covers
+        stepper = ccore.core_step((_import_ref(force), _import_ref(potential)), full=full,
+                                  equip=equip, velocities=velocities, glue=glue, jvp=jvp,
+                                  follow=follow, recentre=recentre)
+        if stepper is not None:
+            return stepper
     variant = (None if full is None else bool(full), None if equip is None else bool(equip),
                bool(velocities))
     key = (force, potential, glue, jvp, follow, variant, recentre)

@@ -1,0 +1,115 @@
+/* The compiled core of hbvm-md: one HBVM(k, s) step of the separable form, its kernels and its
+ * control, built when the package is installed (setup.py).
+ *
+ * The stage index runs fastest everywhere in the step ("the stages in the lanes"): a stage
+ * array X (m, kp) holds coordinate j's kp stage values at X[j * kp + i], kp being k padded up
+ * to a multiple of HBVM_LANES with copies of the last stage, so that one vector register holds
+ * HBVM_LANES stages of one coordinate, the kernel evaluates every stage at once on those
+ * vectors, and the stage algebra runs on the same vectors.  Each stage's numbers are those of
+ * a scalar loop (the same operations in the same order; no fused multiply-add where the
+ * Python-side step has none: the build passes -ffp-contract=off).
+ *
+ * The implementer's contract of a kernel (docs/design/step.md, "The compiled core"):
+ *   force(X, m, kp, params, F): F (m, kp) <- -grad V at each of the kp stages of X (m, kp),
+ *       stage-fastest, every lane (the padded ones included) written;
+ *   potential(q, params): V(q) at one point q (m,).
+ */
+#ifndef HBVM_CORE_H
+#define HBVM_CORE_H
+
+#include <stddef.h>
+
+#if defined(HBVM_LANES)
+/* set by the build */
+#elif defined(__AVX512F__)
+#define HBVM_LANES 8
+#elif defined(__AVX__)
+#define HBVM_LANES 4
+#else
+#define HBVM_LANES 2
+#endif
+
+/* status codes: the same table as integrators.core (one map to exceptions there) */
+enum {
+    HBVM_OK = 0,
+    HBVM_DIVERGED = 1,
+    HBVM_NOT_FINITE = 2,
+    HBVM_UNRESOLVED = 3,
+    HBVM_TOO_SMALL = 4,
+    HBVM_NOT_RESOLVED = 6,
+    HBVM_DRIFTED = 7,
+    HBVM_BAD_INPUT = 100 /* an internal inconsistency the caller must not produce */
+};
+
+/* counters: integrators.core's layout */
+enum { C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_WORST,
+       N_COUNTERS };
+
+#define HBVM_EREF_RUN 3
+#define HBVM_N_EREF 4
+
+typedef void (*hbvm_force_fn)(const double *X, int m, int kp, const double *params, double *F);
+typedef double (*hbvm_potential_fn)(const double *q, const double *params);
+
+/* a system's kernels and their parameters */
+typedef struct {
+    hbvm_force_fn force;
+    hbvm_potential_fn potential;
+    const double *params;
+} hbvm_kernel;
+
+/* the method's arrays at their natural (row-major) shapes, as integrators.engine packs them */
+typedef struct {
+    int k, s;
+    const double *tau, *tau_lo;         /* (k,) the nodes on [0, 1] */
+    const double *X0, *X0_lo;           /* (s,) the first row of X_s */
+    const double *W, *W_lo;             /* (s, k) P_s^T Omega */
+    const double *C2, *C2_lo;           /* (k, s) I_s X_s */
+    const double *I, *I_lo;             /* (k, s) I_s */
+} hbvm_tableau;
+
+/* the separable system: m positions, 1 / m per coordinate and the kinetic energy's weights */
+typedef struct {
+    int m;
+    const double *minv, *kin_w;
+} hbvm_system;
+
+/* the state a step reads and commits: the double-double pair (y, cy) (2m,), the previous step's
+ * coefficients gamma (s, m), the energies eref (HBVM_N_EREF,) and the compensated clock (2,) */
+typedef struct {
+    double *y, *cy, *gamma, *eref, *clock;
+} hbvm_state;
+
+typedef struct {
+    int max_iter;
+    double tol, etol, ebound;
+    int group;
+} hbvm_options;
+
+/* samples of (t, y, H) at steps 0, every, 2 every, ... (every = 0: none) */
+typedef struct {
+    long nsteps, every;
+    double *t, *y, *e;
+} hbvm_samples;
+
+/* nsteps steps of size h, each committed when it succeeds; returns HBVM_OK or the first failed
+ * step's status, everything as after the last committed step (integrators.loop.run's
+ * contract). E (s, s): the initial guess's extrapolation matrix. */
+int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, double h,
+             const double *E, const hbvm_tableau *tab, const hbvm_options *opts,
+             double *counters, hbvm_samples *samples);
+
+/* the kinetic and potential energies at y (2m,) */
+void hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
+                       double *T, double *V);
+
+/* the padded stage count for k stages */
+static inline int hbvm_padded(int k) { return (k + HBVM_LANES - 1) / HBVM_LANES * HBVM_LANES; }
+
+/* built-in kernels (kernels_*.c) */
+void hbvm_nbody_force(const double *X, int m, int kp, const double *params, double *F);
+double hbvm_nbody_potential(const double *q, const double *params);
+/* the parameters' consistency with m coordinates: 0 when usable, else -1 */
+int hbvm_nbody_check(int m, const double *params, long nparams);
+
+#endif

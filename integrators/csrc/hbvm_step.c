@@ -1,0 +1,651 @@
+/* One HBVM(k, s) step of the separable form, stage-fastest (hbvm_core.h), and many of them.
+ *
+ * The step of integrators/loop.py (its HBVM, separable, fixed-point branch: no followers, no
+ * stage velocities, no Newton matrices) with its pieces from integrators/core.py, operation
+ * for operation: the extrapolated start, the fixed point gamma <- P_s^T Omega f(stages), the
+ * stop rule (stop_action), the compensated polish and commit, the step's own error estimate
+ * (resolution_error), the energy check and the run's drift, the counters and the compensated
+ * clock. The docstrings of those Python functions say why each piece is as it is; the comments
+ * here say only where this code differs (the layout). */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "hbvm_core.h"
+#include "hbvm_vec.h"
+
+#define L HBVM_LANES
+
+static const double EPS = 2.220446049250313e-16;
+static const double ROUNDOFF_ULPS = 64.0;
+static const double LIPSCHITZ_ULPS = 4.0;
+static const double STATE_ULPS = 16.0;
+static const double STRONG_CONTRACTION = 1e-3;
+static const double EXTRAPOLATED_ULPS = 1e-3;
+static const double TOL_CONTRACTION = 0.25;
+static const double RUNAWAY = 1e8;
+static const double DRIFT_BOUND = 1e-3;
+static const double FLOW_FRACTION[3] = {1.0, 1.5e-2, 1e-3};
+
+enum { ITERATE = 0, POLISH = 1 };
+
+/* Python's max(a, b) (the first unless the second is larger), as the Python-side step takes it */
+static inline double py_max(double a, double b) { return b > a ? b : a; }
+
+static inline void two_product(double a, double b, double *hi, double *lo)
+{
+    double p = a * b;
+    *hi = p;
+    *lo = fma(a, b, -p);
+}
+
+static inline void two_sum(double a, double b, double *s, double *e)
+{
+    double x = a + b;
+    double bb = x - a;
+    *s = x;
+    *e = (a - (x - bb)) + (b - bb);
+}
+
+/* x[j] - c[j] (c holds minus the low part) += inc_hi + inc_lo */
+static inline void dd_add(double *x, double *c, int j, double inc_hi, double inc_lo)
+{
+    double s, e;
+    two_sum(x[j], inc_hi, &s, &e);
+    double lo = (e + inc_lo) - c[j];
+    double hi = s + lo;
+    c[j] = -(lo - (hi - s));
+    x[j] = hi;
+}
+
+static double legendre_at(int s, double c)
+{
+    double x = 2.0 * c - 1.0, lm = 0.0, l0 = 1.0;
+    for (int j = 0; j < s; ++j) {
+        double ln = ((2.0 * j + 1.0) * x * l0 - j * lm) / (j + 1.0);
+        lm = l0;
+        l0 = ln;
+    }
+    return sqrt(2.0 * s + 1.0) * l0;
+}
+
+static double weighted_kinetic(const double *p, const double *w, int m)
+{
+    double ke = 0.0;
+    for (int i = 0; i < m; ++i)
+        ke += 0.5 * p[i] * p[i] * w[i];
+    return ke;
+}
+
+void hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
+                       double *T, double *V)
+{
+    *T = weighted_kinetic(y + sys->m, sys->kin_w, sys->m);
+    *V = kernel->potential(y, kernel->params);
+}
+
+/* the step's work arrays, one allocation */
+typedef struct {
+    int k, kp, s, sp, m;
+    double *ht, *ht_lo;          /* (kp) h tau as exact pairs, padded with the last stage */
+    double *C2T, *C2T_lo;        /* (s, kp) C2 transposed, padded with the last stage */
+    double *WT, *WT_lo;          /* (k, sp) W transposed, rows padded with zeros */
+    double *a;                   /* (m, sp) g / m */
+    double *g;                   /* (m, sp) the iterate, each coordinate's coefficients
+                                  * contiguous (gamma's transpose, padded with zeros) */
+    double *X, *F, *Xp, *Fp;     /* (m, kp) stages, forces, the Lipschitz probe's copies */
+    double *X1, *F1;             /* (m, L) one point (the first guess, the endpoint defect) */
+    double *acc, *acc_lo;        /* (kp) */
+    double *gv, *gv_lo;          /* (sp) */
+    double *yt, *cyt;            /* (2m) the trial state */
+    double *dq, *dq_lo, *om;     /* (m) */
+    double hist[5];
+    void *block;
+} work_t;
+
+static int work_alloc(work_t *w, const hbvm_tableau *tab, int m)
+{
+    const int k = tab->k, s = tab->s;
+    const int kp = hbvm_padded(k), sp = hbvm_padded(s);
+    w->k = k, w->kp = kp, w->s = s, w->sp = sp, w->m = m;
+    /* every array a multiple of L doubles long, so that each starts aligned */
+    size_t sizes[] = {kp, kp, (size_t)s * kp, (size_t)s * kp, (size_t)k * sp, (size_t)k * sp,
+                      (size_t)m * sp, (size_t)m * sp, (size_t)m * kp, (size_t)m * kp,
+                      (size_t)m * kp, (size_t)m * kp, (size_t)m * L, (size_t)m * L, kp, kp,
+                      sp, sp, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
+    double **ptrs[] = {&w->ht, &w->ht_lo, &w->C2T, &w->C2T_lo, &w->WT, &w->WT_lo, &w->a, &w->g,
+                       &w->X, &w->F, &w->Xp, &w->Fp, &w->X1, &w->F1, &w->acc, &w->acc_lo,
+                       &w->gv, &w->gv_lo, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
+    const int n = (int)(sizeof sizes / sizeof sizes[0]);
+    size_t total = 0;
+    for (int i = 0; i < n; ++i)
+        total += (sizes[i] + L - 1) / L * L;
+    w->block = aligned_alloc(8 * L, (total > 0 ? total : L) * sizeof(double));
+    if (!w->block)
+        return -1;
+    memset(w->block, 0, total * sizeof(double));
+    double *p = w->block;
+    for (int i = 0; i < n; ++i) {
+        *ptrs[i] = p;
+        p += (sizes[i] + L - 1) / L * L;
+    }
+    for (int l = 0; l < s; ++l)
+        for (int i = 0; i < kp; ++i) {
+            int ii = i < k ? i : k - 1;
+            w->C2T[l * kp + i] = tab->C2[ii * s + l];
+            w->C2T_lo[l * kp + i] = tab->C2_lo[ii * s + l];
+        }
+    for (int i = 0; i < k; ++i)
+        for (int l = 0; l < sp; ++l) {
+            w->WT[i * sp + l] = l < s ? tab->W[l * k + i] : 0.0;
+            w->WT_lo[i * sp + l] = l < s ? tab->W_lo[l * k + i] : 0.0;
+        }
+    return 0;
+}
+
+/* h tau_i as exact pairs into ht, ht_lo (padded); returns h h as an exact pair */
+static void step_constants(work_t *w, const hbvm_tableau *tab, double h, double *h2,
+                           double *h2_lo)
+{
+    for (int i = 0; i < w->kp; ++i) {
+        int ii = i < w->k ? i : w->k - 1;
+        double lo;
+        two_product(h, tab->tau[ii], &w->ht[i], &lo);
+        w->ht_lo[i] = lo + h * tab->tau_lo[ii];
+    }
+    two_product(h, h, h2, h2_lo);
+}
+
+/* X <- q0 + h tau v0 + h^2 (I_s X_s) M^{-1} gamma (core.stage_positions), every coordinate's kp
+ * stages as vectors; exact: with C2's low parts */
+static void stage_positions(work_t *w, const double *y, const double *cy, const double *minv,
+                            double h2, double h2_lo, int exact)
+{
+    const int m = w->m, s = w->s, kp = w->kp;
+    const int sp = w->sp;
+    for (int j = 0; j < m; ++j)
+        for (int b = 0; b < sp; b += L)
+            vstore(w->a + j * sp + b, vload(w->g + j * sp + b) * minv[j]);
+    const vd zero = vsplat(0.0);
+    for (int j = 0; j < m; ++j) {
+        const double yj = y[j], vj = y[m + j] * minv[j], cyj = cy[j];
+        const double cpj = cy[m + j], mj = minv[j];
+        for (int b = 0; b < kp; b += L) {
+            vd acc = zero, acc_lo = zero;
+            if (exact) {
+                for (int l = 0; l < s; ++l) {
+                    const double aj = w->a[j * sp + l];
+                    acc += vload(w->C2T + l * kp + b) * aj;
+                    acc_lo += vload(w->C2T_lo + l * kp + b) * aj;
+                }
+            } else {
+                for (int l = 0; l < s; ++l)
+                    acc += vload(w->C2T + l * kp + b) * w->a[j * sp + l];
+            }
+            const vd ht = vload(w->ht + b), ht_lo = vload(w->ht_lo + b);
+            vstore(w->X + j * kp + b,
+                   yj + ht * vj + ((ht_lo * vj - cyj) - ht * cpj * mj + h2 * (acc + acc_lo)
+                                   + h2_lo * acc));
+        }
+    }
+}
+
+/* g <- W F (core.project): each coordinate's s coefficients as vectors, summed over the
+ * stages in order; returns max |increment| (nan first) and max |g| */
+static void project(work_t *w, double *delta_out, double *scale_out)
+{
+    const int m = w->m, sp = w->sp, k = w->k, kp = w->kp;
+    const vd zero = vsplat(0.0);
+    vd dmax = zero, smax = zero;
+    for (int j = 0; j < m; ++j) {
+        const double *F = w->F + j * kp;
+        for (int b = 0; b < sp; b += L) {
+            vd gv = zero;
+            for (int i = 0; i < k; ++i)
+                gv += vload(w->WT + i * sp + b) * F[i];
+            dmax = vmax_nan(dmax, vabs(gv - vload(w->g + j * sp + b)));
+            smax = vmax(smax, vabs(gv));
+            vstore(w->g + j * sp + b, gv);
+        }
+    }
+    *delta_out = hmax_nan(0.0, dmax);
+    *scale_out = hmax(0.0, smax);
+}
+
+/* g <- W F as if in twice the working precision (Dot2), rounded once (core.project_compensated) */
+static void project_compensated(work_t *w)
+{
+    const int m = w->m, s = w->s, sp = w->sp, k = w->k, kp = w->kp;
+    const vd zero = vsplat(0.0);
+    for (int j = 0; j < m; ++j) {
+        const double *F = w->F + j * kp;
+        for (int b = 0; b < sp; b += L) {
+            vd acc = zero, acc_lo = zero;
+            for (int i = 0; i < k; ++i) {
+                const vd f = vsplat(F[i]);
+                const vd wt = vload(w->WT + i * sp + b);
+                const vd ph = wt * f;
+                const vd pl = vfma(wt, f, -ph);
+                const vd hi = acc + ph;
+                const vd bb = hi - acc;
+                const vd e = (acc - (hi - bb)) + (ph - bb);
+                acc = hi;
+                acc_lo += (e + pl) + vload(w->WT_lo + i * sp + b) * f;
+            }
+            vstore(w->g + j * sp + b, acc + acc_lo);
+        }
+    }
+}
+
+/* lip <- max(lip, max|F - Fp| / max|X - Xp|) when the stages moved by more than round-off, then
+ * (X, F) kept in (Xp, Fp); returns max |X| in *xmax (core.lipschitz_probe) */
+static double lipschitz_probe(work_t *w, double lip, double *xmax_out)
+{
+    const int n = w->m * w->kp;
+    const vd zero = vsplat(0.0);
+    vd dx = zero, df = zero, xm = zero;
+    for (int a = 0; a < n; a += L) {
+        const vd x = vload(w->X + a), f = vload(w->F + a);
+        dx = vmax(dx, vabs(x - vload(w->Xp + a)));
+        xm = vmax(xm, vabs(x));
+        df = vmax(df, vabs(f - vload(w->Fp + a)));
+        vstore(w->Xp + a, x);
+        vstore(w->Fp + a, f);
+    }
+    const double ddx = hmax(0.0, dx), ddf = hmax(0.0, df), xmax = hmax(0.0, xm);
+    if (ddx > 1024.0 * EPS * xmax && ddf / ddx > lip)
+        lip = ddf / ddx;
+    *xmax_out = xmax;
+    return lip;
+}
+
+/* max |F| over the stages, nan when an entry is nan (core.max_abs2) */
+static double max_abs_forces(const work_t *w)
+{
+    vd v = vsplat(0.0);
+    for (int a = 0; a < w->m * w->kp; a += L)
+        v = vmax_nan(v, vabs(vload(w->F + a)));
+    return hmax_nan(0.0, v);
+}
+
+/* the stopping rule (core.stop_action); returns ITERATE, POLISH or -status */
+static int stop_action(work_t *w, double delta, double scale, double floor, double hstate,
+                       double hmove, double ymax, int it, double tol)
+{
+    double *hist = w->hist;
+    if (!isfinite(delta))
+        return -HBVM_NOT_FINITE;
+    if (it == 1)
+        hist[4] = ymax + hmove;
+    else if (hmove > RUNAWAY * hist[4])
+        return -HBVM_DIVERGED;
+    if (delta <= 2.0 * EPS * scale || delta <= tol * scale)
+        return POLISH;
+    if (tol > 0.0 && delta < hist[0]) {
+        double theta = py_max(delta / hist[0], hist[2]);
+        if (theta <= TOL_CONTRACTION && theta * delta <= (1.0 - theta) * tol * scale)
+            return POLISH;
+    }
+    if (delta >= hist[0]) {
+        if (delta <= ROUNDOFF_ULPS * EPS * py_max(scale, max_abs_forces(w)) || delta <= floor
+            || hstate <= STATE_ULPS)
+            return POLISH;
+        hist[1] += 1.0;
+        if (hist[1] >= 2.0)
+            return -HBVM_DIVERGED;
+    } else {
+        double theta = py_max(hist[2], hist[3]);
+        if (theta <= STRONG_CONTRACTION
+            && theta * theta * hist[0] <= EXTRAPOLATED_ULPS * EPS * scale
+            && (delta <= floor || hstate <= STATE_ULPS
+                || delta <= ROUNDOFF_ULPS * EPS * py_max(scale, max_abs_forces(w))))
+            return POLISH;
+    }
+    hist[3] = hist[2];
+    hist[2] = isfinite(hist[0]) ? delta / hist[0] : INFINITY;
+    hist[0] = delta;
+    return ITERATE;
+}
+
+/* y1 from the converged coefficients, added exactly to the double-double state
+ * (core.commit_separable) */
+static void commit_separable(work_t *w, double *y, double *cy, const double *minv, double h,
+                             const hbvm_tableau *tab)
+{
+    const int m = w->m, s = w->s, sp = w->sp;
+    const double *g = w->g;
+    for (int j = 0; j < m; ++j) {
+        double xg = 0.0;
+        for (int l = 0; l < s; ++l)
+            xg += tab->X0[l] * g[j * sp + l] + tab->X0_lo[l] * g[j * sp + l];
+        double v_hi, v_lo, a_hi, a_lo, i_hi, i_lo;
+        two_product(y[m + j], minv[j], &v_hi, &v_lo);
+        v_lo -= cy[m + j] * minv[j];
+        two_product(h, v_hi, &a_hi, &a_lo);
+        a_lo += h * v_lo;
+        double b = h * (h * xg) * minv[j];
+        two_sum(a_hi, b, &i_hi, &i_lo);
+        w->dq[j] = i_hi;
+        w->dq_lo[j] = a_lo + i_lo;
+    }
+    for (int j = 0; j < m; ++j)
+        dd_add(y, cy, j, w->dq[j], w->dq_lo[j]);
+    for (int j = 0; j < m; ++j) {
+        double d_hi, d_lo;
+        two_product(h, g[j * sp], &d_hi, &d_lo);
+        dd_add(y, cy, m + j, d_hi, d_lo);
+    }
+}
+
+/* the force at one point q (m,) into f (m,) (every lane the same point) */
+static void force_at_point(const hbvm_kernel *kernel, work_t *w, const double *q, double *f)
+{
+    const int m = w->m;
+    for (int j = 0; j < m; ++j)
+        for (int v = 0; v < L; ++v)
+            w->X1[j * L + v] = q[j];
+    kernel->force(w->X1, m, L, kernel->params, w->F1);
+    for (int j = 0; j < m; ++j)
+        f[j] = w->F1[j * L];
+}
+
+/* max(|v0|, |v1|) + |h gamma_0 / m| over the coordinates j0 .. j1 - 1 (core.body_motion) */
+static double body_motion(const double *y, const double *minv, const double *g, int gs,
+                          double h, int m, int j0, int j1)
+{
+    double v0 = 0.0, v1 = 0.0, a0 = 0.0;
+    for (int j = j0; j < j1; ++j) {
+        double v = y[m + j] * minv[j];
+        double dv = h * g[j * gs] * minv[j];
+        v0 += v * v;
+        v1 += (v + dv) * (v + dv);
+        a0 += dv * dv;
+    }
+    return sqrt(v0 > v1 ? v0 : v1) + sqrt(a0);
+}
+
+/* the step's own estimate of its relative local error (core.resolution_error, separable) */
+static double resolution_error(const double *y, const double *minv, const double *g, int gs,
+                               const double *om, double h, int m, int s, int group, int *worst)
+{
+    const int wdt = group > 0 ? group : m;
+    double mean = 0.0;
+    int nbody = 0;
+    for (int j0 = 0; j0 < m; j0 += wdt) {
+        mean += body_motion(y, minv, g, gs, h, m, j0, j0 + wdt < m ? j0 + wdt : m);
+        nbody += 1;
+    }
+    mean = nbody > 0 ? mean / nbody : 0.0;
+    double err = 0.0;
+    int b = 0;
+    *worst = -1;
+    for (int j0 = 0; j0 < m; j0 += wdt) {
+        const int j1 = j0 + wdt < m ? j0 + wdt : m;
+        double num = 0.0;
+        for (int j = j0; j < j1; ++j) {
+            double x = h * om[j] * minv[j];
+            num += x * x;
+        }
+        if (num > 0.0) {
+            double den = py_max(body_motion(y, minv, g, gs, h, m, j0, j1), mean);
+            double e = den > 0.0 ? sqrt(num) / den : INFINITY;
+            if (e > err || *worst < 0) {
+                err = e;
+                *worst = b;
+            }
+        }
+        b += 1;
+    }
+    return pow(err, (2.0 * s + 1.0) / (s + 1.0));
+}
+
+/* the energy the step moves between the terms of H (core.energy_flow, separable) */
+static double energy_flow(const double *y, const double *kin_w, double h, const double *g,
+                          int gs, const hbvm_tableau *tab, int m)
+{
+    const int s = tab->s, n = tab->k;
+    double flow = 0.0;
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < m; ++j) {
+            double vel = 0.0, acc = 0.0;
+            for (int l = 0; l < s; ++l) {
+                vel += tab->I[i * s + l] * g[j * gs + l];
+                acc += tab->W[l * n + i] * g[j * gs + l];
+            }
+            flow += fabs((y[m + j] + h * vel) * kin_w[j] * acc);
+        }
+    return fabs(h) * flow;
+}
+
+/* the energy check (integrators.loop.energy_check, separable); returns a status and the change */
+static int energy_check(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
+                        const double *yt, const hbvm_options *opts, double *eref, double h,
+                        const double *g, int gs, const hbvm_tableau *tab, double *change_out)
+{
+    const int m = sys->m;
+    const double etol = opts->etol;
+    if (!isfinite(eref[0])) {
+        double t0, v0;
+        hbvm_energy_parts(kernel, sys, y, &t0, &v0);
+        eref[0] = t0 + v0;
+    }
+    double t1, v1;
+    hbvm_energy_parts(kernel, sys, yt, &t1, &v1);
+    const double scale = fabs(t1) + fabs(v1);
+    double change = fabs(t1 + v1 - eref[0]);
+    if (scale > 0.0)
+        change = change / scale;
+    int refuse = !(change <= fabs(etol));
+    if (refuse && etol < 0.0) {
+        const int si = (tab->s < 3 ? tab->s : 3) - 1;
+        const double moved = fabs(t1 + v1 - eref[0]) / FLOW_FRACTION[si];
+        refuse = !((moved <= fabs(t1 - weighted_kinetic(y + m, sys->kin_w, m)))
+                   || moved <= energy_flow(y, sys->kin_w, h, g, gs, tab, m));
+    }
+    if (refuse) {
+        *change_out = change;
+        return HBVM_UNRESOLVED;
+    }
+    if (etol < 0.0) {
+        if (!isfinite(eref[HBVM_EREF_RUN]))
+            eref[HBVM_EREF_RUN] = eref[0];
+        double drift = fabs(t1 + v1 - eref[HBVM_EREF_RUN]);
+        if (scale > 0.0)
+            drift = drift / scale;
+        if (!(drift <= DRIFT_BOUND)) {
+            *change_out = drift;
+            return HBVM_DRIFTED;
+        }
+    }
+    eref[0] = t1 + v1;
+    *change_out = change;
+    return HBVM_OK;
+}
+
+static int all_zero(const double *a, int n)
+{
+    for (int i = 0; i < n; ++i)
+        if (a[i] != 0.0)
+            return 0;
+    return 1;
+}
+
+static int fail(double *counters, int status, double it0, double nfev0, double newton0)
+{
+    counters[C_ITER] = it0;
+    counters[C_NFEV] = nfev0;
+    counters[C_NEWTON] = newton0;
+    return status;
+}
+
+static void sample(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_samples *smp,
+                   long i, double t, const double *y)
+{
+    double T, V;
+    smp->t[i] = t;
+    memcpy(smp->y + i * 2 * sys->m, y, 2 * sys->m * sizeof(double));
+    hbvm_energy_parts(kernel, sys, y, &T, &V);
+    smp->e[i] = T + V;
+}
+
+int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, double h,
+             const double *E, const hbvm_tableau *tab, const hbvm_options *opts,
+             double *counters, hbvm_samples *smp)
+{
+    const int m = sys->m, d = 2 * m, k = tab->k, s = tab->s;
+    const double *minv = sys->minv;
+    double *y = st->y, *cy = st->cy, *gamma = st->gamma, *eref = st->eref;
+    double t = st->clock[0], ct = st->clock[1];
+    work_t w;
+    if (work_alloc(&w, tab, m) != 0)
+        return -1;
+    double *g = w.g;
+    long isample = 0;
+    if (smp->every > 0) {
+        sample(kernel, sys, smp, 0, t, y);
+        isample = 1;
+    }
+    int result = HBVM_OK;
+    for (long istep = 0; istep < smp->nsteps; ++istep) {
+        const double it0 = counters[C_ITER], nfev0 = counters[C_NFEV];
+        const double newton0 = counters[C_NEWTON];
+        double h2, h2_lo;
+        step_constants(&w, tab, h, &h2, &h2_lo);
+        /* the first guess: the previous polynomial extrapolated, or the force at y0 */
+        if (all_zero(gamma, s * m)) {
+            force_at_point(kernel, &w, y, w.dq);
+            for (int i = 0; i < s; ++i)
+                for (int j = 0; j < m; ++j)
+                    g[j * w.sp + i] = i == 0 ? w.dq[j] : 0.0;
+            counters[C_NFEV] += 1;
+        } else {
+            for (int i = 0; i < s; ++i)
+                for (int j = 0; j < m; ++j) {
+                    double acc = 0.0;
+                    for (int l = 0; l < s; ++l)
+                        acc += E[i * s + l] * gamma[l * m + j];
+                    g[j * w.sp + i] = acc;
+                }
+        }
+        w.hist[0] = INFINITY;
+        w.hist[1] = 0.0;
+        w.hist[2] = INFINITY;
+        w.hist[3] = INFINITY;
+        double ymax = 0.0;
+        for (int j = 0; j < d; ++j)
+            if (fabs(y[j]) > ymax)
+                ymax = fabs(y[j]);
+        const double yscale = EPS * ymax;
+        double lip = 0.0, xmax = 0.0;
+        int polish = 0, status = HBVM_DIVERGED, it = 0;
+        while (polish || it < opts->max_iter) {
+            it += 1;
+            stage_positions(&w, y, cy, minv, h2, h2_lo, polish);
+            kernel->force(w.X, m, w.kp, kernel->params, w.F);
+            counters[C_NFEV] += k;
+            if (it <= 3) {
+                if (it > 1) {
+                    lip = lipschitz_probe(&w, lip, &xmax);
+                } else {
+                    memcpy(w.Xp, w.X, (size_t)m * w.kp * sizeof(double));
+                    memcpy(w.Fp, w.F, (size_t)m * w.kp * sizeof(double));
+                }
+            }
+            if (polish) {
+                project_compensated(&w);
+                status = HBVM_OK;
+                break;
+            }
+            double delta, scale;
+            project(&w, &delta, &scale);
+            counters[C_LAST] = delta;
+            const double hstate = yscale > 0.0 ? fabs(h) * delta / yscale : INFINITY;
+            const int action = stop_action(&w, delta, scale, LIPSCHITZ_ULPS * EPS * xmax * lip,
+                                           hstate, fabs(h) * scale, ymax, it, opts->tol);
+            if (action == POLISH)
+                polish = 1;
+            else if (action != ITERATE) {
+                status = -action;
+                break;
+            }
+        }
+        counters[C_ITER] += it;
+        counters[C_LASTIT] = it;
+        if (status != HBVM_OK) {
+            result = fail(counters, status, it0, nfev0, newton0);
+            break;
+        }
+        memcpy(w.yt, y, d * sizeof(double));
+        memcpy(w.cyt, cy, d * sizeof(double));
+        commit_separable(&w, w.yt, w.cyt, minv, h, tab);
+        int finite = 1;
+        for (int j = 0; j < d; ++j)
+            if (!isfinite(w.yt[j]))
+                finite = 0;
+        if (!finite) {
+            result = fail(counters, HBVM_NOT_FINITE, it0, nfev0, newton0);
+            break;
+        }
+        if (opts->ebound > 0.0) {
+            /* the first Legendre coefficient the step leaves out: from the stages (k > s), else
+             * from one evaluation at the step's end (core.omitted_coefficient, endpoint_defect) */
+            if (k > s) {
+                for (int j = 0; j < m; ++j)
+                    w.om[j] = 0.0;
+                for (int i = 0; i < k; ++i) {
+                    const double wi = tab->W[i] * legendre_at(s, tab->tau[i]);
+                    for (int j = 0; j < m; ++j)
+                        w.om[j] += wi * w.F[j * w.kp + i];
+                }
+            } else {
+                for (int j = 0; j < m; ++j)
+                    w.dq[j] = w.yt[j] - w.cyt[j];
+                force_at_point(kernel, &w, w.dq, w.dq_lo);
+                const double r = 1.0 / sqrt(2.0 * s + 1.0);
+                for (int j = 0; j < m; ++j) {
+                    double acc = 0.0;
+                    for (int l = 0; l < s; ++l)
+                        acc += sqrt(2.0 * l + 1.0) * g[j * w.sp + l];
+                    w.om[j] = (w.dq_lo[j] - acc) * r;
+                }
+                counters[C_NFEV] += 1;
+            }
+            int worst;
+            const double err = resolution_error(y, minv, g, w.sp, w.om, h, m, s, opts->group, &worst);
+            counters[C_ERR] = err;
+            counters[C_WORST] = worst;
+            if (!(err <= opts->ebound)) {
+                result = fail(counters, HBVM_NOT_RESOLVED, it0, nfev0, newton0);
+                break;
+            }
+        }
+        if (opts->etol != 0.0) {
+            double change;
+            const int checked = energy_check(kernel, sys, y, w.yt, opts, eref, h, g, w.sp, tab,
+                                             &change);
+            if (checked != HBVM_OK) {
+                counters[C_CHANGE] = change;
+                result = fail(counters, checked, it0, nfev0, newton0);
+                break;
+            }
+        }
+        memcpy(y, w.yt, d * sizeof(double));
+        memcpy(cy, w.cyt, d * sizeof(double));
+        for (int l = 0; l < s; ++l)
+            for (int j = 0; j < m; ++j)
+                gamma[l * m + j] = g[j * w.sp + l];
+        counters[C_STEPS] += 1;
+        const double yk = h - ct;
+        const double tn = t + yk;
+        ct = (tn - t) - yk;
+        t = tn;
+        st->clock[0] = t;
+        st->clock[1] = ct;
+        if (smp->every > 0 && (istep + 1) % smp->every == 0) {
+            sample(kernel, sys, smp, isample, t, y);
+            isample += 1;
+        }
+    }
+    free(w.block);
+    return result;
+}

@@ -1,0 +1,395 @@
+/* integrators._core: the compiled core's Python face.
+ *
+ * run(kernel, system, state, h, E, method, newton, opts, work, samples) takes the records of
+ * integrators.records (named tuples of numpy arrays, read by position through the buffer
+ * protocol: no numpy headers at build time) and returns the step's status, as
+ * integrators.loop.run does. The arrays are checked for their dtype, shape and contiguity: a
+ * record that does not fit is a TypeError or ValueError naming the field, never a wrong read.
+ * The GIL is released while the steps run. */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <stdlib.h>
+#include <string.h>
+
+#include "hbvm_core.h"
+
+enum { KERNEL_NBODY = 1 };
+
+#define MAX_BUFS 32
+
+typedef struct {
+    Py_buffer b[MAX_BUFS];
+    int n;
+} bufset;
+
+static void release(bufset *bs)
+{
+    for (int i = 0; i < bs->n; ++i)
+        PyBuffer_Release(&bs->b[i]);
+    bs->n = 0;
+}
+
+/* a float64 C-contiguous array of ndim dimensions from obj; shape checked by the caller */
+static double *get(bufset *bs, PyObject *obj, const char *name, int ndim, int writable,
+                   Py_ssize_t *shape)
+{
+    if (bs->n >= MAX_BUFS) {
+        PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: too many arrays");
+        return NULL;
+    }
+    Py_buffer *b = &bs->b[bs->n];
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, b, flags) != 0) {
+        PyErr_Format(PyExc_TypeError,
+                     "hbvm-md core: `%s` must be a C-contiguous%s float64 array", name,
+                     writable ? " writable" : "");
+        return NULL;
+    }
+    bs->n += 1;
+    if (b->format == NULL || strcmp(b->format, "d") != 0 || b->itemsize != 8) {
+        PyErr_Format(PyExc_TypeError, "hbvm-md core: `%s` must be float64 (got format %s)",
+                     name, b->format ? b->format : "?");
+        return NULL;
+    }
+    if (b->ndim != ndim) {
+        PyErr_Format(PyExc_ValueError, "hbvm-md core: `%s` must have %d dimensions (got %d)",
+                     name, ndim, b->ndim);
+        return NULL;
+    }
+    for (int i = 0; i < ndim; ++i)
+        shape[i] = b->shape[i];
+    return (double *)b->buf;
+}
+
+static PyObject *item(PyObject *tup, Py_ssize_t i, const char *name)
+{
+    if (!PyTuple_Check(tup) || PyTuple_GET_SIZE(tup) <= i) {
+        PyErr_Format(PyExc_TypeError, "hbvm-md core: `%s` must be a record (named tuple)", name);
+        return NULL;
+    }
+    return PyTuple_GET_ITEM(tup, i);
+}
+
+#define SHAPE_ERR(name, want)                                                                \
+    do {                                                                                     \
+        PyErr_Format(PyExc_ValueError, "hbvm-md core: `%s` has the wrong shape (want %s)",   \
+                     name, want);                                                            \
+        goto fail;                                                                           \
+    } while (0)
+
+static int kernel_of(long id, hbvm_kernel *kern)
+{
+    if (id == KERNEL_NBODY) {
+        kern->force = hbvm_nbody_force;
+        kern->potential = hbvm_nbody_potential;
+        return 0;
+    }
+    PyErr_Format(PyExc_ValueError, "hbvm-md core: unknown kernel %ld", id);
+    return -1;
+}
+
+static int check_params(long id, int m, Py_ssize_t np, const double *params)
+{
+    if (id == KERNEL_NBODY && hbvm_nbody_check(m, params, (long)np) != 0) {
+        PyErr_Format(PyExc_ValueError,
+                     "hbvm-md core: the N-body parameters do not describe %d coordinates "
+                     "(systems.nbody.kernel_params: [G, N, masses, gravitating masses, links])",
+                     m);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *py_run(PyObject *self, PyObject *args)
+{
+    long kid;
+    PyObject *system, *state, *Eo, *method, *newton, *opts, *wk, *samples;
+    double h;
+    if (!PyArg_ParseTuple(args, "lOOdOOOOOO", &kid, &system, &state, &h, &Eo, &method, &newton,
+                          &opts, &wk, &samples))
+        return NULL;
+    hbvm_kernel kern;
+    if (kernel_of(kid, &kern) != 0)
+        return NULL;
+    bufset bs = {.n = 0};
+    Py_ssize_t sh[3];
+    PyObject *o;
+    /* system: (full, minv, kin_w, params) */
+    if (!(o = item(system, 0, "system.full")))
+        return NULL;
+    if (PyObject_IsTrue(o)) {
+        PyErr_SetString(PyExc_ValueError, "hbvm-md core: the compiled core steps the separable "
+                                          "form only (system.full is true)");
+        return NULL;
+    }
+    if (!(o = item(system, 1, "system.minv")))
+        return NULL;
+    const double *minv = get(&bs, o, "system.minv", 1, 0, sh);
+    if (!minv)
+        goto fail;
+    const int m = (int)sh[0];
+    if (!(o = item(system, 2, "system.kin_w")))
+        goto fail;
+    const double *kin_w = get(&bs, o, "system.kin_w", 1, 0, sh);
+    if (!kin_w)
+        goto fail;
+    if (sh[0] != m)
+        SHAPE_ERR("system.kin_w", "(m,) as minv");
+    if (!(o = item(system, 3, "system.params")))
+        goto fail;
+    const double *params = get(&bs, o, "system.params", 1, 0, sh);
+    if (!params)
+        goto fail;
+    if (check_params(kid, m, sh[0], params) != 0)
+        goto fail;
+    kern.params = params;
+    /* method: (tn (2, k), ts (2, s), Wp (2, s, k), Cp (4, k, s)) */
+    if (!(o = item(method, 0, "method.tn")))
+        goto fail;
+    const double *tn = get(&bs, o, "method.tn", 2, 0, sh);
+    if (!tn)
+        goto fail;
+    if (sh[0] != 2)
+        SHAPE_ERR("method.tn", "(2, k)");
+    const int k = (int)sh[1];
+    if (!(o = item(method, 1, "method.ts")))
+        goto fail;
+    const double *ts = get(&bs, o, "method.ts", 2, 0, sh);
+    if (!ts)
+        goto fail;
+    if (sh[0] != 2)
+        SHAPE_ERR("method.ts", "(2, s)");
+    const int s = (int)sh[1];
+    if (s < 1 || k < s)
+        SHAPE_ERR("method", "1 <= s <= k");
+    if (!(o = item(method, 2, "method.Wp")))
+        goto fail;
+    const double *Wp = get(&bs, o, "method.Wp", 3, 0, sh);
+    if (!Wp)
+        goto fail;
+    if (sh[0] != 2 || sh[1] != s || sh[2] != k)
+        SHAPE_ERR("method.Wp", "(2, s, k)");
+    if (!(o = item(method, 3, "method.Cp")))
+        goto fail;
+    const double *Cp = get(&bs, o, "method.Cp", 3, 0, sh);
+    if (!Cp)
+        goto fail;
+    if (sh[0] != 4 || sh[1] != k || sh[2] != s) {
+        PyErr_SetString(PyExc_ValueError,
+                        "hbvm-md core: method.Cp must have shape (4, k, s): the compiled core "
+                        "steps HBVM (EQUIP's packed arrays have more planes)");
+        goto fail;
+    }
+    hbvm_tableau tab = {.k = k, .s = s, .tau = tn, .tau_lo = tn + k, .X0 = ts, .X0_lo = ts + s,
+                        .W = Wp, .W_lo = Wp + s * k, .C2 = Cp, .C2_lo = Cp + k * s,
+                        .I = Cp + 2 * k * s, .I_lo = Cp + 3 * k * s};
+    /* state: (y (2m), cy (2m), gamma (s, m), eref (>= 4), clock (>= 2)) */
+    const char *snames[] = {"state.y", "state.cy", "state.gamma", "state.eref", "state.clock"};
+    const int sdims[] = {1, 1, 2, 1, 1};
+    double *sp[5];
+    for (int i = 0; i < 5; ++i) {
+        if (!(o = item(state, i, snames[i])))
+            goto fail;
+        if (!(sp[i] = get(&bs, o, snames[i], sdims[i], 1, sh)))
+            goto fail;
+        if ((i < 2 && sh[0] != 2 * m) || (i == 2 && (sh[0] != s || sh[1] != m))
+            || (i == 3 && sh[0] < HBVM_N_EREF) || (i == 4 && sh[0] < 2))
+            SHAPE_ERR(snames[i], i < 2 ? "(2m,)" : i == 2 ? "(s, m)" : i == 3 ? "(4,)" : "(2,)");
+    }
+    hbvm_state st = {.y = sp[0], .cy = sp[1], .gamma = sp[2], .eref = sp[3], .clock = sp[4]};
+    const double *E = get(&bs, Eo, "E", 2, 0, sh);
+    if (!E)
+        goto fail;
+    if (sh[0] != s || sh[1] != s)
+        SHAPE_ERR("E", "(s, s)");
+    /* newton: (NV, NVinv, NM): the core iterates to a fixed point only */
+    if (!(o = item(newton, 2, "newton.NM")))
+        goto fail;
+    {
+        PyObject *shape = PyObject_GetAttrString(o, "shape");
+        if (!shape)
+            goto fail;
+        PyObject *n0 = PyTuple_Check(shape) && PyTuple_GET_SIZE(shape) > 0
+                           ? PyTuple_GET_ITEM(shape, 0) : NULL;
+        long nm = n0 ? PyLong_AsLong(n0) : -1;
+        Py_DECREF(shape);
+        if (nm != 0) {
+            PyErr_SetString(PyExc_ValueError, "hbvm-md core: the compiled core iterates to a "
+                                              "fixed point (newton.NM must be empty)");
+            goto fail;
+        }
+    }
+    /* opts: (max_iter, tol, etol, ebound, group) */
+    hbvm_options op;
+    {
+        PyObject *f[5];
+        for (int i = 0; i < 5; ++i)
+            if (!(f[i] = item(opts, i, "opts")))
+                goto fail;
+        op.max_iter = (int)PyLong_AsLong(f[0]);
+        op.tol = PyFloat_AsDouble(f[1]);
+        op.etol = PyFloat_AsDouble(f[2]);
+        op.ebound = PyFloat_AsDouble(f[3]);
+        op.group = (int)PyLong_AsLong(f[4]);
+        if (PyErr_Occurred())
+            goto fail;
+    }
+    /* work: (work, cwork, counters): the core keeps its own scratch */
+    if (!(o = item(wk, 2, "work.counters")))
+        goto fail;
+    double *counters = get(&bs, o, "work.counters", 1, 1, sh);
+    if (!counters)
+        goto fail;
+    if (sh[0] < N_COUNTERS)
+        SHAPE_ERR("work.counters", "(9,)");
+    /* samples: (nsteps, every, t (n,), y (n, 2m), e (n,)) */
+    hbvm_samples smp;
+    {
+        PyObject *a0 = item(samples, 0, "samples.nsteps"), *a1 = item(samples, 1, "samples.every");
+        if (!a0 || !a1)
+            goto fail;
+        smp.nsteps = PyLong_AsLong(a0);
+        smp.every = PyLong_AsLong(a1);
+        if (PyErr_Occurred())
+            goto fail;
+        smp.t = smp.y = smp.e = NULL;
+        if (smp.every > 0) {
+            Py_ssize_t nt, ny[2], ne;
+            if (!(o = item(samples, 2, "samples.t")) || !(smp.t = get(&bs, o, "samples.t", 1, 1, &nt)))
+                goto fail;
+            if (!(o = item(samples, 3, "samples.y")) || !(smp.y = get(&bs, o, "samples.y", 2, 1, ny)))
+                goto fail;
+            if (!(o = item(samples, 4, "samples.e")) || !(smp.e = get(&bs, o, "samples.e", 1, 1, &ne)))
+                goto fail;
+            const long need = smp.nsteps / smp.every + 1;
+            if (nt < need || ne < need || ny[0] < need || ny[1] != 2 * m)
+                SHAPE_ERR("samples", "(nsteps / every + 1) rows of t, y (2m), e");
+        }
+    }
+    hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
+    int status;
+    Py_BEGIN_ALLOW_THREADS
+    status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp);
+    Py_END_ALLOW_THREADS
+    release(&bs);
+    if (status < 0)
+        return PyErr_NoMemory();
+    return PyLong_FromLong(status);
+fail:
+    release(&bs);
+    return NULL;
+}
+
+static PyObject *py_energy_parts(PyObject *self, PyObject *args)
+{
+    long kid;
+    PyObject *yo, *wo, *po;
+    if (!PyArg_ParseTuple(args, "lOOO", &kid, &yo, &wo, &po))
+        return NULL;
+    hbvm_kernel kern;
+    if (kernel_of(kid, &kern) != 0)
+        return NULL;
+    bufset bs = {.n = 0};
+    Py_ssize_t sh[2], np;
+    const double *y = get(&bs, yo, "y", 1, 0, sh);
+    if (!y)
+        goto fail;
+    const int m = (int)(sh[0] / 2);
+    const double *kin_w = get(&bs, wo, "kin_w", 1, 0, sh);
+    if (!kin_w)
+        goto fail;
+    if (sh[0] != m)
+        SHAPE_ERR("kin_w", "(m,) for y of shape (2m,)");
+    const double *params = get(&bs, po, "params", 1, 0, &np);
+    if (!params || check_params(kid, m, np, params) != 0)
+        goto fail;
+    kern.params = params;
+    hbvm_system sys = {.m = m, .minv = NULL, .kin_w = kin_w};
+    double T, V;
+    hbvm_energy_parts(&kern, &sys, y, &T, &V);
+    release(&bs);
+    return Py_BuildValue("dd", T, V);
+fail:
+    release(&bs);
+    return NULL;
+}
+
+/* force(kernel, X (n, m), params, out (n, m)): the kernel on rows of X (the Python kernels'
+ * layout), through the stage-fastest layout */
+static PyObject *py_force(PyObject *self, PyObject *args)
+{
+    long kid;
+    PyObject *xo, *po, *oo;
+    if (!PyArg_ParseTuple(args, "lOOO", &kid, &xo, &po, &oo))
+        return NULL;
+    hbvm_kernel kern;
+    if (kernel_of(kid, &kern) != 0)
+        return NULL;
+    bufset bs = {.n = 0};
+    Py_ssize_t sx[2], so[2], np;
+    const double *X = get(&bs, xo, "X", 2, 0, sx);
+    if (!X)
+        goto fail;
+    double *out = get(&bs, oo, "out", 2, 1, so);
+    if (!out)
+        goto fail;
+    if (so[0] != sx[0] || so[1] != sx[1])
+        SHAPE_ERR("out", "X's");
+    const int n = (int)sx[0], m = (int)sx[1];
+    const double *params = get(&bs, po, "params", 1, 0, &np);
+    if (!params || check_params(kid, m, np, params) != 0)
+        goto fail;
+    const int kp = hbvm_padded(n > 0 ? n : 1);
+    double *Xt = aligned_alloc(8 * HBVM_LANES, (size_t)m * kp * sizeof(double) + 8 * HBVM_LANES);
+    double *Ft = aligned_alloc(8 * HBVM_LANES, (size_t)m * kp * sizeof(double) + 8 * HBVM_LANES);
+    if (!Xt || !Ft) {
+        free(Xt);
+        free(Ft);
+        release(&bs);
+        return PyErr_NoMemory();
+    }
+    for (int j = 0; j < m; ++j)
+        for (int i = 0; i < kp; ++i)
+            Xt[j * kp + i] = n > 0 ? X[(i < n ? i : n - 1) * m + j] : 0.0;
+    kern.force(Xt, m, kp, params, Ft);
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < m; ++j)
+            out[i * m + j] = Ft[j * kp + i];
+    free(Xt);
+    free(Ft);
+    release(&bs);
+    Py_RETURN_NONE;
+fail:
+    release(&bs);
+    return NULL;
+}
+
+static PyMethodDef methods[] = {
+    {"run", py_run, METH_VARARGS,
+     "run(kernel, system, state, h, E, method, newton, opts, work, samples) -> status: "
+     "integrators.loop.run's steps for the separable HBVM form, compiled."},
+    {"energy_parts", py_energy_parts, METH_VARARGS,
+     "energy_parts(kernel, y, kin_w, params) -> (T, V)"},
+    {"force", py_force, METH_VARARGS,
+     "force(kernel, X, params, out): the kernel at the rows of X (n, m) into out (n, m)"},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef moddef = {PyModuleDef_HEAD_INIT, "_core",
+                                    "The compiled core of hbvm-md (integrators/csrc).", -1,
+                                    methods};
+
+PyMODINIT_FUNC PyInit__core(void)
+{
+    PyObject *mod = PyModule_Create(&moddef);
+    if (!mod)
+        return NULL;
+    PyModule_AddIntConstant(mod, "LANES", HBVM_LANES);
+    PyModule_AddIntConstant(mod, "NBODY", KERNEL_NBODY);
+#ifdef HBVM_BUILD_FLAGS
+    PyModule_AddStringConstant(mod, "BUILD_FLAGS", HBVM_BUILD_FLAGS);
+#else
+    PyModule_AddStringConstant(mod, "BUILD_FLAGS", "");
+#endif
+    return mod;
+}

@@ -1,0 +1,45 @@
+"""The compiled core (integrators/csrc), built by ``pip install``: a C11 extension,
+``integrators._core``.
+
+By default it is compiled for the installing machine (``-march=native``: the vector width of
+its processor, AVX-512 where it has it); ``HBVM_MD_PORTABLE=1`` builds a baseline binary that
+runs on any processor of the architecture (a wheel, a container image shared between machines).
+A compiler that rejects ``-march=native`` gets the baseline flags. ``-ffp-contract=off``: no
+fused multiply-add where the source has none, so that every build gives the same numbers
+(the explicit ``fma`` of the compensated sums stays); ``-fno-math-errno`` lets ``sqrt`` run
+in the vector lanes.
+"""
+import os
+
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+BASE = ["-O3", "-std=c11", "-ffp-contract=off", "-fno-math-errno"]
+NATIVE = ["-march=native"]
+SOURCES = ["integrators/csrc/pymodule.c", "integrators/csrc/hbvm_step.c",
+           "integrators/csrc/kernels_nbody.c"]
+
+
+def _portable() -> bool:
+    return os.environ.get("HBVM_MD_PORTABLE", "").strip() not in ("", "0")
+
+
+class BuildCore(build_ext):
+    """Build with the machine's own instruction set, else the portable baseline."""
+
+    def build_extension(self, ext):
+        flags = BASE if _portable() else BASE + NATIVE
+        ext.extra_compile_args = flags + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
+        try:
+            super().build_extension(ext)
+        except Exception:
+            if flags == BASE:
+                raise
+            self.warn("the compiler refused -march=native: building the portable core")
+            ext.extra_compile_args = BASE + [f'-DHBVM_BUILD_FLAGS="{" ".join(BASE)}"']
+            super().build_extension(ext)
+
+
+setup(ext_modules=[Extension("integrators._core", sources=SOURCES,
+                             depends=["integrators/csrc/hbvm_core.h"], libraries=["m"])],
+      cmdclass={"build_ext": BuildCore})
