@@ -29,6 +29,10 @@ static const double FLOW_FRACTION[3] = {1.0, 1.5e-2, 1e-3};
 
 enum { ITERATE = 0, POLISH = 1 };
 
+/* the blocked sums take JB coordinates at a time: JB independent chains of additions, each
+ * stage's (each coefficient's) sum still in its order */
+#define JB 4
+
 /* Python's max(a, b) (the first unless the second is larger), as the Python-side step takes it */
 static inline double py_max(double a, double b) { return b > a ? b : a; }
 
@@ -86,7 +90,7 @@ void hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const 
 
 /* the step's work arrays, one allocation */
 typedef struct {
-    int k, kp, s, sp, m;
+    int k, kp, s, sp, m, mp;     /* mp: m rounded up to JB (the blocked sums' rows) */
     double *ht, *ht_lo;          /* (kp) h tau as exact pairs, padded with the last stage */
     double *C2T, *C2T_lo;        /* (s, kp) C2 transposed, padded with the last stage */
     double *WT, *WT_lo;          /* (k, sp) W transposed, rows padded with zeros */
@@ -95,8 +99,10 @@ typedef struct {
                                   * contiguous (gamma's transpose, padded with zeros) */
     double *X, *F, *Xp, *Fp;     /* (m, kp) stages, forces, the Lipschitz probe's copies */
     double *X1, *F1;             /* (m, L) one point (the first guess, the endpoint defect) */
-    double *acc, *acc_lo;        /* (kp) */
-    double *gv, *gv_lo;          /* (sp) */
+    double *acc, *acc_lo;        /* (m, kp) the stage sums, every coordinate's */
+    double *gv, *gv_lo;          /* (m, sp) the projection's sums */
+    double *ET;                  /* (s, sp) E transposed: the guess's rows as lanes */
+    double *pw;                  /* (k) W[0, i] P_s(tau_i): the omitted coefficient's weights */
     double *yt, *cyt;            /* (2m) the trial state */
     double *dq, *dq_lo, *om;     /* (m) */
     double hist[5];
@@ -107,15 +113,17 @@ static int work_alloc(work_t *w, const hbvm_tableau *tab, int m)
 {
     const int k = tab->k, s = tab->s;
     const int kp = hbvm_padded(k), sp = hbvm_padded(s);
-    w->k = k, w->kp = kp, w->s = s, w->sp = sp, w->m = m;
+    const int mp = (m + JB - 1) / JB * JB;
+    w->k = k, w->kp = kp, w->s = s, w->sp = sp, w->m = m, w->mp = mp;
     /* every array a multiple of L doubles long, so that each starts aligned */
     size_t sizes[] = {kp, kp, (size_t)s * kp, (size_t)s * kp, (size_t)k * sp, (size_t)k * sp,
-                      (size_t)m * sp, (size_t)m * sp, (size_t)m * kp, (size_t)m * kp,
-                      (size_t)m * kp, (size_t)m * kp, (size_t)m * L, (size_t)m * L, kp, kp,
-                      sp, sp, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
+                      (size_t)mp * sp, (size_t)mp * sp, (size_t)mp * kp, (size_t)mp * kp,
+                      (size_t)mp * kp, (size_t)mp * kp, (size_t)m * L, (size_t)m * L,
+                      (size_t)m * kp, (size_t)m * kp, (size_t)m * sp, (size_t)m * sp,
+                      (size_t)s * sp, k, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
     double **ptrs[] = {&w->ht, &w->ht_lo, &w->C2T, &w->C2T_lo, &w->WT, &w->WT_lo, &w->a, &w->g,
                        &w->X, &w->F, &w->Xp, &w->Fp, &w->X1, &w->F1, &w->acc, &w->acc_lo,
-                       &w->gv, &w->gv_lo, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
+                       &w->gv, &w->gv_lo, &w->ET, &w->pw, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
     const int n = (int)(sizeof sizes / sizeof sizes[0]);
     size_t total = 0;
     for (int i = 0; i < n; ++i)
@@ -140,6 +148,8 @@ static int work_alloc(work_t *w, const hbvm_tableau *tab, int m)
             w->WT[i * sp + l] = l < s ? tab->W[l * k + i] : 0.0;
             w->WT_lo[i * sp + l] = l < s ? tab->W_lo[l * k + i] : 0.0;
         }
+    for (int i = 0; i < k; ++i)
+        w->pw[i] = tab->W[i] * legendre_at(s, tab->tau[i]);
     return 0;
 }
 
@@ -157,84 +167,150 @@ static void step_constants(work_t *w, const hbvm_tableau *tab, double h, double 
 }
 
 /* X <- q0 + h tau v0 + h^2 (I_s X_s) M^{-1} gamma (core.stage_positions), every coordinate's kp
- * stages as vectors; exact: with C2's low parts */
+ * stages as vectors; exact: with C2's low parts.  JB coordinates at a time, their sums in
+ * registers (one chain of additions per coordinate waits on each addition's latency: JB
+ * chains keep the units busy); each stage's sum runs over l in order (the same numbers). */
+static inline void put_stage(work_t *w, int j, int b, vd A, vd A_lo, const double *y,
+                             const double *cy, const double *minv, double h2, double h2_lo)
+{
+    const int m = w->m;
+    if (j >= m)
+        return;
+    const double yj = y[j], vj = y[m + j] * minv[j], cyj = cy[j];
+    const double cpj = cy[m + j], mj = minv[j];
+    const vd ht = vload(w->ht + b), ht_lo = vload(w->ht_lo + b);
+    vstore(w->X + j * w->kp + b,
+           yj + ht * vj + ((ht_lo * vj - cyj) - ht * cpj * mj + h2 * (A + A_lo) + h2_lo * A));
+}
+
 static void stage_positions(work_t *w, const double *y, const double *cy, const double *minv,
                             double h2, double h2_lo, int exact)
 {
-    const int m = w->m, s = w->s, kp = w->kp;
-    const int sp = w->sp;
+    const int m = w->m, s = w->s, kp = w->kp, sp = w->sp;
     for (int j = 0; j < m; ++j)
         for (int b = 0; b < sp; b += L)
             vstore(w->a + j * sp + b, vload(w->g + j * sp + b) * minv[j]);
     const vd zero = vsplat(0.0);
-    for (int j = 0; j < m; ++j) {
-        const double yj = y[j], vj = y[m + j] * minv[j], cyj = cy[j];
-        const double cpj = cy[m + j], mj = minv[j];
+    for (int j0 = 0; j0 < m; j0 += JB) {
+        const double *a0 = w->a + j0 * sp, *a1 = a0 + sp, *a2 = a1 + sp, *a3 = a2 + sp;
         for (int b = 0; b < kp; b += L) {
-            vd acc = zero, acc_lo = zero;
+            vd c0 = zero, c1 = zero, c2 = zero, c3 = zero;
+            vd d0 = zero, d1 = zero, d2 = zero, d3 = zero;
             if (exact) {
                 for (int l = 0; l < s; ++l) {
-                    const double aj = w->a[j * sp + l];
-                    acc += vload(w->C2T + l * kp + b) * aj;
-                    acc_lo += vload(w->C2T_lo + l * kp + b) * aj;
+                    const vd c = vload(w->C2T + l * kp + b), cl = vload(w->C2T_lo + l * kp + b);
+                    c0 += c * a0[l];
+                    c1 += c * a1[l];
+                    c2 += c * a2[l];
+                    c3 += c * a3[l];
+                    d0 += cl * a0[l];
+                    d1 += cl * a1[l];
+                    d2 += cl * a2[l];
+                    d3 += cl * a3[l];
                 }
             } else {
-                for (int l = 0; l < s; ++l)
-                    acc += vload(w->C2T + l * kp + b) * w->a[j * sp + l];
+                for (int l = 0; l < s; ++l) {
+                    const vd c = vload(w->C2T + l * kp + b);
+                    c0 += c * a0[l];
+                    c1 += c * a1[l];
+                    c2 += c * a2[l];
+                    c3 += c * a3[l];
+                }
             }
-            const vd ht = vload(w->ht + b), ht_lo = vload(w->ht_lo + b);
-            vstore(w->X + j * kp + b,
-                   yj + ht * vj + ((ht_lo * vj - cyj) - ht * cpj * mj + h2 * (acc + acc_lo)
-                                   + h2_lo * acc));
+            put_stage(w, j0, b, c0, d0, y, cy, minv, h2, h2_lo);
+            put_stage(w, j0 + 1, b, c1, d1, y, cy, minv, h2, h2_lo);
+            put_stage(w, j0 + 2, b, c2, d2, y, cy, minv, h2, h2_lo);
+            put_stage(w, j0 + 3, b, c3, d3, y, cy, minv, h2, h2_lo);
         }
     }
 }
 
 /* g <- W F (core.project): each coordinate's s coefficients as vectors, summed over the
- * stages in order; returns max |increment| (nan first) and max |g| */
+ * stages in order, JB coordinates at a time; returns max |increment| (nan first) and max |g| */
 static void project(work_t *w, double *delta_out, double *scale_out)
 {
     const int m = w->m, sp = w->sp, k = w->k, kp = w->kp;
     const vd zero = vsplat(0.0);
     vd dmax = zero, smax = zero;
-    for (int j = 0; j < m; ++j) {
-        const double *F = w->F + j * kp;
+    for (int j0 = 0; j0 < m; j0 += JB) {
+        const double *f0 = w->F + j0 * kp, *f1 = f0 + kp, *f2 = f1 + kp, *f3 = f2 + kp;
         for (int b = 0; b < sp; b += L) {
-            vd gv = zero;
-            for (int i = 0; i < k; ++i)
-                gv += vload(w->WT + i * sp + b) * F[i];
-            dmax = vmax_nan(dmax, vabs(gv - vload(w->g + j * sp + b)));
-            smax = vmax(smax, vabs(gv));
-            vstore(w->g + j * sp + b, gv);
+            vd g0 = zero, g1 = zero, g2 = zero, g3 = zero;
+            for (int i = 0; i < k; ++i) {
+                const vd wt = vload(w->WT + i * sp + b);
+                g0 += wt * f0[i];
+                g1 += wt * f1[i];
+                g2 += wt * f2[i];
+                g3 += wt * f3[i];
+            }
+            const vd gs[JB] = {g0, g1, g2, g3};
+            for (int r = 0; r < JB && j0 + r < m; ++r) {
+                double *old = w->g + (j0 + r) * sp + b;
+                dmax = vmax_nan(dmax, vabs(gs[r] - vload(old)));
+                smax = vmax(smax, vabs(gs[r]));
+                vstore(old, gs[r]);
+            }
         }
     }
     *delta_out = hmax_nan(0.0, dmax);
     *scale_out = hmax(0.0, smax);
 }
 
-/* g <- W F as if in twice the working precision (Dot2), rounded once (core.project_compensated) */
+/* one term of the compensated sum (Dot2): (acc, lo) += w f */
+static inline void dot2_step(vd *acc, vd *lo, vd wt, vd wt_lo, double fs)
+{
+    const vd f = vsplat(fs);
+    const vd ph = wt * f;
+    const vd pl = vfma(wt, f, -ph);
+    const vd hi = *acc + ph;
+    const vd bb = hi - *acc;
+    const vd e = (*acc - (hi - bb)) + (ph - bb);
+    *acc = hi;
+    *lo += (e + pl) + wt_lo * f;
+}
+
+/* g <- W F as if in twice the working precision (Dot2), rounded once (core.project_compensated),
+ * JB coordinates at a time */
 static void project_compensated(work_t *w)
 {
-    const int m = w->m, s = w->s, sp = w->sp, k = w->k, kp = w->kp;
+    const int m = w->m, sp = w->sp, k = w->k, kp = w->kp;
     const vd zero = vsplat(0.0);
-    for (int j = 0; j < m; ++j) {
-        const double *F = w->F + j * kp;
+    for (int j0 = 0; j0 < m; j0 += JB) {
+        const double *f0 = w->F + j0 * kp, *f1 = f0 + kp, *f2 = f1 + kp, *f3 = f2 + kp;
         for (int b = 0; b < sp; b += L) {
-            vd acc = zero, acc_lo = zero;
+            vd a0 = zero, a1 = zero, a2 = zero, a3 = zero;
+            vd l0 = zero, l1 = zero, l2 = zero, l3 = zero;
             for (int i = 0; i < k; ++i) {
-                const vd f = vsplat(F[i]);
-                const vd wt = vload(w->WT + i * sp + b);
-                const vd ph = wt * f;
-                const vd pl = vfma(wt, f, -ph);
-                const vd hi = acc + ph;
-                const vd bb = hi - acc;
-                const vd e = (acc - (hi - bb)) + (ph - bb);
-                acc = hi;
-                acc_lo += (e + pl) + vload(w->WT_lo + i * sp + b) * f;
+                const vd wt = vload(w->WT + i * sp + b), wt_lo = vload(w->WT_lo + i * sp + b);
+                dot2_step(&a0, &l0, wt, wt_lo, f0[i]);
+                dot2_step(&a1, &l1, wt, wt_lo, f1[i]);
+                dot2_step(&a2, &l2, wt, wt_lo, f2[i]);
+                dot2_step(&a3, &l3, wt, wt_lo, f3[i]);
             }
-            vstore(w->g + j * sp + b, acc + acc_lo);
+            const vd gs[JB] = {a0 + l0, a1 + l1, a2 + l2, a3 + l3};
+            for (int r = 0; r < JB && j0 + r < m; ++r)
+                vstore(w->g + (j0 + r) * sp + b, gs[r]);
         }
     }
+}
+
+/* g <- E gamma (core.guess): the previous polynomial over the new step, the sums over l in
+ * order, outermost */
+static void guess(work_t *w, const double *E, const double *gamma)
+{
+    const int m = w->m, s = w->s, sp = w->sp;
+    for (int l = 0; l < s; ++l)
+        for (int i = 0; i < sp; ++i)
+            w->ET[l * sp + i] = i < s ? E[i * s + l] : 0.0;
+    const vd zero = vsplat(0.0);
+    for (int a = 0; a < m * sp; a += L)
+        vstore(w->g + a, zero);
+    for (int l = 0; l < s; ++l)
+        for (int j = 0; j < m; ++j) {
+            const double c = gamma[l * m + j];
+            for (int b = 0; b < sp; b += L)
+                vstore(w->g + j * sp + b, vload(w->g + j * sp + b) + vload(w->ET + l * sp + b) * c);
+        }
 }
 
 /* lip <- max(lip, max|F - Fp| / max|X - Xp|) when the stages moved by more than round-off, then
@@ -519,13 +595,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
                     g[j * w.sp + i] = i == 0 ? w.dq[j] : 0.0;
             counters[C_NFEV] += 1;
         } else {
-            for (int i = 0; i < s; ++i)
-                for (int j = 0; j < m; ++j) {
-                    double acc = 0.0;
-                    for (int l = 0; l < s; ++l)
-                        acc += E[i * s + l] * gamma[l * m + j];
-                    g[j * w.sp + i] = acc;
-                }
+            guess(&w, E, gamma);
         }
         w.hist[0] = INFINITY;
         w.hist[1] = 0.0;
@@ -593,7 +663,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
                 for (int j = 0; j < m; ++j)
                     w.om[j] = 0.0;
                 for (int i = 0; i < k; ++i) {
-                    const double wi = tab->W[i] * legendre_at(s, tab->tau[i]);
+                    const double wi = w.pw[i];
                     for (int j = 0; j < m; ++j)
                         w.om[j] += wi * w.F[j * w.kp + i];
                 }

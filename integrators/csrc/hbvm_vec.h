@@ -17,10 +17,18 @@ static inline vd vload(const double *p) { return *(const vd *)__builtin_assume_a
 static inline void vstore(double *p, vd v) { *(vd *)__builtin_assume_aligned(p, 8 * HBVM_LANES) = v; }
 static inline vd vsplat(double x)
 {
+#if HBVM_LANES == 8 && defined(__AVX512F__)
+    return (vd)_mm512_set1_pd(x);
+#elif HBVM_LANES == 4 && defined(__AVX__)
+    return (vd)_mm256_set1_pd(x);
+#elif HBVM_LANES == 2 && defined(__SSE2__)
+    return (vd)_mm_set1_pd(x);
+#else
     vd v;
     for (int i = 0; i < HBVM_LANES; ++i)
         v[i] = x;
     return v;
+#endif
 }
 
 /* correctly rounded square roots, lane by lane */
