@@ -98,6 +98,8 @@ typedef struct {
     double *g;                   /* (m, sp) the iterate, each coordinate's coefficients
                                   * contiguous (gamma's transpose, padded with zeros) */
     double *X, *F, *Xp, *Fp;     /* (m, kp) stages, forces, the Lipschitz probe's copies */
+    double *P, *Q;               /* (m, kp) the stages' parts fixed for a step: q0 + h tau v0 and
+                                  * the rounding terms of h tau v0 and of the state's low part */
     double *X1, *F1;             /* (m, L) one point (the first guess, the endpoint defect) */
     double *acc, *acc_lo;        /* (m, kp) the stage sums, every coordinate's */
     double *gv, *gv_lo;          /* (m, sp) the projection's sums */
@@ -118,11 +120,12 @@ static int work_alloc(work_t *w, const hbvm_tableau *tab, int m)
     /* every array a multiple of L doubles long, so that each starts aligned */
     size_t sizes[] = {kp, kp, (size_t)s * kp, (size_t)s * kp, (size_t)k * sp, (size_t)k * sp,
                       (size_t)mp * sp, (size_t)mp * sp, (size_t)mp * kp, (size_t)mp * kp,
-                      (size_t)mp * kp, (size_t)mp * kp, (size_t)m * L, (size_t)m * L,
+                      (size_t)mp * kp, (size_t)mp * kp, (size_t)m * kp, (size_t)m * kp,
+                      (size_t)m * L, (size_t)m * L,
                       (size_t)m * kp, (size_t)m * kp, (size_t)m * sp, (size_t)m * sp,
                       (size_t)s * sp, k, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
     double **ptrs[] = {&w->ht, &w->ht_lo, &w->C2T, &w->C2T_lo, &w->WT, &w->WT_lo, &w->a, &w->g,
-                       &w->X, &w->F, &w->Xp, &w->Fp, &w->X1, &w->F1, &w->acc, &w->acc_lo,
+                       &w->X, &w->F, &w->Xp, &w->Fp, &w->P, &w->Q, &w->X1, &w->F1, &w->acc, &w->acc_lo,
                        &w->gv, &w->gv_lo, &w->ET, &w->pw, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
     const int n = (int)(sizeof sizes / sizeof sizes[0]);
     size_t total = 0;
@@ -170,21 +173,31 @@ static void step_constants(work_t *w, const hbvm_tableau *tab, double h, double 
  * stages as vectors; exact: with C2's low parts.  JB coordinates at a time, their sums in
  * registers (one chain of additions per coordinate waits on each addition's latency: JB
  * chains keep the units busy); each stage's sum runs over l in order (the same numbers). */
-static inline void put_stage(work_t *w, int j, int b, vd A, vd A_lo, const double *y,
-                             const double *cy, const double *minv, double h2, double h2_lo)
+/* the parts of the stages a step's iterations share (stage_positions' first terms, the same
+ * operations as the whole expression: the same numbers) */
+static void stage_base(work_t *w, const double *y, const double *cy, const double *minv)
 {
-    const int m = w->m;
-    if (j >= m)
-        return;
-    const double yj = y[j], vj = y[m + j] * minv[j], cyj = cy[j];
-    const double cpj = cy[m + j], mj = minv[j];
-    const vd ht = vload(w->ht + b), ht_lo = vload(w->ht_lo + b);
-    vstore(w->X + j * w->kp + b,
-           yj + ht * vj + ((ht_lo * vj - cyj) - ht * cpj * mj + h2 * (A + A_lo) + h2_lo * A));
+    const int m = w->m, kp = w->kp;
+    for (int j = 0; j < m; ++j) {
+        const double yj = y[j], vj = y[m + j] * minv[j], cyj = cy[j];
+        const double cpj = cy[m + j], mj = minv[j];
+        for (int b = 0; b < kp; b += L) {
+            const vd ht = vload(w->ht + b), ht_lo = vload(w->ht_lo + b);
+            vstore(w->P + j * kp + b, yj + ht * vj);
+            vstore(w->Q + j * kp + b, (ht_lo * vj - cyj) - ht * cpj * mj);
+        }
+    }
 }
 
-static void stage_positions(work_t *w, const double *y, const double *cy, const double *minv,
-                            double h2, double h2_lo, int exact)
+static inline void put_stage(work_t *w, int j, int b, vd A, vd A_lo, double h2, double h2_lo)
+{
+    if (j >= w->m)
+        return;
+    const int o = j * w->kp + b;
+    vstore(w->X + o, vload(w->P + o) + ((vload(w->Q + o) + h2 * (A + A_lo)) + h2_lo * A));
+}
+
+static void stage_positions(work_t *w, const double *minv, double h2, double h2_lo, int exact)
 {
     const int m = w->m, s = w->s, kp = w->kp, sp = w->sp;
     for (int j = 0; j < m; ++j)
@@ -217,10 +230,10 @@ static void stage_positions(work_t *w, const double *y, const double *cy, const 
                     c3 += c * a3[l];
                 }
             }
-            put_stage(w, j0, b, c0, d0, y, cy, minv, h2, h2_lo);
-            put_stage(w, j0 + 1, b, c1, d1, y, cy, minv, h2, h2_lo);
-            put_stage(w, j0 + 2, b, c2, d2, y, cy, minv, h2, h2_lo);
-            put_stage(w, j0 + 3, b, c3, d3, y, cy, minv, h2, h2_lo);
+            put_stage(w, j0, b, c0, d0, h2, h2_lo);
+            put_stage(w, j0 + 1, b, c1, d1, h2, h2_lo);
+            put_stage(w, j0 + 2, b, c2, d2, h2, h2_lo);
+            put_stage(w, j0 + 3, b, c3, d3, h2, h2_lo);
         }
     }
 }
@@ -587,6 +600,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         const double newton0 = counters[C_NEWTON];
         double h2, h2_lo;
         step_constants(&w, tab, h, &h2, &h2_lo);
+        stage_base(&w, y, cy, minv);
         /* the first guess: the previous polynomial extrapolated, or the force at y0 */
         if (all_zero(gamma, s * m)) {
             force_at_point(kernel, &w, y, w.dq);
@@ -610,7 +624,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         int polish = 0, status = HBVM_DIVERGED, it = 0;
         while (polish || it < opts->max_iter) {
             it += 1;
-            stage_positions(&w, y, cy, minv, h2, h2_lo, polish);
+            stage_positions(&w, minv, h2, h2_lo, polish);
             kernel->force(w.X, m, w.kp, kernel->params, w.F);
             counters[C_NFEV] += k;
             if (it <= 3) {
