@@ -1,22 +1,30 @@
 """The compiled core (``integrators/csrc``, built by ``pip install`` as ``integrators._core``):
-the separable HBVM step with its kernels in C, the stages in the vector lanes.
+the separable HBVM step in C, the stages in the vector lanes.
 
-:func:`core_step` returns, for the kernels it knows and the variant it implements, an object
-with the interface of :func:`integrators.specialise.specialise`'s (``run``, ``advance``,
-``energy_parts``, ``kind``): the engine's :class:`~integrators.engine.Stepper` then runs
-:func:`integrators.loop.run`'s contract in C, with no compilation at run time.  What it covers
-so far: the N-body kernel (:mod:`systems.nbody`, sources only), HBVM (not EQUIP), the
-separable form, the fixed-point iteration, no followers, no stage velocities, no tangents and
-no recentring.  Every other variant runs the numba step of :mod:`integrators.loop`, as before.
+:func:`core_step` returns, for the kernels and the variant the core covers, an object with the
+interface of :func:`integrators.specialise.specialise`'s (``run``, ``energy_parts``,
+``kind``): the engine's :class:`~integrators.engine.Stepper` (and so ``HBVMDynamics``) then
+runs :func:`integrators.loop.run`'s contract in C, with nothing compiled at run time and the
+same numbers bit for bit (the same operations in the same order).  What it covers so far:
 
-``HBVM_MD_CORE=numba`` in the environment turns the compiled core off (every step then runs
-on numba, for comparisons); a build without the core (no C compiler at install: setup.py) runs
+* the kernels: the N-body kernel of :mod:`systems.nbody` in C, and any kernel written in
+  Python (a user's system, an ASE calculator), which the core calls back at each evaluation
+  through buffers of the loop's row layout;
+* the variant: HBVM (not EQUIP), the separable form, the fixed-point iteration (a step handed
+  Newton matrices runs the numba step, built then), no followers (test particles), no stage
+  velocities, no tangents, no recentring, no host glue.
+
+Every other variant runs the numba step of :mod:`integrators.loop`, as before.
+``HBVM_MD_CORE=numba`` in the environment turns the compiled core off (every step then runs on
+numba, for comparisons); a build without the core (no C compiler at install: setup.py) runs
 numba too, with one log line saying so.
 """
 from __future__ import annotations
 
 import logging
 import os
+
+import numpy as np
 
 try:
     from . import _core
@@ -26,7 +34,7 @@ except ImportError:            # (installed without a compiler: the numba step s
 _log = logging.getLogger("hbvm_md")
 _warned = []
 
-#: the kernels the core has, by the (module, name) of the numba kernels they replace
+#: the kernels the core has in C, by the (module, name) of the numba kernels they replace
 KERNELS = {}
 if _core is not None:
     KERNELS[(("systems.nbody", "nbody_forces"), ("systems.nbody", "nbody_potential"))] = \
@@ -35,7 +43,13 @@ if _core is not None:
 
 def available() -> bool:
     """True when the compiled core was built and is not turned off (``HBVM_MD_CORE``)."""
-    return _core is not None and os.environ.get("HBVM_MD_CORE", "").lower() != "numba"
+    if _core is None:
+        if not _warned:
+            _warned.append(True)
+            _log.info("hbvm-md: the compiled core was not built (no C compiler at install); "
+                      "the step is compiled by numba instead")
+        return False
+    return os.environ.get("HBVM_MD_CORE", "").lower() != "numba"
 
 
 def lanes() -> int:
@@ -45,15 +59,26 @@ def lanes() -> int:
 
 
 class CoreStep:
-    """The compiled core's step for one kernel: :func:`integrators.loop.run`'s interface."""
+    """The compiled core's step for one compiled kernel: :func:`integrators.loop.run`'s
+    interface.  ``fallback()`` builds the numba step, for the Newton iteration."""
 
     kind = "compiled"
     core = True
 
-    def __init__(self, kernel: int):
+    def __init__(self, kernel: int, fallback):
         self.kernel = kernel
+        self._fallback = fallback
+        self._numba = None
+
+    def numba_step(self):
+        if self._numba is None:
+            self._numba = self._fallback()
+        return self._numba
 
     def run(self, system, state, h, E, method, newton, opts, wk, samples) -> int:
+        if newton.NM.shape[0] > 0:
+            return self.numba_step().run(system, state, h, E, method, newton, opts, wk,
+                                         samples)
         return _core.run(self.kernel, system, state, float(h), E, method, newton, opts, wk,
                          samples)
 
@@ -67,19 +92,59 @@ class CoreStep:
         _core.force(self.kernel, X, params, out)
 
 
-def core_step(refs, *, full, equip, velocities, glue, jvp, follow, recentre):
-    """The compiled core's step for kernels imported from ``refs`` ((module, name) of the force
-    and the potential) in this variant, or None when the core does not cover it."""
+class PythonCoreStep(CoreStep):
+    """The compiled core's step around kernels written in Python (``force(X, params, out)``
+    on rows X (n, m), ``potential(x, params)``: :mod:`integrators.loop`'s contract), called
+    back at each evaluation.  ``kind`` is "python": the host calls it as it calls a Python
+    step (one call for a run, no chunks)."""
+
+    kind = "python"
+
+    def __init__(self, force, potential, fallback):
+        super().__init__(_core.PYTHON, fallback)
+        self._force, self._potential = force, potential
+        self._buffers = {}
+
+    def _kernel(self, k: int, m: int, params):
+        key = (k, m, id(params))
+        b = self._buffers.get(key)
+        if b is None or b[-1] is not params:
+            Xr, Fr = np.zeros((k, m)), np.zeros((k, m))
+            X1, F1, q = np.zeros((1, m)), np.zeros((1, m)), np.zeros(m)
+            force, potential = self._force, self._potential
+            b = ((lambda: force(Xr, params, Fr)), (lambda: force(X1, params, F1)),
+                 (lambda: potential(q, params)), Xr, Fr, X1, F1, q, params)
+            self._buffers = {key: b}
+        return b[:8]
+
+    def run(self, system, state, h, E, method, newton, opts, wk, samples) -> int:
+        if newton.NM.shape[0] > 0:
+            return self.numba_step().run(system, state, h, E, method, newton, opts, wk,
+                                         samples)
+        kern = self._kernel(method.tn.shape[1], system.minv.shape[0], system.params)
+        return _core.run(_core.PYTHON, system, state, float(h), E, method, newton, opts, wk,
+                         samples, kern)
+
+    def energy_parts(self, full, y, kin_w, params):
+        if full:
+            raise ValueError("internal error: the compiled core has the separable form only")
+        m = kin_w.shape[0]
+        return _core.kinetic(y[m:], kin_w), self._potential(y[:m], params)
+
+
+def core_step(force, potential, refs, *, full, equip, velocities, glue, jvp, follow, recentre,
+              fallback):
+    """The compiled core's step for these kernels in this variant, or None when the core does
+    not cover it.  ``refs``: the (module, name) of compiled kernels (None for Python ones);
+    ``fallback()``: the numba step of the same binding (built only if a step needs Newton)."""
     if (full is not False or equip is not False or velocities or glue is not None
             or jvp is not None or follow is not None or recentre is not None):
         return None
+    if not available():
+        return None
+    if refs is None:
+        return PythonCoreStep(force, potential, fallback)
     kernel = KERNELS.get(tuple(refs))
     if kernel is None:
         return None
-    if not available():
-        if _core is None and not _warned:
-            _warned.append(True)
-            _log.info("hbvm-md: the compiled core was not built (no C compiler at install); "
-                      "the step is compiled by numba instead")
-        return None
-    return CoreStep(kernel)
+    return CoreStep(kernel, fallback)

@@ -376,13 +376,23 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
                         recentre)
         out.kind = "python"
         return out
-    if _is_compiled(force) and _is_compiled(potential):
-        # the compiled core (integrators.ccore) for the kernels and the variant it covers
-        stepper = ccore.core_step((_import_ref(force), _import_ref(potential)), full=full,
-                                  equip=equip, velocities=velocities, glue=glue, jvp=jvp,
-                                  follow=follow, recentre=recentre)
+    # the compiled core (integrators.ccore) for the kernels and the variant it covers: compiled
+    # kernels it has in C, or Python kernels it calls back
+    compiled = _is_compiled(force) and _is_compiled(potential)
+    if compiled or not (_is_compiled(force) or _is_compiled(potential)):
+        refs = (_import_ref(force), _import_ref(potential)) if compiled else None
+        stepper = ccore.core_step(
+            force, potential, refs, full=full, equip=equip, velocities=velocities, glue=glue,
+            jvp=jvp, follow=follow, recentre=recentre,
+            fallback=lambda: _numba_step(force, potential, glue, jvp, follow, full, equip,
+                                         velocities, recentre))
         if stepper is not None:
             return stepper
+    return _numba_step(force, potential, glue, jvp, follow, full, equip, velocities, recentre)
+
+
+def _numba_step(force, potential, glue, jvp, follow, full, equip, velocities, recentre):
+    """:func:`specialise`'s numba step (compiled kernels) or Python step (anything else)."""
     variant = (None if full is None else bool(full), None if equip is None else bool(equip),
                bool(velocities))
     key = (force, potential, glue, jvp, follow, variant, recentre)

@@ -10,9 +10,11 @@
  * Python-side step has none: the build passes -ffp-contract=off).
  *
  * The implementer's contract of a kernel (docs/design/step.md, "The compiled core"):
- *   force(X, m, kp, params, F): F (m, kp) <- -grad V at each of the kp stages of X (m, kp),
- *       stage-fastest, every lane (the padded ones included) written;
- *   potential(q, params): V(q) at one point q (m,).
+ *   force(ctx, X, m, kp, n, params, F): F (m, kp) <- -grad V at each of the kp stages of
+ *       X (m, kp), stage-fastest, every lane written (lanes n .. kp - 1 repeat stage n - 1:
+ *       a kernel may compute them or copy lane n - 1); returns 0, or nonzero to abort the step
+ *       (a Python kernel that raised);
+ *   potential(ctx, q, params, V): *V <- V(q) at one point q (m,); returns 0 or nonzero.
  */
 #ifndef HBVM_CORE_H
 #define HBVM_CORE_H
@@ -38,7 +40,7 @@ enum {
     HBVM_TOO_SMALL = 4,
     HBVM_NOT_RESOLVED = 6,
     HBVM_DRIFTED = 7,
-    HBVM_BAD_INPUT = 100 /* an internal inconsistency the caller must not produce */
+    HBVM_ABORTED = 101   /* a kernel asked to stop (a Python kernel raised): nothing committed */
 };
 
 /* counters: integrators.core's layout */
@@ -48,14 +50,16 @@ enum { C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_W
 #define HBVM_EREF_RUN 3
 #define HBVM_N_EREF 4
 
-typedef void (*hbvm_force_fn)(const double *X, int m, int kp, const double *params, double *F);
-typedef double (*hbvm_potential_fn)(const double *q, const double *params);
+typedef int (*hbvm_force_fn)(void *ctx, const double *X, int m, int kp, int n,
+                             const double *params, double *F);
+typedef int (*hbvm_potential_fn)(void *ctx, const double *q, const double *params, double *V);
 
 /* a system's kernels and their parameters */
 typedef struct {
     hbvm_force_fn force;
     hbvm_potential_fn potential;
     const double *params;
+    void *ctx;
 } hbvm_kernel;
 
 /* the method's arrays at their natural (row-major) shapes, as integrators.engine packs them */
@@ -100,8 +104,8 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
              double *counters, hbvm_samples *samples);
 
 /* the kinetic and potential energies at y (2m,) */
-void hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
-                       double *T, double *V);
+int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
+                      double *T, double *V);
 
 /* the padded stage count for k stages */
 static inline int hbvm_padded(int k) { return (k + HBVM_LANES - 1) / HBVM_LANES * HBVM_LANES; }
@@ -109,6 +113,9 @@ static inline int hbvm_padded(int k) { return (k + HBVM_LANES - 1) / HBVM_LANES 
 /* built-in kernels (kernels_*.c) */
 void hbvm_nbody_force(const double *X, int m, int kp, const double *params, double *F);
 double hbvm_nbody_potential(const double *q, const double *params);
+int hbvm_nbody_force_k(void *ctx, const double *X, int m, int kp, int n, const double *params,
+                       double *F);
+int hbvm_nbody_potential_k(void *ctx, const double *q, const double *params, double *V);
 /* the parameters' consistency with m coordinates: 0 when usable, else -1 */
 int hbvm_nbody_check(int m, const double *params, long nparams);
 

@@ -81,11 +81,11 @@ static double weighted_kinetic(const double *p, const double *w, int m)
     return ke;
 }
 
-void hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
-                       double *T, double *V)
+int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
+                      double *T, double *V)
 {
     *T = weighted_kinetic(y + sys->m, sys->kin_w, sys->m);
-    *V = kernel->potential(y, kernel->params);
+    return kernel->potential(kernel->ctx, y, kernel->params, V);
 }
 
 /* the step's work arrays, one allocation */
@@ -427,15 +427,17 @@ static void commit_separable(work_t *w, double *y, double *cy, const double *min
 }
 
 /* the force at one point q (m,) into f (m,) (every lane the same point) */
-static void force_at_point(const hbvm_kernel *kernel, work_t *w, const double *q, double *f)
+static int force_at_point(const hbvm_kernel *kernel, work_t *w, const double *q, double *f)
 {
     const int m = w->m;
     for (int j = 0; j < m; ++j)
         for (int v = 0; v < L; ++v)
             w->X1[j * L + v] = q[j];
-    kernel->force(w->X1, m, L, kernel->params, w->F1);
+    if (kernel->force(kernel->ctx, w->X1, m, L, 1, kernel->params, w->F1) != 0)
+        return -1;
     for (int j = 0; j < m; ++j)
         f[j] = w->F1[j * L];
+    return 0;
 }
 
 /* max(|v0|, |v1|) + |h gamma_0 / m| over the coordinates j0 .. j1 - 1 (core.body_motion) */
@@ -515,11 +517,13 @@ static int energy_check(const hbvm_kernel *kernel, const hbvm_system *sys, const
     const double etol = opts->etol;
     if (!isfinite(eref[0])) {
         double t0, v0;
-        hbvm_energy_parts(kernel, sys, y, &t0, &v0);
+        if (hbvm_energy_parts(kernel, sys, y, &t0, &v0) != 0)
+            return HBVM_ABORTED;
         eref[0] = t0 + v0;
     }
     double t1, v1;
-    hbvm_energy_parts(kernel, sys, yt, &t1, &v1);
+    if (hbvm_energy_parts(kernel, sys, yt, &t1, &v1) != 0)
+        return HBVM_ABORTED;
     const double scale = fabs(t1) + fabs(v1);
     double change = fabs(t1 + v1 - eref[0]);
     if (scale > 0.0)
@@ -567,14 +571,16 @@ static int fail(double *counters, int status, double it0, double nfev0, double n
     return status;
 }
 
-static void sample(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_samples *smp,
-                   long i, double t, const double *y)
+static int sample(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_samples *smp,
+                  long i, double t, const double *y)
 {
     double T, V;
     smp->t[i] = t;
     memcpy(smp->y + i * 2 * sys->m, y, 2 * sys->m * sizeof(double));
-    hbvm_energy_parts(kernel, sys, y, &T, &V);
+    if (hbvm_energy_parts(kernel, sys, y, &T, &V) != 0)
+        return -1;
     smp->e[i] = T + V;
+    return 0;
 }
 
 int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, double h,
@@ -591,7 +597,10 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
     double *g = w.g;
     long isample = 0;
     if (smp->every > 0) {
-        sample(kernel, sys, smp, 0, t, y);
+        if (sample(kernel, sys, smp, 0, t, y) != 0) {
+            free(w.block);
+            return HBVM_ABORTED;
+        }
         isample = 1;
     }
     int result = HBVM_OK;
@@ -603,7 +612,10 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         stage_base(&w, y, cy, minv);
         /* the first guess: the previous polynomial extrapolated, or the force at y0 */
         if (all_zero(gamma, s * m)) {
-            force_at_point(kernel, &w, y, w.dq);
+            if (force_at_point(kernel, &w, y, w.dq) != 0) {
+                result = fail(counters, HBVM_ABORTED, it0, nfev0, newton0);
+                break;
+            }
             for (int i = 0; i < s; ++i)
                 for (int j = 0; j < m; ++j)
                     g[j * w.sp + i] = i == 0 ? w.dq[j] : 0.0;
@@ -625,7 +637,10 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         while (polish || it < opts->max_iter) {
             it += 1;
             stage_positions(&w, minv, h2, h2_lo, polish);
-            kernel->force(w.X, m, w.kp, kernel->params, w.F);
+            if (kernel->force(kernel->ctx, w.X, m, w.kp, k, kernel->params, w.F) != 0) {
+                status = HBVM_ABORTED;
+                break;
+            }
             counters[C_NFEV] += k;
             if (it <= 3) {
                 if (it > 1) {
@@ -684,7 +699,10 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
             } else {
                 for (int j = 0; j < m; ++j)
                     w.dq[j] = w.yt[j] - w.cyt[j];
-                force_at_point(kernel, &w, w.dq, w.dq_lo);
+                if (force_at_point(kernel, &w, w.dq, w.dq_lo) != 0) {
+                    result = fail(counters, HBVM_ABORTED, it0, nfev0, newton0);
+                    break;
+                }
                 const double r = 1.0 / sqrt(2.0 * s + 1.0);
                 for (int j = 0; j < m; ++j) {
                     double acc = 0.0;
@@ -704,7 +722,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
             }
         }
         if (opts->etol != 0.0) {
-            double change;
+            double change = 0.0;
             const int checked = energy_check(kernel, sys, y, w.yt, opts, eref, h, g, w.sp, tab,
                                              &change);
             if (checked != HBVM_OK) {
@@ -726,7 +744,10 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         st->clock[0] = t;
         st->clock[1] = ct;
         if (smp->every > 0 && (istep + 1) % smp->every == 0) {
-            sample(kernel, sys, smp, isample, t, y);
+            if (sample(kernel, sys, smp, isample, t, y) != 0) {
+                result = HBVM_ABORTED;
+                break;
+            }
             isample += 1;
         }
     }

@@ -115,3 +115,18 @@ double hbvm_nbody_potential(const double *q, const double *params)
     }
     return G * v;
 }
+
+int hbvm_nbody_force_k(void *ctx, const double *X, int m, int kp, int n, const double *params,
+                       double *F)
+{
+    (void)ctx, (void)n;
+    hbvm_nbody_force(X, m, kp, params, F);
+    return 0;
+}
+
+int hbvm_nbody_potential_k(void *ctx, const double *q, const double *params, double *V)
+{
+    (void)ctx;
+    *V = hbvm_nbody_potential(q, params);
+    return 0;
+}

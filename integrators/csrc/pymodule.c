@@ -14,7 +14,51 @@
 
 #include "hbvm_core.h"
 
-enum { KERNEL_NBODY = 1 };
+enum { KERNEL_PYTHON = 0, KERNEL_NBODY = 1 };
+
+/* A kernel written in Python (a user's system, an ASE calculator): the step calls back into
+ * the interpreter at each evaluation, through buffers the Python side owns: the stages go out
+ * as rows Xr (n, m) (the layout of integrators.loop's kernels) and the forces come back from
+ * Fr; the potential reads q.  The callbacks take no arguments (integrators.ccore binds them). */
+typedef struct {
+    PyObject *f_all, *f_one, *pot;
+    double *Xr, *Fr, *X1, *F1, *q;
+    int kmax, m;
+} pyk_ctx;
+
+static int pyk_force(void *c, const double *X, int m, int kp, int n, const double *params,
+                     double *F)
+{
+    pyk_ctx *p = c;
+    (void)params;
+    if (n > p->kmax)
+        return -1;
+    double *Xr = n == 1 ? p->X1 : p->Xr, *Fr = n == 1 ? p->F1 : p->Fr;
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < m; ++j)
+            Xr[i * m + j] = X[j * kp + i];
+    PyObject *r = PyObject_CallNoArgs(n == 1 ? p->f_one : p->f_all);
+    if (!r)
+        return -1;
+    Py_DECREF(r);
+    for (int j = 0; j < m; ++j)
+        for (int i = 0; i < kp; ++i)
+            F[j * kp + i] = Fr[(i < n ? i : n - 1) * m + j];
+    return 0;
+}
+
+static int pyk_potential(void *c, const double *q, const double *params, double *V)
+{
+    pyk_ctx *p = c;
+    (void)params;
+    memcpy(p->q, q, (size_t)p->m * sizeof(double));
+    PyObject *r = PyObject_CallNoArgs(p->pot);
+    if (!r)
+        return -1;
+    *V = PyFloat_AsDouble(r);
+    Py_DECREF(r);
+    return (*V == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
 
 #define MAX_BUFS 32
 
@@ -80,13 +124,49 @@ static PyObject *item(PyObject *tup, Py_ssize_t i, const char *name)
 
 static int kernel_of(long id, hbvm_kernel *kern)
 {
+    kern->ctx = NULL;
     if (id == KERNEL_NBODY) {
-        kern->force = hbvm_nbody_force;
-        kern->potential = hbvm_nbody_potential;
+        kern->force = hbvm_nbody_force_k;
+        kern->potential = hbvm_nbody_potential_k;
+        return 0;
+    }
+    if (id == KERNEL_PYTHON) {
+        kern->force = pyk_force;
+        kern->potential = pyk_potential;
         return 0;
     }
     PyErr_Format(PyExc_ValueError, "hbvm-md core: unknown kernel %ld", id);
     return -1;
+}
+
+/* the Python kernel's callbacks and buffers: (f_all, f_one, pot, Xr (k, m), Fr (k, m),
+ * X1 (1, m), F1 (1, m), q (m,)) */
+static int python_kernel(bufset *bs, PyObject *pyk, int m, pyk_ctx *ctx)
+{
+    if (!PyTuple_Check(pyk) || PyTuple_GET_SIZE(pyk) != 8) {
+        PyErr_SetString(PyExc_TypeError, "hbvm-md core: a Python kernel needs "
+                                         "(f_all, f_one, pot, Xr, Fr, X1, F1, q)");
+        return -1;
+    }
+    ctx->f_all = PyTuple_GET_ITEM(pyk, 0);
+    ctx->f_one = PyTuple_GET_ITEM(pyk, 1);
+    ctx->pot = PyTuple_GET_ITEM(pyk, 2);
+    const char *names[] = {"Xr", "Fr", "X1", "F1", "q"};
+    double **ptr[] = {&ctx->Xr, &ctx->Fr, &ctx->X1, &ctx->F1, &ctx->q};
+    Py_ssize_t sh[2];
+    for (int i = 0; i < 5; ++i) {
+        if (!(*ptr[i] = get(bs, PyTuple_GET_ITEM(pyk, 3 + i), names[i], i < 4 ? 2 : 1, 1, sh)))
+            return -1;
+        if ((i < 4 && sh[1] != m) || (i == 4 && sh[0] != m) || (i >= 2 && i < 4 && sh[0] < 1)) {
+            PyErr_Format(PyExc_ValueError, "hbvm-md core: the Python kernel's buffer %s has "
+                                           "the wrong shape", names[i]);
+            return -1;
+        }
+        if (i == 0)
+            ctx->kmax = (int)sh[0];
+    }
+    ctx->m = m;
+    return 0;
 }
 
 static int check_params(long id, int m, Py_ssize_t np, const double *params)
@@ -104,10 +184,10 @@ static int check_params(long id, int m, Py_ssize_t np, const double *params)
 static PyObject *py_run(PyObject *self, PyObject *args)
 {
     long kid;
-    PyObject *system, *state, *Eo, *method, *newton, *opts, *wk, *samples;
+    PyObject *system, *state, *Eo, *method, *newton, *opts, *wk, *samples, *pyk = Py_None;
     double h;
-    if (!PyArg_ParseTuple(args, "lOOdOOOOOO", &kid, &system, &state, &h, &Eo, &method, &newton,
-                          &opts, &wk, &samples))
+    if (!PyArg_ParseTuple(args, "lOOdOOOOOO|O", &kid, &system, &state, &h, &Eo, &method,
+                          &newton, &opts, &wk, &samples, &pyk))
         return NULL;
     hbvm_kernel kern;
     if (kernel_of(kid, &kern) != 0)
@@ -144,6 +224,12 @@ static PyObject *py_run(PyObject *self, PyObject *args)
     if (check_params(kid, m, sh[0], params) != 0)
         goto fail;
     kern.params = params;
+    pyk_ctx pctx;
+    if (kid == KERNEL_PYTHON) {
+        if (python_kernel(&bs, pyk, m, &pctx) != 0)
+            goto fail;
+        kern.ctx = &pctx;
+    }
     /* method: (tn (2, k), ts (2, s), Wp (2, s, k), Cp (4, k, s)) */
     if (!(o = item(method, 0, "method.tn")))
         goto fail;
@@ -268,13 +354,27 @@ static PyObject *py_run(PyObject *self, PyObject *args)
         }
     }
     hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
+    if (kid == KERNEL_PYTHON && tab.k > pctx.kmax) {
+        PyErr_SetString(PyExc_ValueError, "hbvm-md core: the Python kernel's buffers are "
+                                          "shorter than the method's stages");
+        goto fail;
+    }
     int status;
-    Py_BEGIN_ALLOW_THREADS
-    status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp);
-    Py_END_ALLOW_THREADS
+    if (kid == KERNEL_PYTHON) {          /* (the kernel calls the interpreter: keep the GIL) */
+        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp);
+    } else {
+        Py_BEGIN_ALLOW_THREADS
+        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp);
+        Py_END_ALLOW_THREADS
+    }
     release(&bs);
     if (status < 0)
         return PyErr_NoMemory();
+    if (status == HBVM_ABORTED) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: a kernel stopped the step");
+        return NULL;
+    }
     return PyLong_FromLong(status);
 fail:
     release(&bs);
@@ -287,6 +387,10 @@ static PyObject *py_energy_parts(PyObject *self, PyObject *args)
     PyObject *yo, *wo, *po;
     if (!PyArg_ParseTuple(args, "lOOO", &kid, &yo, &wo, &po))
         return NULL;
+    if (kid == KERNEL_PYTHON) {
+        PyErr_SetString(PyExc_ValueError, "hbvm-md core: a Python kernel's energy is Python's");
+        return NULL;
+    }
     hbvm_kernel kern;
     if (kernel_of(kid, &kern) != 0)
         return NULL;
@@ -307,7 +411,7 @@ static PyObject *py_energy_parts(PyObject *self, PyObject *args)
     kern.params = params;
     hbvm_system sys = {.m = m, .minv = NULL, .kin_w = kin_w};
     double T, V;
-    hbvm_energy_parts(&kern, &sys, y, &T, &V);
+    hbvm_energy_parts(&kern, &sys, y, &T, &V);   /* (a compiled kernel: cannot fail) */
     release(&bs);
     return Py_BuildValue("dd", T, V);
 fail:
@@ -326,6 +430,10 @@ static PyObject *py_force(PyObject *self, PyObject *args)
     hbvm_kernel kern;
     if (kernel_of(kid, &kern) != 0)
         return NULL;
+    if (kid == KERNEL_PYTHON) {
+        PyErr_SetString(PyExc_ValueError, "hbvm-md core: force() is for compiled kernels");
+        return NULL;
+    }
     bufset bs = {.n = 0};
     Py_ssize_t sx[2], so[2], np;
     const double *X = get(&bs, xo, "X", 2, 0, sx);
@@ -352,7 +460,7 @@ static PyObject *py_force(PyObject *self, PyObject *args)
     for (int j = 0; j < m; ++j)
         for (int i = 0; i < kp; ++i)
             Xt[j * kp + i] = n > 0 ? X[(i < n ? i : n - 1) * m + j] : 0.0;
-    kern.force(Xt, m, kp, params, Ft);
+    kern.force(kern.ctx, Xt, m, kp, n > 0 ? n : 1, params, Ft);
     for (int i = 0; i < n; ++i)
         for (int j = 0; j < m; ++j)
             out[i * m + j] = Ft[j * kp + i];
@@ -365,7 +473,34 @@ fail:
     return NULL;
 }
 
+static PyObject *py_kinetic(PyObject *self, PyObject *args)
+{
+    PyObject *po, *wo;
+    if (!PyArg_ParseTuple(args, "OO", &po, &wo))
+        return NULL;
+    bufset bs = {.n = 0};
+    Py_ssize_t sp[1], sw[1];
+    const double *p = get(&bs, po, "p", 1, 0, sp);
+    if (!p)
+        goto fail;
+    const double *w = get(&bs, wo, "kin_w", 1, 0, sw);
+    if (!w)
+        goto fail;
+    if (sp[0] != sw[0])
+        SHAPE_ERR("kin_w", "p's");
+    double ke = 0.0;
+    for (Py_ssize_t i = 0; i < sp[0]; ++i)
+        ke += 0.5 * p[i] * p[i] * w[i];
+    release(&bs);
+    return PyFloat_FromDouble(ke);
+fail:
+    release(&bs);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
+    {"kinetic", py_kinetic, METH_VARARGS,
+     "kinetic(p, kin_w) -> sum_i kin_w_i p_i^2 / 2, summed in order (core.weighted_kinetic)"},
     {"run", py_run, METH_VARARGS,
      "run(kernel, system, state, h, E, method, newton, opts, work, samples) -> status: "
      "integrators.loop.run's steps for the separable HBVM form, compiled."},
@@ -386,6 +521,7 @@ PyMODINIT_FUNC PyInit__core(void)
         return NULL;
     PyModule_AddIntConstant(mod, "LANES", HBVM_LANES);
     PyModule_AddIntConstant(mod, "NBODY", KERNEL_NBODY);
+    PyModule_AddIntConstant(mod, "PYTHON", KERNEL_PYTHON);
 #ifdef HBVM_BUILD_FLAGS
     PyModule_AddStringConstant(mod, "BUILD_FLAGS", HBVM_BUILD_FLAGS);
 #else
