@@ -6,7 +6,10 @@ and ``NUMBA_CACHE_DIR``), that imports hbvm-md and runs a first scene:
 * **REBOUND**: a star and two Jupiter-mass planets, ``sim.integrator = "hbvm"``,
   ``sim.integrate(1.0)`` at dt = 0.01 (the REBOUND step compiled for this scene);
 * **ASE**: a 13-atom copper icosahedron with ASE's EMT, ``HBVMDynamics(atoms, 2 fs).run(5)``
-  (the compiled pieces the Python step calls);
+  (the compiled core calling the calculator back; before it, the compiled pieces the Python
+  step called);
+* **engine**: the outer solar system through ``integrate(HBVM(9, 8), ..., 500.0, 200)`` (the
+  N-body kernel of the compiled core; before it, the numba step compiled for the scene);
 
 then the same again with the caches it filled (what every later run pays).  Reported: wall
 time of the first run (the import excluded) and the process's CPU time (import included: on a
@@ -64,6 +67,17 @@ ASE = """
     HBVMDynamics(atoms, 2 * units.fs).run(5)
     t2 = time.perf_counter()
 """
+ENGINE = """
+    import time
+    t0 = time.perf_counter()
+    from integrators import HBVM, integrate
+    from systems import outer_solar_system
+    t1 = time.perf_counter()
+    system = outer_solar_system()
+    integrate(HBVM(9, 8), system, system.initial_state(), 500.0, 200)
+    t2 = time.perf_counter()
+"""
+SCENES = {"REBOUND three-body": REBOUND, "ASE Cu13 EMT": ASE, "engine outer solar system": ENGINE}
 HEYOKA = """
     import time
     t0 = time.perf_counter()
@@ -99,6 +113,8 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", default=None, help="another hbvm-md source tree, run alternately")
     ap.add_argument("--label", default="compared", help="its name in the table (a commit, say)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "cold_start.md"))
+    ap.add_argument("--scenes", default=",".join(SCENES),
+                    help="comma-separated, of: " + ", ".join(SCENES))
     args = ap.parse_args(argv)
     trees = [("this tree", ROOT)] + ([(args.label, os.path.abspath(args.compare))]
                                      if args.compare else [])
@@ -106,7 +122,8 @@ def main(argv=None) -> int:
     rows: dict = {}
     for r in range(args.rounds):
         for label, tree in trees:
-            for scene, code in (("REBOUND three-body", REBOUND), ("ASE Cu13 EMT", ASE)):
+            for scene in args.scenes.split(","):
+                code = SCENES[scene]
                 cache = tempfile.mkdtemp(prefix="hbvm-md-cold-")
                 try:
                     cold, warm = run(code, tree, cache), run(code, tree, cache)
