@@ -17,7 +17,7 @@ from setuptools.command.build_ext import build_ext
 BASE = ["-O3", "-std=c11", "-ffp-contract=off", "-fno-math-errno"]
 NATIVE = ["-march=native"]
 SOURCES = ["integrators/csrc/pymodule.c", "integrators/csrc/hbvm_step.c",
-           "integrators/csrc/kernels_nbody.c"]
+           "integrators/csrc/kernels_nbody.c", "integrators/csrc/kernels_simple.c"]
 
 
 def _portable() -> bool:
@@ -41,5 +41,5 @@ class BuildCore(build_ext):
 
 
 setup(ext_modules=[Extension("integrators._core", sources=SOURCES,
-                             depends=["integrators/csrc/hbvm_core.h"], libraries=["m"])],
+                             depends=["integrators/csrc/hbvm_core.h", "integrators/csrc/hbvm_vec.h"], libraries=["m"])],
       cmdclass={"build_ext": BuildCore})

@@ -7,7 +7,8 @@ interface of :func:`integrators.specialise.specialise`'s (``run``, ``energy_part
 runs :func:`integrators.loop.run`'s contract in C, with nothing compiled at run time and the
 same numbers bit for bit (the same operations in the same order).  What it covers so far:
 
-* the kernels: the N-body kernel of :mod:`systems.nbody` in C, and any kernel written in
+* the kernels: the N-body kernel of :mod:`systems.nbody` and the small systems' (Kepler,
+  Henon-Heiles, FPU, the pendulum, Morse: :data:`KERNELS`) in C, and any kernel written in
   Python (a user's system, an ASE calculator), which the core calls back at each evaluation
   through buffers of the loop's row layout;
 * the variant: HBVM (not EQUIP), the separable form, the fixed-point iteration (a step handed
@@ -39,6 +40,13 @@ KERNELS = {}
 if _core is not None:
     KERNELS[(("systems.nbody", "nbody_forces"), ("systems.nbody", "nbody_potential"))] = \
         _core.NBODY
+    for _module, _force, _potential, _name in (
+            ("systems.kepler", "_kepler_force", "_kepler_potential", "kepler"),
+            ("systems.henon_heiles", "_hh_force", "_hh_potential", "henon_heiles"),
+            ("systems.fpu", "_fpu_force", "_fpu_potential", "fpu"),
+            ("systems.pendulum", "_pendulum_force", "_pendulum_potential", "pendulum"),
+            ("systems.pendulum", "_morse_force", "_morse_potential", "morse")):
+        KERNELS[((_module, _force), (_module, _potential))] = _core.BUILTINS[_name]
 
 
 def available() -> bool:

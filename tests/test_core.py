@@ -173,3 +173,19 @@ def test_the_boundary_refuses_a_record_of_the_wrong_shape():
     with pytest.raises(TypeError, match="state.y"):
         b.step_code.run(b.system_record, state._replace(y=state.y.astype(np.float32)),
                         *args[2:], Samples(1, 0, np.zeros(0), np.zeros((0, 0)), np.zeros(0)))
+
+
+@pytest.mark.parametrize("name", ["kepler", "henon_heiles", "fpu", "pendulum", "morse"])
+def test_the_small_systems_run_on_the_core_bit_for_bit(name):
+    from systems import FPU, HenonHeiles, Kepler, Morse, Pendulum
+    system, method, h, n = {"kepler": (Kepler(0.6), HBVM(6, 3), 0.05, 400),
+                            "henon_heiles": (HenonHeiles(), HBVM(4, 2), 0.1, 400),
+                            "fpu": (FPU(3, 50.0), HBVM(4, 2), 0.002, 400),
+                            "pendulum": (Pendulum(), HBVM(6, 3), 0.1, 300),
+                            "morse": (Morse(), HBVM(3, 3), 0.05, 300)}[name]
+    st = Stepper(method, system, system.initial_state())
+    assert isinstance(st.binding.step_code, ccore.CoreStep)
+    a, b = both(lambda: integrate(method, system, system.initial_state(), h, n,
+                                  sample_every=20))
+    assert np.array_equal(a.y, b.y) and np.array_equal(a.energy, b.energy)
+    assert (a.nfev, a.iterations) == (b.nfev, b.iterations)

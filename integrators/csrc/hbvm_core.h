@@ -110,6 +110,16 @@ int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const d
 /* the padded stage count for k stages */
 static inline int hbvm_padded(int k) { return (k + HBVM_LANES - 1) / HBVM_LANES * HBVM_LANES; }
 
+/* a built-in kernel of a small system (kernels_simple.c): m coordinates (0: any) and the
+ * number of parameters it reads; its ctx points to the int m */
+typedef struct {
+    const char *name;
+    hbvm_force_fn force;
+    hbvm_potential_fn potential;
+    int m, nparams;
+} hbvm_builtin;
+extern const hbvm_builtin hbvm_builtins[];
+
 /* built-in kernels (kernels_*.c) */
 void hbvm_nbody_force(const double *X, int m, int kp, const double *params, double *F);
 double hbvm_nbody_potential(const double *q, const double *params);

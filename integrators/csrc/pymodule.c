@@ -14,7 +14,7 @@
 
 #include "hbvm_core.h"
 
-enum { KERNEL_PYTHON = 0, KERNEL_NBODY = 1 };
+enum { KERNEL_PYTHON = 0, KERNEL_NBODY = 1, KERNEL_BUILTIN = 2 };
 
 /* A kernel written in Python (a user's system, an ASE calculator): the step calls back into
  * the interpreter at each evaluation, through buffers the Python side owns: the stages go out
@@ -135,6 +135,12 @@ static int kernel_of(long id, hbvm_kernel *kern)
         kern->potential = pyk_potential;
         return 0;
     }
+    for (long i = 0; id >= KERNEL_BUILTIN && hbvm_builtins[i].name; ++i)
+        if (i == id - KERNEL_BUILTIN) {
+            kern->force = hbvm_builtins[i].force;
+            kern->potential = hbvm_builtins[i].potential;
+            return 0;
+        }
     PyErr_Format(PyExc_ValueError, "hbvm-md core: unknown kernel %ld", id);
     return -1;
 }
@@ -171,6 +177,15 @@ static int python_kernel(bufset *bs, PyObject *pyk, int m, pyk_ctx *ctx)
 
 static int check_params(long id, int m, Py_ssize_t np, const double *params)
 {
+    if (id >= KERNEL_BUILTIN) {
+        const hbvm_builtin *b = &hbvm_builtins[id - KERNEL_BUILTIN];
+        if ((b->m != 0 && b->m != m) || np < b->nparams) {
+            PyErr_Format(PyExc_ValueError, "hbvm-md core: the %s kernel takes %d coordinates "
+                         "and %d parameters (got %d and %zd)", b->name, b->m, b->nparams, m, np);
+            return -1;
+        }
+        return 0;
+    }
     if (id == KERNEL_NBODY && hbvm_nbody_check(m, params, (long)np) != 0) {
         PyErr_Format(PyExc_ValueError,
                      "hbvm-md core: the N-body parameters do not describe %d coordinates "
@@ -225,6 +240,9 @@ static PyObject *py_run(PyObject *self, PyObject *args)
         goto fail;
     kern.params = params;
     pyk_ctx pctx;
+    int mctx = m;
+    if (kid >= KERNEL_BUILTIN)
+        kern.ctx = &mctx;
     if (kid == KERNEL_PYTHON) {
         if (python_kernel(&bs, pyk, m, &pctx) != 0)
             goto fail;
@@ -409,6 +427,9 @@ static PyObject *py_energy_parts(PyObject *self, PyObject *args)
     if (!params || check_params(kid, m, np, params) != 0)
         goto fail;
     kern.params = params;
+    int mctx = m;
+    if (kid >= KERNEL_BUILTIN)
+        kern.ctx = &mctx;
     hbvm_system sys = {.m = m, .minv = NULL, .kin_w = kin_w};
     double T, V;
     hbvm_energy_parts(&kern, &sys, y, &T, &V);   /* (a compiled kernel: cannot fail) */
@@ -448,6 +469,9 @@ static PyObject *py_force(PyObject *self, PyObject *args)
     const double *params = get(&bs, po, "params", 1, 0, &np);
     if (!params || check_params(kid, m, np, params) != 0)
         goto fail;
+    int mctx = m;
+    if (kid >= KERNEL_BUILTIN)
+        kern.ctx = &mctx;
     const int kp = hbvm_padded(n > 0 ? n : 1);
     double *Xt = aligned_alloc(8 * HBVM_LANES, (size_t)m * kp * sizeof(double) + 8 * HBVM_LANES);
     double *Ft = aligned_alloc(8 * HBVM_LANES, (size_t)m * kp * sizeof(double) + 8 * HBVM_LANES);
@@ -522,6 +546,16 @@ PyMODINIT_FUNC PyInit__core(void)
     PyModule_AddIntConstant(mod, "LANES", HBVM_LANES);
     PyModule_AddIntConstant(mod, "NBODY", KERNEL_NBODY);
     PyModule_AddIntConstant(mod, "PYTHON", KERNEL_PYTHON);
+    PyObject *builtins = PyDict_New();
+    if (!builtins)
+        return NULL;
+    for (long i = 0; hbvm_builtins[i].name; ++i) {
+        PyObject *v = PyLong_FromLong(KERNEL_BUILTIN + i);
+        if (!v || PyDict_SetItemString(builtins, hbvm_builtins[i].name, v) != 0)
+            return NULL;
+        Py_DECREF(v);
+    }
+    PyModule_AddObject(mod, "BUILTINS", builtins);
 #ifdef HBVM_BUILD_FLAGS
     PyModule_AddStringConstant(mod, "BUILD_FLAGS", HBVM_BUILD_FLAGS);
 #else
