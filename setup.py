@@ -3,7 +3,8 @@
 
 By default it is compiled for the installing machine (``-march=native``: the vector width of
 its processor, AVX-512 where it has it); ``HBVM_MD_PORTABLE=1`` builds a baseline binary that
-runs on any processor of the architecture (a wheel, a container image shared between machines).
+runs on any processor of the architecture (a wheel, a container image shared between machines);
+``HBVM_MD_PROFILE=1`` keeps the step's pieces apart for a profiler (``perf``).
 A compiler that rejects ``-march=native`` gets the baseline flags. ``-ffp-contract=off``: no
 fused multiply-add where the source has none, so that every build gives the same numbers
 (the explicit ``fma`` of the compensated sums stays); ``-fno-math-errno`` lets ``sqrt`` run
@@ -20,6 +21,12 @@ SOURCES = ["integrators/csrc/pymodule.c", "integrators/csrc/hbvm_step.c",
            "integrators/csrc/kernels_nbody.c", "integrators/csrc/kernels_simple.c"]
 
 
+def _profile() -> list:
+    """HBVM_MD_PROFILE=1: the step's pieces kept apart for a profiler (same numbers)."""
+    on = os.environ.get("HBVM_MD_PROFILE", "").strip() not in ("", "0")
+    return ["-DHBVM_PROFILE", "-g"] if on else []
+
+
 def _portable() -> bool:
     return os.environ.get("HBVM_MD_PORTABLE", "").strip() not in ("", "0")
 
@@ -28,7 +35,7 @@ class BuildCore(build_ext):
     """Build with the machine's own instruction set, else the portable baseline."""
 
     def build_extension(self, ext):
-        flags = BASE if _portable() else BASE + NATIVE
+        flags = (BASE if _portable() else BASE + NATIVE) + _profile()
         ext.extra_compile_args = flags + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
         try:
             super().build_extension(ext)
@@ -36,10 +43,14 @@ class BuildCore(build_ext):
             if flags == BASE:
                 raise
             self.warn("the compiler refused -march=native: building the portable core")
-            ext.extra_compile_args = BASE + [f'-DHBVM_BUILD_FLAGS="{" ".join(BASE)}"']
+            flags = BASE + _profile()
+            ext.extra_compile_args = flags + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
             super().build_extension(ext)
 
 
 setup(ext_modules=[Extension("integrators._core", sources=SOURCES,
-                             depends=["integrators/csrc/hbvm_core.h", "integrators/csrc/hbvm_vec.h"], libraries=["m"])],
+                             depends=["integrators/csrc/hbvm_core.h", "integrators/csrc/hbvm_vec.h"], libraries=["m"],
+                             # without a C compiler the package installs without its core and
+                             # the numba step serves (integrators.ccore)
+                             optional=True)],
       cmdclass={"build_ext": BuildCore})

@@ -33,6 +33,14 @@ enum { ITERATE = 0, POLISH = 1 };
  * stage's (each coefficient's) sum still in its order */
 #define JB 4
 
+/* HBVM_PROFILE (setup.py: HBVM_MD_PROFILE=1): the step's pieces stay functions of their own, so
+ * that a sampling profiler (perf) splits the step's time between them */
+#ifdef HBVM_PROFILE
+#define PIECE __attribute__((noinline)) static
+#else
+#define PIECE static
+#endif
+
 /* Python's max(a, b) (the first unless the second is larger), as the Python-side step takes it */
 static inline double py_max(double a, double b) { return b > a ? b : a; }
 
@@ -157,7 +165,7 @@ static int work_alloc(work_t *w, const hbvm_tableau *tab, int m)
 }
 
 /* h tau_i as exact pairs into ht, ht_lo (padded); returns h h as an exact pair */
-static void step_constants(work_t *w, const hbvm_tableau *tab, double h, double *h2,
+PIECE void step_constants(work_t *w, const hbvm_tableau *tab, double h, double *h2,
                            double *h2_lo)
 {
     for (int i = 0; i < w->kp; ++i) {
@@ -175,7 +183,7 @@ static void step_constants(work_t *w, const hbvm_tableau *tab, double h, double 
  * chains keep the units busy); each stage's sum runs over l in order (the same numbers). */
 /* the parts of the stages a step's iterations share (stage_positions' first terms, the same
  * operations as the whole expression: the same numbers) */
-static void stage_base(work_t *w, const double *y, const double *cy, const double *minv)
+PIECE void stage_base(work_t *w, const double *y, const double *cy, const double *minv)
 {
     const int m = w->m, kp = w->kp;
     for (int j = 0; j < m; ++j) {
@@ -197,7 +205,7 @@ static inline void put_stage(work_t *w, int j, int b, vd A, vd A_lo, double h2, 
     vstore(w->X + o, vload(w->P + o) + ((vload(w->Q + o) + h2 * (A + A_lo)) + h2_lo * A));
 }
 
-static void stage_positions(work_t *w, const double *minv, double h2, double h2_lo, int exact)
+PIECE void stage_positions(work_t *w, const double *minv, double h2, double h2_lo, int exact)
 {
     const int m = w->m, s = w->s, kp = w->kp, sp = w->sp;
     for (int j = 0; j < m; ++j)
@@ -240,7 +248,7 @@ static void stage_positions(work_t *w, const double *minv, double h2, double h2_
 
 /* g <- W F (core.project): each coordinate's s coefficients as vectors, summed over the
  * stages in order, JB coordinates at a time; returns max |increment| (nan first) and max |g| */
-static void project(work_t *w, double *delta_out, double *scale_out)
+PIECE void project(work_t *w, double *delta_out, double *scale_out)
 {
     const int m = w->m, sp = w->sp, k = w->k, kp = w->kp;
     const vd zero = vsplat(0.0);
@@ -284,7 +292,7 @@ static inline void dot2_step(vd *acc, vd *lo, vd wt, vd wt_lo, double fs)
 
 /* g <- W F as if in twice the working precision (Dot2), rounded once (core.project_compensated),
  * JB coordinates at a time */
-static void project_compensated(work_t *w)
+PIECE void project_compensated(work_t *w)
 {
     const int m = w->m, sp = w->sp, k = w->k, kp = w->kp;
     const vd zero = vsplat(0.0);
@@ -309,7 +317,7 @@ static void project_compensated(work_t *w)
 
 /* g <- E gamma (core.guess): the previous polynomial over the new step, the sums over l in
  * order, outermost */
-static void guess(work_t *w, const double *E, const double *gamma)
+PIECE void guess(work_t *w, const double *E, const double *gamma)
 {
     const int m = w->m, s = w->s, sp = w->sp;
     for (int l = 0; l < s; ++l)
@@ -328,7 +336,7 @@ static void guess(work_t *w, const double *E, const double *gamma)
 
 /* lip <- max(lip, max|F - Fp| / max|X - Xp|) when the stages moved by more than round-off, then
  * (X, F) kept in (Xp, Fp); returns max |X| in *xmax (core.lipschitz_probe) */
-static double lipschitz_probe(work_t *w, double lip, double *xmax_out)
+PIECE double lipschitz_probe(work_t *w, double lip, double *xmax_out)
 {
     const int n = w->m * w->kp;
     const vd zero = vsplat(0.0);
@@ -349,7 +357,7 @@ static double lipschitz_probe(work_t *w, double lip, double *xmax_out)
 }
 
 /* max |F| over the stages, nan when an entry is nan (core.max_abs2) */
-static double max_abs_forces(const work_t *w)
+PIECE double max_abs_forces(const work_t *w)
 {
     vd v = vsplat(0.0);
     for (int a = 0; a < w->m * w->kp; a += L)
@@ -358,7 +366,7 @@ static double max_abs_forces(const work_t *w)
 }
 
 /* the stopping rule (core.stop_action); returns ITERATE, POLISH or -status */
-static int stop_action(work_t *w, double delta, double scale, double floor, double hstate,
+PIECE int stop_action(work_t *w, double delta, double scale, double floor, double hstate,
                        double hmove, double ymax, int it, double tol)
 {
     double *hist = w->hist;
@@ -398,7 +406,7 @@ static int stop_action(work_t *w, double delta, double scale, double floor, doub
 
 /* y1 from the converged coefficients, added exactly to the double-double state
  * (core.commit_separable) */
-static void commit_separable(work_t *w, double *y, double *cy, const double *minv, double h,
+PIECE void commit_separable(work_t *w, double *y, double *cy, const double *minv, double h,
                              const hbvm_tableau *tab)
 {
     const int m = w->m, s = w->s, sp = w->sp;
@@ -427,7 +435,7 @@ static void commit_separable(work_t *w, double *y, double *cy, const double *min
 }
 
 /* the force at one point q (m,) into f (m,) (every lane the same point) */
-static int force_at_point(const hbvm_kernel *kernel, work_t *w, const double *q, double *f)
+PIECE int force_at_point(const hbvm_kernel *kernel, work_t *w, const double *q, double *f)
 {
     const int m = w->m;
     for (int j = 0; j < m; ++j)
@@ -456,7 +464,7 @@ static double body_motion(const double *y, const double *minv, const double *g, 
 }
 
 /* the step's own estimate of its relative local error (core.resolution_error, separable) */
-static double resolution_error(const double *y, const double *minv, const double *g, int gs,
+PIECE double resolution_error(const double *y, const double *minv, const double *g, int gs,
                                const double *om, double h, int m, int s, int group, int *worst)
 {
     const int wdt = group > 0 ? group : m;
@@ -491,7 +499,7 @@ static double resolution_error(const double *y, const double *minv, const double
 }
 
 /* the energy the step moves between the terms of H (core.energy_flow, separable) */
-static double energy_flow(const double *y, const double *kin_w, double h, const double *g,
+PIECE double energy_flow(const double *y, const double *kin_w, double h, const double *g,
                           int gs, const hbvm_tableau *tab, int m)
 {
     const int s = tab->s, n = tab->k;
@@ -509,7 +517,7 @@ static double energy_flow(const double *y, const double *kin_w, double h, const 
 }
 
 /* the energy check (integrators.loop.energy_check, separable); returns a status and the change */
-static int energy_check(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
+PIECE int energy_check(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
                         const double *yt, const hbvm_options *opts, double *eref, double h,
                         const double *g, int gs, const hbvm_tableau *tab, double *change_out)
 {
