@@ -22,6 +22,7 @@ from .core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTERS, NOT_
 from .core import DIVERGED as FAILED_STEP
 from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolation
 from .core import step_error as error_estimate
+from . import ccore
 from .jit import entry_point
 from .errors import EnergyDriftError, StepError, StepSizeError, step_error
 from .protocol import _Adapted, adapt_system
@@ -355,8 +356,12 @@ class Extrapolation:
         self.zero = np.zeros_like(self.E1)
 
     def __call__(self, h: float, h_prev: float | None) -> np.ndarray:
-        return entry_point(select_extrapolation)(h, np.nan if h_prev is None else h_prev,
-                                                 self.E1, self.t, self.w, self.buf, self.zero)
+        hp = np.nan if h_prev is None else h_prev
+        if ccore.available():       # (the same rule and numbers, nothing to compile)
+            return ccore._core.select_extrapolation(float(h), float(hp), self.E1, self.t,
+                                                    self.w, self.buf, self.zero)
+        return entry_point(select_extrapolation)(h, hp, self.E1, self.t, self.w, self.buf,
+                                                 self.zero)
 
 
 def _checked_result(method: str, system: str, r, given: tuple, expected: tuple) -> np.ndarray:
@@ -514,8 +519,9 @@ class Binding:
         self.no_newton = Newton(np.zeros((s, s), dtype=complex), np.zeros((s, s), dtype=complex),
                                 np.zeros((0, u, u), dtype=complex))
         n = getattr(method, "work_rows", method.n_stages)
-        nf, nc = work_sizes(n, s, u, self.minv.shape[0], d)
-        nf += velocity_work(n, m, self.velocities)
+        # (the sizes' arithmetic as Python: compiling it costs a first run more than it saves)
+        nf, nc = work_sizes.py_func(n, s, u, self.minv.shape[0], d)
+        nf += velocity_work.py_func(n, m, self.velocities)
         self.work, self.cwork = np.empty(nf), np.empty(nc, dtype=complex)
         self._eig = None
 

@@ -189,3 +189,17 @@ def test_the_small_systems_run_on_the_core_bit_for_bit(name):
                                   sample_every=20))
     assert np.array_equal(a.y, b.y) and np.array_equal(a.energy, b.energy)
     assert (a.nfev, a.iterations) == (b.nfev, b.iterations)
+
+
+def test_the_extrapolation_matrix_is_numba_s_bit_for_bit():
+    from integrators.core import select_extrapolation
+    from integrators.engine import Extrapolation
+    for s in (1, 3, 8):
+        ex = Extrapolation(HBVM(s + 1, s))
+        for h, hp in [(1.0, np.nan), (1.0, 1.0), (0.7, 1.0), (-2.5, 1.0), (5.0, 1.0),
+                      (1e-5, 1.0), (1.0, 3.0), (3.999, 1.0)]:
+            got = ccore._core.select_extrapolation(h, hp, ex.E1, ex.t, ex.w, ex.buf, ex.zero)
+            got = got.copy()
+            want = select_extrapolation(h, hp, ex.E1, ex.t, ex.w, np.empty_like(ex.buf),
+                                        ex.zero)
+            assert np.array_equal(got, want), (s, h, hp)

@@ -107,6 +107,11 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
 int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
                       double *T, double *V);
 
+/* E (s, s) <- the extrapolation of the previous step's polynomial over a step r times as long
+ * (core.extrapolation_matrix); c: scratch of 4 s doubles */
+void hbvm_extrapolation_matrix(double r, const double *t, const double *w, int s, double *E,
+                               double *c);
+
 /* the padded stage count for k stages */
 static inline int hbvm_padded(int k) { return (k + HBVM_LANES - 1) / HBVM_LANES * HBVM_LANES; }
 

@@ -762,3 +762,43 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
     free(w.block);
     return result;
 }
+
+/* E_ij = int_0^1 P_i(x) P_j(1 + r x) dx by the s-point Gauss rule (t, w) on [0, 1]
+ * (core.extrapolation_matrix, operation for operation): the previous step's polynomial
+ * continued over a step r times as long. E (s, s); c: scratch (4 s). */
+void hbvm_extrapolation_matrix(double r, const double *t, const double *w, int s, double *E,
+                               double *c)
+{
+    double *b0 = c, *b1 = c + s, *l0v = c + 2 * s, *l1v = c + 3 * s;
+    for (int j = 0; j < s; ++j) {
+        b0[j] = (2.0 * j + 1.0) / (j + 1.0);
+        b1[j] = j / (j + 1.0);
+    }
+    for (int i = 0; i < s * s; ++i)
+        E[i] = 0.0;
+    for (int q = 0; q < s; ++q) {
+        const double z0 = 2.0 * t[q] - 1.0;
+        const double z1 = 2.0 * (1.0 + r * t[q]) - 1.0;
+        double m0 = 0.0, l0 = 1.0, m1 = 0.0, l1 = 1.0;
+        for (int j = 0; j < s; ++j) {
+            l0v[j] = l0;
+            l1v[j] = l1;
+            const double n0 = b0[j] * z0 * l0 - b1[j] * m0;
+            const double n1 = b0[j] * z1 * l1 - b1[j] * m1;
+            m0 = l0;
+            l0 = n0;
+            m1 = l1;
+            l1 = n1;
+        }
+        for (int i = 0; i < s; ++i) {
+            const double wa = w[q] * l0v[i];
+            for (int j = 0; j < s; ++j)
+                E[i * s + j] += wa * l1v[j];
+        }
+    }
+    for (int i = 0; i < s; ++i)
+        l0v[i] = sqrt(2.0 * i + 1.0);
+    for (int i = 0; i < s; ++i)
+        for (int j = 0; j < s; ++j)
+            E[i * s + j] *= l0v[i] * l0v[j];
+}

@@ -9,6 +9,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -522,7 +523,62 @@ fail:
     return NULL;
 }
 
+/* select_extrapolation(h, h_prev, E1, t, w, buf, zero): core.select_extrapolation's rule (the
+ * initial guess's matrix for a step h after one of h_prev, nan: none), returning the array it
+ * chose: E1 (the same step), zero (a step more than MAX_EXTRAPOLATION times longer), or buf
+ * filled with E(h / h_prev) (a sliver, |r| < TINY_RATIO, takes r = 0) */
+static PyObject *py_select_extrapolation(PyObject *self, PyObject *args)
+{
+    double h, hp;
+    PyObject *E1, *to, *wo, *bo, *zo;
+    if (!PyArg_ParseTuple(args, "ddOOOOO", &h, &hp, &E1, &to, &wo, &bo, &zo))
+        return NULL;
+    if (isnan(hp) || h == hp) {
+        Py_INCREF(E1);
+        return E1;
+    }
+    double r = h / hp;
+    if (fabs(r) > 4.0) {            /* core.MAX_EXTRAPOLATION */
+        Py_INCREF(zo);
+        return zo;
+    }
+    if (fabs(r) < 1e-3)             /* core.TINY_RATIO */
+        r = 0.0;
+    bufset bs = {.n = 0};
+    Py_ssize_t st[1], sw[1], sb[2];
+    const double *t = get(&bs, to, "t", 1, 0, st);
+    if (!t)
+        goto fail;
+    const double *w = get(&bs, wo, "w", 1, 0, sw);
+    if (!w)
+        goto fail;
+    double *E = get(&bs, bo, "buf", 2, 1, sb);
+    if (!E)
+        goto fail;
+    const int s = (int)st[0];
+    if (sw[0] != s || sb[0] != s || sb[1] != s)
+        SHAPE_ERR("buf", "(s, s) for the s-point rule (t, w)");
+    double scratch[4 * 64];
+    double *c = s <= 64 ? scratch : malloc(4 * (size_t)s * sizeof(double));
+    if (!c) {
+        release(&bs);
+        return PyErr_NoMemory();
+    }
+    hbvm_extrapolation_matrix(r, t, w, s, E, c);
+    if (c != scratch)
+        free(c);
+    release(&bs);
+    Py_INCREF(bo);
+    return bo;
+fail:
+    release(&bs);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
+    {"select_extrapolation", py_select_extrapolation, METH_VARARGS,
+     "select_extrapolation(h, h_prev, E1, t, w, buf, zero) -> the initial guess's matrix "
+     "(core.select_extrapolation's rule)"},
     {"kinetic", py_kinetic, METH_VARARGS,
      "kinetic(p, kin_w) -> sum_i kin_w_i p_i^2 / 2, summed in order (core.weighted_kinetic)"},
     {"run", py_run, METH_VARARGS,
