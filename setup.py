@@ -10,7 +10,9 @@ fused multiply-add where the source has none, so that every build gives the same
 (the explicit ``fma`` of the compensated sums stays); ``-fno-math-errno`` lets ``sqrt`` run
 in the vector lanes.
 """
+import hashlib
 import os
+from pathlib import Path
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
@@ -19,6 +21,16 @@ BASE = ["-O3", "-std=c11", "-ffp-contract=off", "-fno-math-errno"]
 NATIVE = ["-march=native"]
 SOURCES = ["integrators/csrc/pymodule.c", "integrators/csrc/hbvm_step.c",
            "integrators/csrc/kernels_nbody.c", "integrators/csrc/kernels_simple.c"]
+
+
+def source_digest(root=".") -> str:
+    """The first 16 hex digits of the SHA-256 of the core's sources (integrators/csrc), built
+    into the extension: integrators.ccore refuses a core older than its sources (an editable
+    install whose C changed and was not rebuilt, or whose rebuild failed)."""
+    h = hashlib.sha256()
+    for f in sorted(Path(root, "integrators", "csrc").glob("*.[ch]")):
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def _profile() -> list:
@@ -36,7 +48,8 @@ class BuildCore(build_ext):
 
     def build_extension(self, ext):
         flags = (BASE if _portable() else BASE + NATIVE) + _profile()
-        ext.extra_compile_args = flags + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
+        digest = [f'-DHBVM_SOURCE_DIGEST="{source_digest()}"']
+        ext.extra_compile_args = flags + digest + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
         try:
             super().build_extension(ext)
         except Exception:
@@ -44,7 +57,7 @@ class BuildCore(build_ext):
                 raise
             self.warn("the compiler refused -march=native: building the portable core")
             flags = BASE + _profile()
-            ext.extra_compile_args = flags + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
+            ext.extra_compile_args = flags + digest + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
             super().build_extension(ext)
 
 

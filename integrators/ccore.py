@@ -32,6 +32,31 @@ try:
 except ImportError:            # (installed without a compiler: the numba step serves)
     _core = None
 
+
+def source_digest(root) -> str | None:
+    """setup.py's digest of the core's sources under ``root``, or None when they are not
+    there (an installed, not editable, package)."""
+    import hashlib
+    from pathlib import Path
+    files = sorted(Path(root, "integrators", "csrc").glob("*.[ch]"))
+    if not files:
+        return None
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+#: why the built core is not used (None: it is)
+STALE = None
+if _core is not None:
+    _digest = source_digest(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if _digest is not None and _digest != _core.SOURCE_DIGEST:
+        STALE = ("the compiled core (integrators/_core) was built from other sources than "
+                 "integrators/csrc holds now (an editable install whose C changed, or whose "
+                 "rebuild failed): run `pip install -e .` again; the numba step serves until then")
+        _core = None
+
 _log = logging.getLogger("hbvm_md")
 _warned = []
 
@@ -54,8 +79,12 @@ def available() -> bool:
     if _core is None:
         if not _warned:
             _warned.append(True)
-            _log.info("hbvm-md: the compiled core was not built (no C compiler at install); "
-                      "the step is compiled by numba instead")
+            if STALE:
+                import warnings
+                warnings.warn("hbvm-md: " + STALE, RuntimeWarning, stacklevel=3)
+            else:
+                _log.info("hbvm-md: the compiled core was not built (no C compiler at "
+                          "install); the step is compiled by numba instead")
         return False
     return os.environ.get("HBVM_MD_CORE", "").lower() != "numba"
 
@@ -77,6 +106,16 @@ class CoreStep:
         self.kernel = kernel
         self._fallback = fallback
         self._numba = None
+        self._scratch = np.zeros(0)
+
+    def scratch(self, method, m: int) -> np.ndarray:
+        """The core's work arrays for this method and m coordinates, kept between calls (a
+        call that allocated and zeroed its own paid for it at every step of a host that calls
+        one step at a time: 10 MB for 4096 atoms)."""
+        n = _core.work_size(method.tn.shape[1], method.ts.shape[1], m)
+        if self._scratch.shape[0] != n:
+            self._scratch = np.zeros(n)
+        return self._scratch
 
     def numba_step(self):
         if self._numba is None:
@@ -88,7 +127,7 @@ class CoreStep:
             return self.numba_step().run(system, state, h, E, method, newton, opts, wk,
                                          samples)
         return _core.run(self.kernel, system, state, float(h), E, method, newton, opts, wk,
-                         samples)
+                         samples, None, self.scratch(method, system.minv.shape[0]))
 
     def energy_parts(self, full, y, kin_w, params):
         if full:
@@ -131,7 +170,7 @@ class PythonCoreStep(CoreStep):
                                          samples)
         kern = self._kernel(method.tn.shape[1], system.minv.shape[0], system.params)
         return _core.run(_core.PYTHON, system, state, float(h), E, method, newton, opts, wk,
-                         samples, kern)
+                         samples, kern, self.scratch(method, system.minv.shape[0]))
 
     def energy_parts(self, full, y, kin_w, params):
         if full:

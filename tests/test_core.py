@@ -61,6 +61,7 @@ class Anharmonic(SeparableSystem):
 
 def test_the_core_is_built():
     # CI installs with a compiler: a missing core would silently fall back to numba
+    assert ccore.STALE is None, ccore.STALE
     assert ccore._core is not None, "integrators._core was not built (setup.py)"
     assert ccore.lanes() in (2, 4, 8)
 

@@ -101,7 +101,11 @@ typedef struct {
  * contract). E (s, s): the initial guess's extrapolation matrix. */
 int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, double h,
              const double *E, const hbvm_tableau *tab, const hbvm_options *opts,
-             double *counters, hbvm_samples *samples);
+             double *counters, hbvm_samples *samples, double *scratch, size_t nscratch);
+
+/* the scratch hbvm_run works in (doubles) for k stages, s coefficients, m coordinates: handed
+ * over zeroed and kept between calls (scratch NULL: the run allocates its own) */
+size_t hbvm_work_size(int k, int s, int m);
 
 /* the kinetic and potential energies at y (2m,) */
 int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,

@@ -9,6 +9,7 @@
  * here say only where this code differs (the layout). */
 #include <math.h>
 #include <stdlib.h>
+#include <stdint.h>
 #include <string.h>
 
 #include "hbvm_core.h"
@@ -109,8 +110,6 @@ typedef struct {
     double *P, *Q;               /* (m, kp) the stages' parts fixed for a step: q0 + h tau v0 and
                                   * the rounding terms of h tau v0 and of the state's low part */
     double *X1, *F1;             /* (m, L) one point (the first guess, the endpoint defect) */
-    double *acc, *acc_lo;        /* (m, kp) the stage sums, every coordinate's */
-    double *gv, *gv_lo;          /* (m, sp) the projection's sums */
     double *ET;                  /* (s, sp) E transposed: the guess's rows as lanes */
     double *pw;                  /* (k) W[0, i] P_s(tau_i): the omitted coefficient's weights */
     double *yt, *cyt;            /* (2m) the trial state */
@@ -119,34 +118,57 @@ typedef struct {
     void *block;
 } work_t;
 
-static int work_alloc(work_t *w, const hbvm_tableau *tab, int m)
+/* the work arrays' lengths (doubles) for k stages, s coefficients and m coordinates; each a
+ * multiple of L long, so that each starts aligned */
+#define N_WORK 23
+static size_t work_sizes(int k, int s, int m, size_t *sizes)
+{
+    const size_t kp = hbvm_padded(k), sp = hbvm_padded(s), mp = (m + JB - 1) / JB * JB;
+    const size_t sz[N_WORK] = {kp, kp, s * kp, s * kp, k * sp, k * sp, mp * sp, mp * sp,
+                               m * kp, mp * kp, m * kp, m * kp, m * kp, m * kp, m * L, m * L,
+                               s * sp, k, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
+    size_t total = 0;
+    for (int i = 0; i < N_WORK; ++i) {
+        sizes[i] = (sz[i] + L - 1) / L * L;
+        total += sizes[i];
+    }
+    return total;
+}
+
+size_t hbvm_work_size(int k, int s, int m)
+{
+    size_t sizes[N_WORK];
+    return work_sizes(k, s, m, sizes) + L;        /* (+ L: room to align the start) */
+}
+
+/* the work arrays in `scratch` (hbvm_work_size(k, s, m) doubles, zero when first handed over:
+ * the padded rows and lanes must stay zero, and nothing writes them), or in a block of their
+ * own when scratch is NULL */
+static int work_alloc(work_t *w, const hbvm_tableau *tab, int m, double *scratch, size_t nscratch)
 {
     const int k = tab->k, s = tab->s;
     const int kp = hbvm_padded(k), sp = hbvm_padded(s);
     const int mp = (m + JB - 1) / JB * JB;
     w->k = k, w->kp = kp, w->s = s, w->sp = sp, w->m = m, w->mp = mp;
-    /* every array a multiple of L doubles long, so that each starts aligned */
-    size_t sizes[] = {kp, kp, (size_t)s * kp, (size_t)s * kp, (size_t)k * sp, (size_t)k * sp,
-                      (size_t)mp * sp, (size_t)mp * sp, (size_t)mp * kp, (size_t)mp * kp,
-                      (size_t)mp * kp, (size_t)mp * kp, (size_t)m * kp, (size_t)m * kp,
-                      (size_t)m * L, (size_t)m * L,
-                      (size_t)m * kp, (size_t)m * kp, (size_t)m * sp, (size_t)m * sp,
-                      (size_t)s * sp, k, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
-    double **ptrs[] = {&w->ht, &w->ht_lo, &w->C2T, &w->C2T_lo, &w->WT, &w->WT_lo, &w->a, &w->g,
-                       &w->X, &w->F, &w->Xp, &w->Fp, &w->P, &w->Q, &w->X1, &w->F1, &w->acc, &w->acc_lo,
-                       &w->gv, &w->gv_lo, &w->ET, &w->pw, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
-    const int n = (int)(sizeof sizes / sizeof sizes[0]);
-    size_t total = 0;
-    for (int i = 0; i < n; ++i)
-        total += (sizes[i] + L - 1) / L * L;
-    w->block = aligned_alloc(8 * L, (total > 0 ? total : L) * sizeof(double));
-    if (!w->block)
-        return -1;
-    memset(w->block, 0, total * sizeof(double));
-    double *p = w->block;
-    for (int i = 0; i < n; ++i) {
+    size_t sizes[N_WORK];
+    const size_t total = work_sizes(k, s, m, sizes);
+    double **ptrs[N_WORK] = {&w->ht, &w->ht_lo, &w->C2T, &w->C2T_lo, &w->WT, &w->WT_lo, &w->a,
+                             &w->g, &w->X, &w->F, &w->Xp, &w->Fp, &w->P, &w->Q, &w->X1, &w->F1,
+                             &w->ET, &w->pw, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
+    double *p;
+    w->block = NULL;
+    if (scratch != NULL && nscratch >= total + L) {
+        p = (double *)(((uintptr_t)scratch + 8 * L - 1) / (8 * L) * (8 * L));
+    } else {
+        w->block = aligned_alloc(8 * L, (total > 0 ? total : L) * sizeof(double));
+        if (!w->block)
+            return -1;
+        memset(w->block, 0, total * sizeof(double));
+        p = w->block;
+    }
+    for (int i = 0; i < N_WORK; ++i) {
         *ptrs[i] = p;
-        p += (sizes[i] + L - 1) / L * L;
+        p += sizes[i];
     }
     for (int l = 0; l < s; ++l)
         for (int i = 0; i < kp; ++i) {
@@ -593,14 +615,14 @@ static int sample(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_sample
 
 int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, double h,
              const double *E, const hbvm_tableau *tab, const hbvm_options *opts,
-             double *counters, hbvm_samples *smp)
+             double *counters, hbvm_samples *smp, double *scratch, size_t nscratch)
 {
     const int m = sys->m, d = 2 * m, k = tab->k, s = tab->s;
     const double *minv = sys->minv;
     double *y = st->y, *cy = st->cy, *gamma = st->gamma, *eref = st->eref;
     double t = st->clock[0], ct = st->clock[1];
     work_t w;
-    if (work_alloc(&w, tab, m) != 0)
+    if (work_alloc(&w, tab, m, scratch, nscratch) != 0)
         return -1;
     double *g = w.g;
     long isample = 0;
@@ -624,7 +646,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
                 result = fail(counters, HBVM_ABORTED, it0, nfev0, newton0);
                 break;
             }
-            for (int i = 0; i < s; ++i)
+            for (int i = 0; i < w.sp; ++i)
                 for (int j = 0; j < m; ++j)
                     g[j * w.sp + i] = i == 0 ? w.dq[j] : 0.0;
             counters[C_NFEV] += 1;

@@ -201,9 +201,10 @@ static PyObject *py_run(PyObject *self, PyObject *args)
 {
     long kid;
     PyObject *system, *state, *Eo, *method, *newton, *opts, *wk, *samples, *pyk = Py_None;
+    PyObject *scr = Py_None;
     double h;
-    if (!PyArg_ParseTuple(args, "lOOdOOOOOO|O", &kid, &system, &state, &h, &Eo, &method,
-                          &newton, &opts, &wk, &samples, &pyk))
+    if (!PyArg_ParseTuple(args, "lOOdOOOOOO|OO", &kid, &system, &state, &h, &Eo, &method,
+                          &newton, &opts, &wk, &samples, &pyk, &scr))
         return NULL;
     hbvm_kernel kern;
     if (kernel_of(kid, &kern) != 0)
@@ -373,6 +374,12 @@ static PyObject *py_run(PyObject *self, PyObject *args)
         }
     }
     hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
+    double *scratch = NULL;
+    Py_ssize_t nscratch = 0;
+    if (scr != Py_None) {
+        if (!(scratch = get(&bs, scr, "scratch", 1, 1, &nscratch)))
+            goto fail;
+    }
     if (kid == KERNEL_PYTHON && tab.k > pctx.kmax) {
         PyErr_SetString(PyExc_ValueError, "hbvm-md core: the Python kernel's buffers are "
                                           "shorter than the method's stages");
@@ -380,10 +387,12 @@ static PyObject *py_run(PyObject *self, PyObject *args)
     }
     int status;
     if (kid == KERNEL_PYTHON) {          /* (the kernel calls the interpreter: keep the GIL) */
-        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp);
+        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp, scratch,
+                          (size_t)nscratch);
     } else {
         Py_BEGIN_ALLOW_THREADS
-        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp);
+        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp, scratch,
+                          (size_t)nscratch);
         Py_END_ALLOW_THREADS
     }
     release(&bs);
@@ -575,7 +584,17 @@ fail:
     return NULL;
 }
 
+static PyObject *py_work_size(PyObject *self, PyObject *args)
+{
+    int k, s, m;
+    if (!PyArg_ParseTuple(args, "iii", &k, &s, &m))
+        return NULL;
+    return PyLong_FromSize_t(hbvm_work_size(k, s, m));
+}
+
 static PyMethodDef methods[] = {
+    {"work_size", py_work_size, METH_VARARGS,
+     "work_size(k, s, m) -> the doubles of scratch run() works in (zeroed, kept between calls)"},
     {"select_extrapolation", py_select_extrapolation, METH_VARARGS,
      "select_extrapolation(h, h_prev, E1, t, w, buf, zero) -> the initial guess's matrix "
      "(core.select_extrapolation's rule)"},
@@ -612,6 +631,11 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(v);
     }
     PyModule_AddObject(mod, "BUILTINS", builtins);
+#ifdef HBVM_SOURCE_DIGEST
+    PyModule_AddStringConstant(mod, "SOURCE_DIGEST", HBVM_SOURCE_DIGEST);
+#else
+    PyModule_AddStringConstant(mod, "SOURCE_DIGEST", "");
+#endif
 #ifdef HBVM_BUILD_FLAGS
     PyModule_AddStringConstant(mod, "BUILD_FLAGS", HBVM_BUILD_FLAGS);
 #else
