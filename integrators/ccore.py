@@ -17,7 +17,7 @@ same numbers bit for bit (the same operations in the same order).  What it cover
 
 Every other variant runs the numba step of :mod:`integrators.loop`, as before.
 ``HBVM_MD_CORE=numba`` in the environment turns the compiled core off (every step then runs on
-numba, for comparisons); a build without the core (no C compiler at install: setup.py) runs
+numba, for comparisons), and so does ``NUMBA_DISABLE_JIT=1`` (the Python of the loop); a build without the core (no C compiler at install: setup.py) runs
 numba too, with one log line saying so.
 """
 from __future__ import annotations
@@ -75,7 +75,11 @@ if _core is not None:
 
 
 def available() -> bool:
-    """True when the compiled core was built and is not turned off (``HBVM_MD_CORE``)."""
+    """True when the compiled core was built and is not turned off (``HBVM_MD_CORE=numba``,
+    or ``NUMBA_DISABLE_JIT=1``: every step then runs as the Python of integrators.loop, for
+    debugging it)."""
+    if os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0"):
+        return False
     if _core is None:
         if not _warned:
             _warned.append(True)

@@ -520,8 +520,8 @@ class Binding:
                                 np.zeros((0, u, u), dtype=complex))
         n = getattr(method, "work_rows", method.n_stages)
         # (the sizes' arithmetic as Python: compiling it costs a first run more than it saves)
-        nf, nc = work_sizes.py_func(n, s, u, self.minv.shape[0], d)
-        nf += velocity_work.py_func(n, m, self.velocities)
+        nf, nc = getattr(work_sizes, "py_func", work_sizes)(n, s, u, self.minv.shape[0], d)
+        nf += getattr(velocity_work, "py_func", velocity_work)(n, m, self.velocities)
         self.work, self.cwork = np.empty(nf), np.empty(nc, dtype=complex)
         self._eig = None
 
