@@ -295,9 +295,10 @@ def test_sigkilled_worker_loses_nothing(client, tmp_path, timeout):
     killed = []
 
     def kill_first_member_worker():
-        while not log.read_text().split():
+        # member 0's first run waits to be killed: kill it once its line is written
+        while not (first := [ln for ln in log.read_text().splitlines() if ln.startswith("0 ")]):
             time.sleep(0.02)
-        worker, member = map(int, log.read_text().split()[:2])
+        worker, member = map(int, first[0].split()[1:3])
         if timeout is None:
             worker = member                 # in-thread: the member runs in the worker
         os.kill(worker, signal.SIGKILL)
