@@ -330,6 +330,10 @@ class HBVMDynamics(MolecularDynamics):
                   "nodes": self.method.nodes, "solver": self.solver,
                   "tol": self.tol if isinstance(self.tol, str) else self.iteration_tol(),
                   "energy_tol": self.energy_tol, "adaptive": self.adaptive})
+        if self._holonomic is not None:
+            # the rigid-bond step integrates the forces' part across the bonds when the full
+            # forces make its iteration diverge (integrators.holonomic, "forces along the bonds")
+            d["bond_forces_absorbed"] = bool(self._holonomic.stepper.absorbing)
         if self.adaptive:
             d.update({"epsilon": self.epsilon, "inner_steps": self.inner_steps,
                       "inner_rejections": self.inner_rejections})
@@ -380,10 +384,11 @@ class HBVMDynamics(MolecularDynamics):
                 raise ValueError(f"`atoms` {what} are not finite (nan or inf) for atoms {first(bad)}; "
                                  f"check how the structure or the velocities were built")
 
-    def _in_fs(self, err: ConvergenceError) -> ConvergenceError:
+    def _in_fs(self, err: ConvergenceError, own_hint: bool = False) -> ConvergenceError:
         """The same error (same type and attributes, h and t in ASE units) with h and t shown
-        in fs in the message, and a hint in the words of this class."""
-        if type(err) is ConvergenceError:
+        in fs in the message, and a hint in the words of this class (``own_hint``: the
+        error's own, e.g. the rigid-bond step's, which has its own iteration and no Newton)."""
+        if type(err) is ConvergenceError and not own_hint:
             # "auto" has tried Newton after fixed point: suggest a smaller timestep only
             hint = ("try a smaller timestep, or solver='newton' for a stiff problem"
                     if self.solver == "fixed_point" else "try a smaller timestep")

@@ -383,7 +383,9 @@ def holonomic_step(dyn):
             dyn._stage_total += h.system.stage_evaluations
         system = _AtomsSystem(atoms, AtomsConstraints(atoms, other_constraints(atoms)),
                               hasattr(calc, "forces_batch"))
+        absorbing = h is not None and h.stepper.absorbing
         h = dyn._holonomic = HolonomicAtoms(atoms, dyn.method, system, fixed)
+        h.stepper.absorbing = absorbing     # the forces' part along the bonds stays absorbed
     evals = h.system.stage_evaluations
     try:
         if fresh:
@@ -406,7 +408,7 @@ def holonomic_step(dyn):
         if saved_calc is not None:
             calc.atoms, calc.results = saved_calc
         if isinstance(err, StepError):
-            raise dyn._in_fs(err) from None
+            raise dyn._in_fs(err, own_hint=True) from None
         raise
     h.written(atoms)
     dyn._written = (*dyn._current_state(), fixed)
