@@ -387,6 +387,7 @@ def holonomic_step(dyn):
         h = dyn._holonomic = HolonomicAtoms(atoms, dyn.method, system, fixed)
         h.stepper.absorbing = absorbing     # the forces' part along the bonds stays absorbed
     evals = h.system.stage_evaluations
+    h.system.nonfinite_at = None
     try:
         if fresh:
             h.start(atoms)
@@ -408,6 +409,7 @@ def holonomic_step(dyn):
         if saved_calc is not None:
             calc.atoms, calc.results = saved_calc
         if isinstance(err, StepError):
+            err = dyn._calculator_nonfinite(err, h.system, pos0)
             raise dyn._in_fs(err, own_hint=True) from None
         raise
     h.written(atoms)

@@ -1,0 +1,65 @@
+"""Messages and small defects of issue 58, item 6: each case takes the way out it names."""
+import numpy as np
+import pytest
+from ase import units
+from ase.calculators.calculator import Calculator, all_changes
+from ase.cluster import Icosahedron
+
+from hbvm_md.ase import HBVMDynamics
+from integrators import NonFiniteError
+
+
+class NanForces(Calculator):
+    """A harmonic well whose force on atom 0 is nan: everywhere (``where="everywhere"``), or
+    everywhere but at the positions it was built with (``where="off_start"``)."""
+    implemented_properties = ["energy", "forces"]
+
+    def __init__(self, start, where="everywhere"):
+        super().__init__()
+        self.start, self.where, self.calls = np.array(start), where, 0
+
+    def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+        super().calculate(atoms, properties, system_changes)
+        self.calls += 1
+        x = atoms.get_positions() - self.start
+        f = -x
+        if self.where == "everywhere" or np.any(x != 0.0):
+            f[0, 0] = np.nan
+        self.results = {"energy": 0.5 * float(np.sum(x * x)), "forces": f}
+
+
+def _cluster(where):
+    atoms = Icosahedron("Cu", noshells=2)
+    atoms.calc = NanForces(atoms.get_positions(), where)
+    atoms.set_momenta(np.random.default_rng(1).normal(size=(13, 3)))
+    return atoms
+
+
+def test_adaptive_steps_stop_at_once_on_a_calculator_that_returns_nan():
+    """Not ~1075 halvings and a StepSizeError advising a smaller min_dt: the forces at the
+    step's start are not finite, so no shorter step helps; the calculator is named."""
+    atoms = _cluster("everywhere")
+    pos0 = atoms.get_positions()
+    dyn = HBVMDynamics(atoms, timestep=2 * units.fs, adaptive=True)
+    with pytest.raises(NonFiniteError, match=r"at t=0 fs .*the calculator NanForces returned a "
+                       r"force that is not finite \(nan or inf\) on atom 0 at the positions the "
+                       r"step starts from, so no smaller timestep helps; check the calculator"):
+        dyn.run(1)
+    assert atoms.calc.calls < 200
+    assert np.array_equal(atoms.get_positions(), pos0)
+
+
+@pytest.mark.parametrize("where", ["everywhere", "off_start"])
+def test_nonfinite_error_of_a_calculator_names_the_calculator(where):
+    """Fixed steps: the calculator, not "coincident particles"; at the start or at a stage."""
+    atoms = _cluster(where)
+    dyn = HBVMDynamics(atoms, timestep=2 * units.fs)
+    with pytest.raises(NonFiniteError) as info:
+        dyn.run(1)
+    text = str(info.value)
+    assert "coincident particles" not in text
+    assert "the calculator NanForces returned a force that is not finite (nan or inf) on atom 0" in text
+    if where == "everywhere":
+        assert "at the positions the step starts from, so no smaller timestep helps" in text
+    else:
+        assert "at a stage of the step" in text and "a smaller timestep" in text
