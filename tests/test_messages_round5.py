@@ -63,3 +63,31 @@ def test_nonfinite_error_of_a_calculator_names_the_calculator(where):
         assert "at the positions the step starts from, so no smaller timestep helps" in text
     else:
         assert "at a stage of the step" in text and "a smaller timestep" in text
+
+
+def test_linear_triatomic_not_in_a_line_is_named_and_the_ways_out_run():
+    """Not a silent straightening (nor "a bond length is off"): the atom off the axis, by how
+    much, the angle; the atom put on the axis runs, and so does FixBondLengths on the bent one."""
+    from ase import Atoms
+    from ase.calculators.lj import LennardJones
+    from ase.constraints import FixBondLengths, FixLinearTriatomic
+    bent = [[0, 0, 0], [1.16, 0.3, 0], [2.32, 0, 0]]
+    atoms = Atoms("OCO", positions=bent)
+    atoms.set_constraint(FixLinearTriatomic(triples=[(0, 1, 2)]))
+    atoms.calc = LennardJones(sigma=1.0, rc=5.0)
+    with pytest.raises(ValueError, match=r"FixLinearTriatomic\(0, 1, 2\): the three atoms are not "
+                       r"in a line \(atom 1 is 0\.3 A off the axis through atoms 0 and 2; the "
+                       r"angle 0-1-2 is 151 degrees, not 180\); .*put atom 1 on that axis, or "
+                       r"hold a bent molecule with FixBondLengths on its three pairs"):
+        HBVMDynamics(atoms, timestep=0.5 * units.fs).run(1)
+    assert np.array_equal(atoms.get_positions(), bent)
+    straight = Atoms("OCO", positions=[[0, 0, 0], [1.16, 0, 0], [2.32, 0, 0]])
+    straight.set_constraint(FixLinearTriatomic(triples=[(0, 1, 2)]))
+    straight.calc = LennardJones(sigma=1.0, rc=5.0)
+    HBVMDynamics(straight, timestep=0.5 * units.fs).run(2)
+    rigid = Atoms("OCO", positions=bent)
+    rigid.set_constraint(FixBondLengths([(0, 1), (1, 2), (0, 2)]))
+    rigid.calc = LennardJones(sigma=1.0, rc=5.0)
+    d0 = rigid.get_all_distances()
+    HBVMDynamics(rigid, timestep=0.5 * units.fs).run(2)
+    assert np.allclose(rigid.get_all_distances(), d0, atol=1e-12)

@@ -52,6 +52,9 @@ REFUSED = {
     "ExternalForce": "the constrained step has no energy terms yet",
 }
 HOLONOMIC_CLASSES = (FixBondLengths, FixLinearTriatomic)
+#: a FixLinearTriatomic's central atom farther than this (relative to the n-m distance) off the
+#: n-m axis at the start is refused: the three atoms are not in a line
+LINEAR_RTOL = 1e-8
 
 
 def bond_constraints(atoms) -> list:
@@ -306,6 +309,7 @@ class HolonomicAtoms:
         ValueError naming a set of bonds whose lengths are not independent."""
         self.stepper.reset()
         self._last = None
+        self._check_linear(atoms)
         y, py = self._reduced(atoms)
         st = self.stepper
         moving = st._moving
@@ -328,6 +332,33 @@ class HolonomicAtoms:
         atoms.set_positions(q, apply_constraint=False)
         atoms.set_momenta(p, apply_constraint=False)
         self._last = (atoms.get_positions(), atoms.get_momenta(), y, py)
+
+    def _check_linear(self, atoms) -> None:
+        """Refuse (ValueError) a FixLinearTriatomic whose three atoms are not in a line at the
+        start: the reduced coordinates would drop the central atom's part off the axis, i.e.
+        straighten the molecule without a word."""
+        t = self.lin.triples
+        if not t.size:
+            return
+        q = atoms.get_positions()
+        r_no, r_nm = q[t[:, 1]] - q[t[:, 0]], q[t[:, 2]] - q[t[:, 0]]
+        if atoms.pbc.any():
+            r_no, _ = find_mic(r_no, atoms.cell, atoms.pbc)
+            r_nm, _ = find_mic(r_nm, atoms.cell, atoms.pbc)
+        d_nm = np.linalg.norm(r_nm, axis=1)
+        off = np.linalg.norm(np.cross(r_no, r_nm), axis=1) / np.maximum(d_nm, 1e-300)
+        bad = np.flatnonzero(off > LINEAR_RTOL * d_nm)
+        if bad.size:
+            n, o, m = (int(x) for x in t[bad[0]])
+            a, b = r_no[bad[0]], r_nm[bad[0]] - r_no[bad[0]]
+            angle = np.degrees(np.arccos(np.clip(np.dot(-a, b) / (np.linalg.norm(a)
+                                                               * np.linalg.norm(b)), -1, 1)))
+            raise ValueError(
+                f"FixLinearTriatomic({n}, {o}, {m}): the three atoms are not in a line (atom {o} "
+                f"is {off[bad[0]]:.3g} A off the axis through atoms {n} and {m}; the angle "
+                f"{n}-{o}-{m} is {angle:.6g} degrees, not 180); the constraint holds a "
+                f"linear molecule: put atom {o} on that axis, or hold a bent molecule with "
+                f"FixBondLengths on its three pairs")
 
     def _name(self, b: int) -> str:
         """A bond of the reduced step as the user wrote it."""
