@@ -91,3 +91,58 @@ def test_linear_triatomic_not_in_a_line_is_named_and_the_ways_out_run():
     d0 = rigid.get_all_distances()
     HBVMDynamics(rigid, timestep=0.5 * units.fs).run(2)
     assert np.allclose(rigid.get_all_distances(), d0, atol=1e-12)
+
+
+# -- REBOUND ----------------------------------------------------------------------------------
+def _planet(**kw):
+    rebound = pytest.importorskip("rebound")
+    import hbvm_md  # noqa: F401
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.1)
+    sim.integrator = "hbvm"
+    for key, value in kw.items():
+        setattr(sim.integrator, key, value)
+    return sim
+
+
+def test_integrate_to_nan_is_refused_not_run_forever():
+    sim = _planet()
+    xs = [tuple(p.xyz) for p in sim.particles]
+    for bad in (float("nan"), np.nan):
+        with pytest.raises(ValueError, match=r"sim.integrate\(tmax\) needs a number for tmax "
+                           r"\(got tmax=nan, which no time reaches: the run would never end\); "
+                           r"pass the time to integrate to, or inf"):
+            sim.integrate(bad)
+    assert sim.t == 0.0 and [tuple(p.xyz) for p in sim.particles] == xs
+    sim.integrate(0.5)          # the way out
+    assert sim.t == 0.5
+
+
+def test_a_force_that_writes_velocities_is_warned_about():
+    """A "force" that kicks the velocities: the stages drop what it writes (warned, with the
+    ways out); the way out, the same effect as an acceleration, runs without the warning."""
+    import warnings
+    sim = _planet()
+
+    def kick(reb_sim):
+        ps = reb_sim.contents.particles
+        ps[1].vx *= 0.999
+
+    sim.additional_forces = kick
+    with pytest.warns(RuntimeWarning, match=r"sim.additional_forces \('.*kick'\) writes the "
+                      r"particles' velocities: HBVM's stages take only the accelerations it "
+                      r"writes .* Write the effect as an acceleration"):
+        sim.integrate(0.5)
+    sim2 = _planet()
+
+    def drag(reb_sim):
+        ps = reb_sim.contents.particles
+        ps[1].ax -= 1e-3 * ps[1].vx
+
+    sim2.additional_forces = drag
+    sim2.force_is_velocity_dependent = 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sim2.integrate(0.5)
+    assert sim2.t == 0.5

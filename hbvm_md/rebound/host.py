@@ -239,6 +239,7 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_integrate(self, tmax, exact_finish_time)
+        _check_tmax(tmax)
         with _Run(addr, self) as run:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
@@ -277,6 +278,20 @@ def _install_runs(rebound) -> None:
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _check_tmax(tmax) -> None:
+    """Refuse ``sim.integrate(nan)``: REBOUND's run loop compares t with tmax, and a nan never
+    compares, so the run would never end (IAS15's hangs).  Infinity is REBOUND's run until an
+    exit condition (a collision, an escape, ``sim.exit_min_distance``): kept."""
+    try:
+        nan = math.isnan(tmax)
+    except TypeError:
+        return                      # (REBOUND's own TypeError, from c_double)
+    if nan:
+        raise ValueError(f"sim.integrate(tmax) needs a number for tmax (got tmax={tmax!r}, which "
+                         "no time reaches: the run would never end); pass the time to integrate "
+                         "to, or inf for a run that an exit condition stops")
 
 
 def _warn_step_archive(addr: int) -> None:
@@ -958,7 +973,7 @@ def _prepare(sim, p: int) -> None:
         # them
         _check_host_path(sim, method, reasons)
         _clear_gravity_ignore(sim)
-        if not sim.force_is_velocity_dependent and sim._additional_forces:
+        if sim._additional_forces:
             _probe_velocities(sim, view, ix, ivx, reasons)
         scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
         nb = None
@@ -1139,7 +1154,7 @@ def _probe_run(sim) -> None:
     """:func:`_probe_velocities` at the start of a run on REBOUND's own accelerations (the
     step's preparation probes the first run): a force may start reading the velocities later
     (a drag switched on at some time)."""
-    if not sim._additional_forces or sim.force_is_velocity_dependent:
+    if not sim._additional_forces:
         return
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     N = sim.N
@@ -1160,22 +1175,44 @@ def _probe_velocities(sim, view, ix, ivx, reasons=None) -> None:
     velocities, order 2s) and a warning names the force and the flag.  The particles' positions
     and velocities are as before; the accelerations are scratch (each stage computes them).
     Done when the step is prepared and at the start of every later run (:func:`_probe_run`):
-    two evaluations of the forces a run."""
+    two evaluations of the forces a run.  A force that writes the particles' velocities or
+    positions (a kick in the force) is warned about: the stages drop what it writes there."""
     lib = _rebound().clibrebound
     ax = _REG["ax"]
     v0 = view[:, ivx:ivx + 3].copy()
+    x0 = view[:, ix:ix + 3].copy()
     scale = float(np.max(np.abs(v0))) or 1.0
     # every component moved, by different amounts, so that no symmetry of a force hides it
     dv = 1e-3 * scale * (1.0 + np.arange(v0.size).reshape(v0.shape) / v0.size)
+    flagged = bool(sim.force_is_velocity_dependent)
     try:
         lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
         a0 = view[:, ax:ax + 3].copy()
+        wrote = {name for name, part, was in (("velocities", view[:, ivx:ivx + 3], v0),
+                                              ("positions", view[:, ix:ix + 3], x0))
+                 if not np.array_equal(part, was)}
+        view[:, ix:ix + 3] = x0
         view[:, ivx:ivx + 3] = v0 + dv
         lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
         a1 = view[:, ax:ax + 3].copy()
+        wrote |= {name for name, part, was in (("velocities", view[:, ivx:ivx + 3], v0 + dv),
+                                               ("positions", view[:, ix:ix + 3], x0))
+                  if not np.array_equal(part, was)}
+        wrote = sorted(wrote, reverse=True)         # (velocities, then positions)
     finally:
         view[:, ivx:ivx + 3] = v0
-    if np.array_equal(a0, a1) or not (np.all(np.isfinite(a0)) and np.all(np.isfinite(a1))):
+        view[:, ix:ix + 3] = x0
+    if wrote:
+        warnings.warn(
+            f"{_force_name(sim, reasons)} writes the particles' {' and '.join(wrote)}: HBVM's "
+            "stages take only the accelerations it writes (each stage sets the positions and "
+            "velocities of its own state before calling it, as IAS15's substeps do), so what it "
+            "writes there is dropped. Write the effect as an acceleration (a drag: "
+            "p.ax -= gamma * p.vx, with sim.force_is_velocity_dependent = 1), or change the "
+            "particles between steps (sim.post_timestep_modifications, a REBOUNDx operator)",
+            RuntimeWarning, stacklevel=_user_stacklevel())
+    if flagged or np.array_equal(a0, a1) or not (np.all(np.isfinite(a0))
+                                                 and np.all(np.isfinite(a1))):
         return
     sim.force_is_velocity_dependent = 1
     warnings.warn(
