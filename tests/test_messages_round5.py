@@ -146,3 +146,67 @@ def test_a_force_that_writes_velocities_is_warned_about():
         warnings.simplefilter("error")
         sim2.integrate(0.5)
     assert sim2.t == 0.5
+
+
+def _with_ode(kind):
+    sim = _planet()
+    ode = sim.create_ode(length=2, needs_nbody=False)
+
+    def rhs(ode, yDot, y, t):
+        if kind == "nan":
+            yDot[0], yDot[1] = float("nan"), 0.0
+        elif kind == "unwritten":
+            yDot[0] = -y[1]
+        else:
+            yDot[0], yDot[1] = -y[1], 0.0
+
+    ode.derivatives = rhs
+    ode.y[0], ode.y[1] = 1.0, 0.5
+    return sim, ode
+
+
+@pytest.mark.parametrize("kind, match", [
+    ("nan", r"the attached ODE sim._odes\[0\] \(length 2\) returns yDot\[0\] = nan from its "
+            r"derivatives at the step's start \(t=0.0, y\[0\] = 1.0\): no step size helps; check "
+            r"the ODE's derivatives function"),
+    ("unwritten", r"the attached ODE sim._odes\[0\] \(length 2\) leaves yDot\[1\] unwritten in "
+                  r"its derivatives .* write every component, yDot\[1\] = 0.0 for a constant one"),
+])
+def test_an_attached_ode_that_returns_nan_or_leaves_ydot_unwritten_is_named(kind, match):
+    """Not "the closest encounter" and a smaller min_dt: the ODE, the component, the way out."""
+    from integrators import NonFiniteError
+    sim, ode = _with_ode(kind)
+    with pytest.raises(NonFiniteError, match=match) as info:
+        sim.integrate(1.0)
+    assert "closest encounter" not in str(info.value) and "min_dt" not in str(info.value)
+    assert sim.t == 0.0 and (ode.y[0], ode.y[1]) == (1.0, 0.5)
+    fixed, fode = _with_ode("written")            # the way out: every component written
+    fixed.integrate(1.0)
+    assert fode.y[0] == pytest.approx(0.5, rel=1e-12) and fode.y[1] == 0.5
+
+
+def test_odes_without_particles_are_refused_with_the_way_out():
+    """REBOUND's test_bs scene (a harmonic oscillator as the only ODE, no particles)."""
+    rebound = pytest.importorskip("rebound")
+    import math
+
+    def derivatives_ho(ode, yDot, y, t):
+        yDot[0], yDot[1] = y[1], -y[0]
+
+    def scene(integrator):
+        sim = rebound.Simulation()
+        sim.integrator = integrator
+        ode = sim.create_ode(length=2, needs_nbody=False)
+        ode.derivatives = derivatives_ho
+        ode.y[0], ode.y[1] = 1.0, 0.0
+        return sim, ode
+
+    sim, ode = scene("hbvm")
+    with pytest.raises(ValueError, match=r"the simulation has no particles, only 1 attached ODE: "
+                       r"HBVM integrates attached ODEs together with the particles .* integrate "
+                       r"ODEs alone with sim.integrator = 'BS'"):
+        sim.integrate(math.pi)
+    assert sim.t == 0.0 and (ode.y[0], ode.y[1]) == (1.0, 0.0)
+    sim, ode = scene("BS")                          # the way out
+    sim.integrate(math.pi)
+    assert ode.y[0] == pytest.approx(-1.0, abs=1e-8)

@@ -825,6 +825,17 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
         return ConvergenceError(h, math.nan, it, "tangent map", t, hint)
     if status == L.TEST_PARTICLE:
         return _test_particle_failure(sim, st, sd, h, t, counters)
+    nonfinite = status == NOT_FINITE or (status == TOO_SMALL
+                                         and int(sd[L.SL_CAUSE_STATUS]) == NOT_FINITE)
+    # (the step hides its ODEs from REBOUND, sim.N_odes = 0, until the run ends: the ones it
+    # was prepared with)
+    odes = _ODES.get(ctypes.addressof(sim)) if sim is not None else None
+    if nonfinite and odes:
+        culprit = _ode_culprit(sim, odes)
+        if culprit is not None:        # the attached ODE, not an encounter or the step size
+            exc = NonFiniteError(h, int(counters[C_LASTIT]), "fixed_point", t, culprit)
+            exc.encounter = None
+            return exc
     enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
     near = _encounter_text(sim, enc, h)
     which = int(st[L.SL_METHOD])                       # the message names the method run
@@ -863,6 +874,44 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                          s=int(st[L.SL_S]))
     exc.encounter = enc
     return exc
+
+
+#: what yDot holds before an ODE's derivatives is called here: a nan no arithmetic makes
+_UNWRITTEN = np.array([0x7FF8DEAD0000BEEF], dtype=np.int64).view(np.float64)[0]
+
+
+def _ode_culprit(sim, odes) -> str | None:
+    """Why an attached ODE makes the step non-finite, or None: each ODE of ``odes``
+    (:func:`hbvm_md.rebound.forces.ode_signature` as prepared) has its ``derivatives``
+    called once at the step's start (sim as before the step, its own ``y``, sim.t) into a
+    yDot marked unwritten; the first component left unwritten (REBOUND's BS keeps what yDot
+    held, zero at first) or not finite is named, with the way out."""
+    call = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                            ctypes.c_double)
+    t = float(sim.t)
+    for j, (a, n, y, deriv, _pre, _post, _ydot) in enumerate(odes):
+        if not (deriv and y and n):
+            continue
+        yd = np.full(n, _UNWRITTEN)
+        call(deriv)(a, yd.ctypes.data, y, t)
+        unwritten = yd.view(np.int64) == _UNWRITTEN.view(np.int64)
+        bad = ~np.isfinite(yd) & ~unwritten
+        which = f"the attached ODE sim._odes[{j}] (length {n})"
+        if unwritten.any():
+            i = int(np.flatnonzero(unwritten)[0])
+            return (f"{which} leaves yDot[{i}] unwritten in its derivatives (at the step's "
+                    f"start, t={t!r}; {int(unwritten.sum())} of {n} components): HBVM takes no "
+                    "stale value for it (REBOUND's BS keeps whatever yDot held); write every "
+                    f"component, yDot[{i}] = 0.0 for a constant one (a Python derivatives "
+                    "function that raised leaves them unwritten too: its traceback is printed "
+                    "above)")
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            return (f"{which} returns yDot[{i}] = {float(yd[i])!r} from its derivatives at the step's "
+                    f"start (t={t!r}, y[{i}] = "
+                    f"{float(np.ctypeslib.as_array((ctypes.c_double * n).from_address(y))[i])!r}"
+                    "): no step size helps; check the ODE's derivatives function there")
+    return None
 
 
 def _python_core(r: int, p: int) -> int:
@@ -956,7 +1005,16 @@ def _prepare(sim, p: int) -> None:
     ix, ivx, im = (offsets[i - L.R_T] for i in (L.R_X, L.R_VX, L.R_M))
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     if N == 0 or not ptr:
-        raise ValueError("the simulation has no particles")
+        n_odes = int(sim._N_odes)
+        if n_odes:
+            raise ValueError(
+                f"the simulation has no particles, only {n_odes} attached ODE"
+                f"{'s' if n_odes > 1 else ''}: HBVM integrates attached ODEs together with the "
+                "particles (at the bodies' stages) and refuses a scene without bodies; integrate "
+                "ODEs alone with sim.integrator = 'BS' (REBOUND's integrator for ODEs, as its "
+                "test_bs does), or add the particles they belong to")
+        raise ValueError("the simulation has no particles; add them (sim.add(...)) before "
+                         "integrating")
     view = doubles(ptr, N * stride).reshape(N, stride)
     na = sim.N_active
     x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
