@@ -210,3 +210,55 @@ def test_odes_without_particles_are_refused_with_the_way_out():
     sim, ode = scene("BS")                          # the way out
     sim.integrate(math.pi)
     assert ode.y[0] == pytest.approx(-1.0, abs=1e-8)
+
+
+def test_kepler_field_at_a_short_step_warns_as_hbvmintegrator_does():
+    """sim.integrator.kepler = 1 with REBOUND's default sim.dt (1/6283 of the period) warns as
+    HBVMIntegrator(sim, kepler=True) does; a step given (dt=...) or long enough does not."""
+    import warnings
+    rebound = pytest.importorskip("rebound")
+    from hbvm_md import HBVMIntegrator
+
+    def scene():
+        sim = rebound.Simulation()
+        sim.add(m=1.0)
+        sim.add(m=1e-3, a=1.0)
+        sim.add(m=1e-3, a=1.6)
+        return sim
+
+    sim = scene()
+    sim.integrator = "hbvm"
+    sim.integrator.epsilon = 0
+    sim.integrator.kepler = 1
+    with pytest.warns(RuntimeWarning, match=r"sim.integrator.kepler = 1 steps sim.dt=0.001, "
+                      r"1/6.28e\+03 of the shortest orbital period \(6.28\): the composed method "
+                      r"is for long steps \(1/25 to 1/50 of it\); set sim.dt, e.g. sim.dt=0.126"):
+        sim.integrate(0.003)
+    with pytest.warns(RuntimeWarning, match=r"kepler=True steps sim.dt=0.001, .*pass dt=\.\.\., "
+                                            r"e.g. dt=0.126") as caught:
+        HBVMIntegrator(scene(), kepler=True)
+    assert len(caught) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        chosen = scene()
+        HBVMIntegrator(chosen, kepler=True, dt=0.001)
+        chosen.integrate(0.003)
+        long = scene()
+        long.integrator = "hbvm"
+        long.integrator.epsilon = 0
+        long.integrator.kepler = 1
+        long.dt = 0.1
+        long.integrate(0.3)
+
+
+def test_repr_of_a_fixed_step_run_does_not_say_adaptive():
+    sim = _planet()
+    assert ", adaptive=1, epsilon=0.001," in repr(sim.integrator)
+    sim.integrator.epsilon = 0          # IAS15's idiom: fixed steps of sim.dt
+    text = repr(sim.integrator)
+    assert "adaptive=1" not in text and ", adaptive=0 (epsilon=0: fixed steps of sim.dt)," in text
+    sim.dt = 0.05
+    sim.integrate(0.1)
+    assert "adaptive=1" not in repr(sim.integrator)
+    sim.integrator.epsilon = 1e-6       # adaptive again, as IAS15
+    assert ", adaptive=1, epsilon=1e-06," in repr(sim.integrator)

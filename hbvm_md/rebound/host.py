@@ -160,6 +160,7 @@ def register() -> None:
     lib.reb_integrator_register(integ, NAME.encode())
     rebound.clibrebound._hbvm_md_registration = reg
     _install_runs(rebound)
+    _install_repr(rebound)
     _install_operators()
     _self_check(rebound)
 
@@ -292,6 +293,32 @@ def _check_tmax(tmax) -> None:
         raise ValueError(f"sim.integrate(tmax) needs a number for tmax (got tmax={tmax!r}, which "
                          "no time reaches: the run would never end); pass the time to integrate "
                          "to, or inf for a run that an exit condition stops")
+
+
+def _install_repr(rebound) -> None:
+    """``repr(sim.integrator)`` of HBVM shows the steps it takes: REBOUND's repr lists the
+    saved fields, and ``sim.integrator.epsilon = 0`` (IAS15's idiom for fixed steps of sim.dt)
+    leaves the field ``adaptive`` at 1 (it must: a later epsilon > 0 is adaptive again), so a
+    fixed-step run showed ``adaptive=1``; it shows ``adaptive=0 (epsilon=0: fixed steps of
+    sim.dt)`` instead.  Other integrators' repr is REBOUND's own."""
+    C = rebound.integrator.IntegratorConfiguration
+    if getattr(C.__repr__, "_hbvm_md", False):
+        return
+    reb_repr = C.__repr__
+
+    def __repr__(self):
+        text = reb_repr(self)
+        try:
+            ours = self.name.decode() == NAME
+        except Exception:  # noqa: BLE001 - (a configuration without a name)
+            ours = False
+        if ours and ", adaptive=1," in text and ", epsilon=0.0," in text:
+            text = text.replace(", adaptive=1,", ", adaptive=0 (epsilon=0: fixed steps of "
+                                "sim.dt),", 1)
+        return text
+
+    __repr__._hbvm_md = True
+    C.__repr__ = __repr__
 
 
 def _warn_step_archive(addr: int) -> None:
