@@ -262,3 +262,33 @@ def test_repr_of_a_fixed_step_run_does_not_say_adaptive():
     assert "adaptive=1" not in repr(sim.integrator)
     sim.integrator.epsilon = 1e-6       # adaptive again, as IAS15
     assert ", adaptive=1, epsilon=1e-06," in repr(sim.integrator)
+
+
+def test_import_hbvm_md_loads_rebound_only_when_rebound_is_imported():
+    """An ASE user's ``import hbvm_md`` does not import REBOUND; ``import rebound`` afterwards
+    (or unpickling a simulation) registers "hbvm", as the README's order (rebound first) does."""
+    import os
+    import subprocess
+    import sys
+    import textwrap
+    from pathlib import Path
+    pytest.importorskip("rebound")
+    root = str(Path(__file__).resolve().parents[1])
+    code = textwrap.dedent('''
+        import sys
+        import hbvm_md
+        from hbvm_md import HBVMDynamics
+        assert "rebound" not in sys.modules, "import hbvm_md imported REBOUND"
+        import rebound
+        sim = rebound.Simulation()
+        sim.add(m=1.0)
+        sim.add(m=1e-3, a=1.0)
+        sim.integrator = "hbvm"
+        sim.integrate(0.5)
+        print("OK", sim.t, sim.integrator)
+    ''')
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["OK", "0.5", "hbvm"]
