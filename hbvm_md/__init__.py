@@ -26,6 +26,8 @@ _LAZY = {
     "compare_rebound": "hbvm_md.reports.rebound_comparison",
     "ReboundComparison": "hbvm_md.reports.rebound_comparison",
     "run_ensemble": "hbvm_md.ensemble",
+    "load_store": "hbvm_md.ensemble",
+    "EnsembleStoreWarning": "hbvm_md.ensemble",
     "precompile": "hbvm_md.compile_ahead",
     "audit": "hbvm_md.reports.audit",
     "AuditReport": "hbvm_md.reports.audit",
