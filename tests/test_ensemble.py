@@ -314,7 +314,7 @@ def test_sigkilled_worker_loses_nothing(client, tmp_path, timeout):
     assert len(log.read_text().splitlines()) == 5          # the killed member ran twice
     worker, member = killed[0]
     assert not _running(worker) and not _running(member)    # the member died with its worker
-    client.wait_for_workers(2, timeout=60)
+    client.wait_for_workers(2, timeout=300)
 
 
 def test_store_of_another_ensemble_is_refused(client, tmp_path):
@@ -382,8 +382,10 @@ def test_ensemble_through_a_scheduler_and_two_worker_processes(tmp_path):
         start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], "scheduler")
         for i in range(2):
             start(["worker", addr, "--nthreads", "1", "--no-dashboard", "--name", f"w{i}"], f"worker{i}")
-        with Client(addr, timeout=30) as c:
-            c.wait_for_workers(2, timeout=60)
+        # (generous: on a loaded machine starting a scheduler and two workers can take a while;
+        # a healthy start takes seconds)
+        with Client(addr, timeout=300) as c:
+            c.wait_for_workers(2, timeout=300)
             assert len(c.scheduler_info()["workers"]) == 2
         recs = run_ensemble(CLONE, [4, 5, 6], client=addr)
         assert [r["result"] for r in recs] == [CLONE(4), CLONE(5), CLONE(6)]

@@ -29,17 +29,15 @@ from systems.nbody import NBody
 #: sim.dt is 0.001: a user who forgot to set a step would wait hours, and the flows' round-off
 #: grows with the number of steps)
 KEPLER_FEW_STEPS = 1000
-#: simulation address -> the step HBVMIntegrator(sim, kepler=True, ...) attached with (given as
-#: dt=..., or warned about there): not warned about when the composed step is prepared with it
-SEEN_DT: dict[int, float] = {}
-
-
-def warn_short_step(sim, h: float, fix: str, stacklevel: int | None = None) -> None:
+def warn_short_step(sim, h: float, fix: str, stacklevel: int | None = None,
+                    state: int | None = None) -> None:
     """The composed method's warning for a step far shorter than it is for (1/25 to 1/50 of
-    the shortest orbital period), naming ``fix`` ("pass dt=", "set sim.dt")."""
+    the shortest orbital period), naming ``fix`` ("pass dt=", "set sim.dt"); not for the step
+    HBVMIntegrator attached HBVM's ``state`` with (host.KEPLER_SEEN_DT)."""
     import warnings
+    from hbvm_md.rebound import host as H
     from hbvm_md.rebound.checks import shortest_period
-    if SEEN_DT.get(ctypes.addressof(sim)) == h:
+    if state is not None and H.KEPLER_SEEN_DT.get(state) == h:
         return
     period = shortest_period(sim)
     if not (math.isfinite(period) and abs(h) < period / KEPLER_FEW_STEPS):
@@ -291,7 +289,7 @@ def prepare_composed(sim, p: int, method) -> None:
         if keep:
             y[4 * m + 7] = sim.t          # (the bodies are those of this time)
     if not keep:
-        warn_short_step(sim, h, "set sim.dt")
+        warn_short_step(sim, h, "set sim.dt", state=p)
         y0 = nb.initial_state()
         check_particles(y0, nb)
         y = H._array(st, L.SL_Y, L.SL_NY, size)

@@ -185,12 +185,20 @@ def _self_check(rebound) -> None:
                            f"own layout says; HBVM's REBOUND host supports {L.SUPPORTED}")
 
 
+#: HBVM's state (its address) -> the step HBVMIntegrator(sim, kepler=True, ...) attached it with
+#: (given as dt=..., or warned about there): the composed step's preparation does not warn about
+#: that step again (hbvm_md.rebound.composed.warn_short_step).  A new state at the address
+#: (:func:`_create`) forgets it: it is another run
+KEPLER_SEEN_DT: dict[int, float] = {}
+
+
 def _create() -> int:
     """REBOUND's ``create``: a new state with HBVM's defaults (REBOUND then reads saved fields
     into it when it loads or copies a simulation)."""
     p = _LIBC.calloc(L.N_SLOTS, 8)
     if not p:
         return 0
+    KEPLER_SEEN_DT.pop(p, None)
     st, sd = _slots(p)
     d = DEFAULTS
     st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (

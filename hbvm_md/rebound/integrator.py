@@ -2,7 +2,6 @@
 settings, and reads its state back (it holds none itself)."""
 from __future__ import annotations
 
-import ctypes
 import math
 
 import numpy as np
@@ -12,7 +11,7 @@ from hbvm_md.rebound.memory import doubles
 from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
                                     shortest_period)
 from hbvm_md.rebound.composed import KEPLER_FEW_STEPS  # noqa: F401  (its home is composed)
-from hbvm_md.rebound.host import NAME, _rebound, _slots, method_of, register
+from hbvm_md.rebound.host import KEPLER_SEEN_DT, NAME, _rebound, _slots, method_of, register
 from integrators import EQUIP, HBVM
 from integrators.equip import DEFAULT_EPSILON as EQUIP_DEFAULT_EPSILON, DEFAULT_S as EQUIP_DEFAULT_S
 from integrators.core import N_COUNTERS
@@ -320,7 +319,7 @@ class HBVMIntegrator(Counted):
         else:
             h = _step_size("sim.dt", sim.dt)
         if kepler:
-            from hbvm_md.rebound.composed import SEEN_DT, check_composed, warn_short_step
+            from hbvm_md.rebound.composed import check_composed, warn_short_step
             check_composed(sim)
             if dt is None:
                 warn_short_step(sim, h, "pass dt=...", stacklevel=3)
@@ -360,7 +359,7 @@ class HBVMIntegrator(Counted):
             # a step given (dt=...) is chosen, a short sim.dt warned about above: the composed
             # step's preparation does not warn about it again (it warns for
             # sim.integrator.kepler = 1 with a short sim.dt)
-            SEEN_DT[ctypes.addressof(sim)] = h
+            KEPLER_SEEN_DT[int(sim.integrator.state)] = h
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":
