@@ -292,3 +292,19 @@ def test_import_hbvm_md_loads_rebound_only_when_rebound_is_imported():
                          timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["OK", "0.5", "hbvm"]
+
+
+def test_nonfinite_error_of_a_calculator_is_named_with_rigid_bonds_too():
+    from ase import Atoms
+    from ase.constraints import FixLinearTriatomic
+    atoms = Atoms("OCO", positions=[[0, 0, 0], [1.16, 0, 0], [2.32, 0, 0]])
+    atoms.set_constraint(FixLinearTriatomic(triples=[(0, 1, 2)]))
+    atoms.calc = NanForces(atoms.get_positions())
+    atoms.set_momenta([[0, 0.1, 0], [0, 0, 0], [0, -0.1, 0]])
+    pos0 = atoms.get_positions()
+    with pytest.raises(NonFiniteError, match=r"the calculator NanForces returned a force that is "
+                       r"not finite \(nan or inf\) on atom 0 at the positions the step starts "
+                       r"from, so no smaller timestep helps") as info:
+        HBVMDynamics(atoms, timestep=1 * units.fs).run(1)
+    assert "coincident particles" not in str(info.value)
+    assert np.array_equal(atoms.get_positions(), pos0)
