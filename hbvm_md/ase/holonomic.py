@@ -28,7 +28,10 @@ refused with the reason (:func:`check_supported`).
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+from ase import units
 from ase.constraints import FixAtoms, FixBondLengths, FixCom, FixLinearTriatomic
 from ase.geometry import find_mic
 
@@ -52,6 +55,13 @@ REFUSED = {
     "ExternalForce": "the constrained step has no energy terms yet",
 }
 HOLONOMIC_CLASSES = (FixBondLengths, FixLinearTriatomic)
+
+
+class BondForcesAbsorbedWarning(RuntimeWarning):
+    """HBVMDynamics' rigid-bond step integrates the forces' part across the bonds from now on:
+    its iteration on the full forces failed (:mod:`integrators.holonomic`, "Forces along the
+    bonds"); warned once per dynamics."""
+
 #: a FixLinearTriatomic's central atom farther than this (relative to the n-m distance) off the
 #: n-m axis at the start is refused: the three atoms are not in a line
 LINEAR_RTOL = 1e-8
@@ -419,6 +429,7 @@ def holonomic_step(dyn):
         h.stepper.absorbing = absorbing     # the forces' part along the bonds stays absorbed
     evals = h.system.stage_evaluations
     h.system.nonfinite_at = None
+    absorbing = h.stepper.absorbing
     try:
         if fresh:
             h.start(atoms)
@@ -432,6 +443,7 @@ def holonomic_step(dyn):
                                         "try a smaller timestep")
     except BaseException as err:
         h.system.stage_evaluations = evals
+        h.stepper.absorbing = absorbing
         if fresh:
             h.stepper.reset()
             h._last = None
@@ -445,4 +457,15 @@ def holonomic_step(dyn):
         raise
     h.written(atoms)
     dyn._written = (*dyn._current_state(), fixed)
+    if h.stepper.absorbing and not absorbing:
+        warnings.warn(
+            f"HBVMDynamics: the rigid-bond step's iteration on the full forces failed at "
+            f"t={t / units.fs:.6g} fs, so from this step on it integrates the forces' part across "
+            "the bonds (the constraint forces absorb the rest; dyn.todict()['bond_forces_"
+            "absorbed']): the bonds and order 2s as before, the energy to O(h^(2s+1)) a step "
+            "instead of the quadrature's error. Expected when the calculator pushes hard along "
+            "the bonds (a pair potential that does not exclude a molecule's own pairs); "
+            "otherwise the timestep is too large: try a smaller one",
+            BondForcesAbsorbedWarning, stacklevel=3)
     return forces
+
