@@ -16,7 +16,7 @@ import warnings
 import numpy as np
 import pytest
 
-from integrators import HBVM, NonFiniteError, Stepper, StepSizeError, integrate
+from integrators import HBVM, NonFiniteError, Stepper, integrate
 from systems import Kepler, NBody
 from systems.base import SeparableSystem
 
