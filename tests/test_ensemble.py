@@ -444,3 +444,20 @@ def test_stability_member_uses_megno_by_default_and_keeps_the_clone_indicator():
     with pytest.raises(ValueError, match=r"`indicator` must be one of \('megno', 'clone'\) "
                                          r"\(got 'fli'\)"):
         stability_member((26.0, 0.0), indicator="fli")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals")
+def test_sigkill_members_do_not_share_a_marker(tmp_path):
+    """"sigkill" run first must not mark "sigkill-once" as killed (they shared one marker file,
+    and in parallel the run order decided whether "sigkill-once" was ever killed)."""
+    log = str(tmp_path / "calls.txt")
+    here = str(Path(__file__).resolve().parent)
+
+    def member(x):
+        code = (f"import sys; sys.path.insert(0, {here!r}); "
+                f"from ensemble_misbehaving import misbehave; misbehave({x!r}, log={log!r})")
+        return subprocess.run([sys.executable, "-c", code], timeout=120).returncode
+
+    assert member("sigkill") == -signal.SIGKILL
+    assert member("sigkill-once") == -signal.SIGKILL        # its own first run, killed
+    assert member("sigkill-once") == 0                      # its second, through
