@@ -105,7 +105,7 @@ def main(argv=None) -> None:
                 print(r, flush=True)
     vv = np.median([r["wall"] for r in rows if r["method"] == "VelocityVerlet"])
     lines = [
-        "# EQUIP on ASE's tutorial copper nanoparticle (issue 35, item 5)",
+        "# EQUIP on ASE's tutorial copper nanoparticle",
         "",
         f"`python benchmarks/bench_equip_nanoparticle.py --seeds {args.seeds} --s "
         f"{' '.join(map(str, args.s))} --steps {args.steps}`: 43 EMT copper atoms "

@@ -24,7 +24,7 @@ from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolatio
 from .core import step_error as error_estimate
 from . import ccore
 from .jit import entry_point
-from .errors import EnergyDriftError, StepError, StepSizeError, step_error
+from .errors import EnergyDriftError, NonFiniteError, StepError, StepSizeError, step_error
 from .protocol import _Adapted, adapt_system
 from .records import Method, Newton, Options, Samples, State, System, Work
 from .quadrature import gauss_rule01
@@ -656,6 +656,12 @@ class Binding:
         return Newton(V, Vinv, NM)
 
 
+#: the hint of an adaptive step's NonFiniteError when the forces at its start are not finite
+NONFINITE_AT_START = ("the forces at the state the step starts from are not finite (nan or "
+                      "inf), so no shorter step helps; check the model there (two bodies on "
+                      "top of each other, a force that breaks down)")
+
+
 def _attach(err: BaseException, result) -> None:
     """Give an exception that stopped a run (not a StepError: those carry ``result`` by
     construction) the samples up to the last committed step, and say so in its notes."""
@@ -1059,6 +1065,12 @@ class Stepper(Counted):
             except EnergyDriftError:
                 raise               # the run's past: no shorter step in its place undoes it
             except StepError as err:
+                if type(err) is NonFiniteError and not self._finite_forces_at_start():
+                    # a force that is not finite where every step starts: no shorter step
+                    # helps (it would halve down to the smallest step first)
+                    self.status = "failed"
+                    raise NonFiniteError(err.h, err.iterations, err.solver, err.t,
+                                         hint=NONFINITE_AT_START) from None
                 status, err_est, cause = FAILED_STEP, math.nan, f"{type(err).__name__}: {err}"
             else:
                 status, err_est = OK, error_estimate(self._gamma, self.binding.minv)
@@ -1075,6 +1087,15 @@ class Stepper(Counted):
                 self.status = "failed"
                 raise StepSizeError(h, min_dt, self.t, cause)
             h = h_new
+
+    def _finite_forces_at_start(self) -> bool:
+        """The forces (grad H in the full form) at the current state are finite: one
+        evaluation, for an adaptive step that failed with non-finite values."""
+        b = self.binding
+        x = self._y if b.full else self._y[: self._y.size // 2]
+        with np.errstate(all="ignore"):
+            f = b.rhs(np.array(x, dtype=float)[None])
+        return bool(np.all(np.isfinite(f)))
 
     def step_toward(self, mark: float, h: float, epsilon: float,
                     min_dt: float) -> tuple[float, float]:

@@ -65,6 +65,29 @@ Newton sweeps on the multipliers: with G frozen at q0 the Jacobian of (2) in rho
 -h X_s (x) G M^-1 G^T (the Kronecker product of the HBVM matrix X_s and the sparse, per
 molecule block matrix S = G M^-1 G^T), which is factorised once a step.
 
+Forces along the bonds.  A calculator that pushes hard inside a rigid molecule (a pair
+potential that does not exclude the molecule's own pairs: Lennard-Jones with sigma = 3 A on
+bonds of 1.16 A gives 1e4-1e5 eV/A along them) is harmless to the constrained problem, whose
+constraint forces absorb every force along the bonds, but not to the iteration: the stage
+positions lie off the bond lengths by O(h^(s+1)), the stiff force there, K delta with h^2 K / m
+in the thousands, is only partly absorbed by a multiplier of degree s - 1 when k > s, and the
+fixed-point iteration runs away at its second iteration.  The step then (``normal_forces="auto"``,
+the default: after the iteration on the full forces failed, and for every later step of the
+stepper) integrates the forces' part across the bonds,
+
+    F_t(u) = F(u) - G(u)^T S(u)^-1 G(u) M^-1 F(u),    S = G M^-1 G^T,
+
+at each stage (the M^-1-orthogonal projection; the part removed is a constraint force).  On
+g = 0 the two problems are the same (the multiplier takes up what F_t leaves out), so the
+method keeps order 2s and the bonds at round-off; the energy argument above gains the term
+-h sum_i w_i nu_i^T G(u_i) u'(c_i h) (nu the removed multiplier), which (2) does not cancel
+when nu is not a polynomial of degree s - 1 in c: O(h^(2s+1)) a step instead of the line
+integral's quadrature error (four rigid CO2 under Lennard-Jones, 100 steps of 2 fs: 4e-12 eV
+against 1.2e-5 eV for VelocityVerlet; rigid water: 2e-9 eV in a potential energy of 2.5e5 eV).
+The tangential part is known to the rounding of the full forces only (eps |F|), which is then
+the iteration's round-off.  ``normal_forces="keep"`` never absorbs (the iteration fails
+instead), ``"absorb"`` always does.
+
 Notes
 -----
 The paper was not at hand when this was written: equations (1)-(2) are the line-integral
@@ -207,6 +230,11 @@ class HolonomicHBVM:
         Project p1 onto G(q1) M^-1 p = 0 after each step keeping its kinetic energy (default;
         see the module docstring).
     max_iterations : int
+    normal_forces : {"auto", "keep", "absorb"}
+        The forces' part along the bonds (module docstring, "Forces along the bonds"):
+        "auto" integrates the full forces, and their part across the bonds once an iteration
+        on the full forces failed (then for every later step: ``absorbing``); "keep" the full
+        forces always; "absorb" the part across the bonds always.
 
     Attributes
     ----------
@@ -216,6 +244,9 @@ class HolonomicHBVM:
         Fixed-point iterations of the last step.
     projection_energy : float
         Kinetic energy the last orthogonal projection took (>= 0), before it was given back.
+    absorbing : bool
+        The steps integrate the forces' part across the bonds (``normal_forces="auto"`` after
+        an iteration on the full forces failed).
 
     Notes
     -----
@@ -224,7 +255,8 @@ class HolonomicHBVM:
     """
 
     def __init__(self, method: HBVM, constraints: BondConstraints, masses, force, *,
-                 project_momenta: bool = True, max_iterations: int = MAX_ITERATIONS):
+                 project_momenta: bool = True, max_iterations: int = MAX_ITERATIONS,
+                 normal_forces: str = "auto"):
         if not isinstance(method, HBVM):
             raise TypeError(f"`method` must be an integrators.HBVM (got {type(method).__name__}); "
                             f"e.g. HBVM(3, 2)")
@@ -252,6 +284,11 @@ class HolonomicHBVM:
         self.constraints = constraints
         self.force = force
         self.project_momenta = bool(project_momenta)
+        if normal_forces not in ("auto", "keep", "absorb"):
+            raise ValueError(f"`normal_forces` must be 'auto', 'keep' or 'absorb' (got "
+                             f"normal_forces={normal_forces!r})")
+        self.normal_forces = normal_forces
+        self.absorbing = False
         self.max_iterations = int(max_iterations)
         self.force_evaluations = 0
         self.iterations = 0
@@ -326,6 +363,18 @@ class HolonomicHBVM:
         e = removed / t_rel / (0.5 * b + np.sqrt(0.25 * b * b + removed / t_rel))
         return pt + e * w, removed
 
+    def _tangential(self, F, R):
+        """The stage forces F (n, N, d) less their part along the constraint normals at each
+        stage, G_i^T S_i^-1 G_i M^-1 F_i (S_i = G_i M^-1 G_i^T at the stage's bond vectors R_i):
+        the part the constraint forces absorb (module docstring, "Forces along the bonds")."""
+        con = self.constraints
+        out = np.empty_like(F)
+        for i in range(F.shape[0]):
+            lu = con.gram(R[i], self.minv)
+            mu = lu.solve(con.apply(R[i:i + 1], (self.minv[:, None] * F[i])[None])[0])
+            out[i] = F[i] - con.transpose_apply(mu[None], R[i:i + 1])[0]
+        return out
+
     def dependent_bonds(self, q, offsets=None, rtol: float = 1e-8):
         """(bond indices, rank) of the first molecule whose bonds are not independent at q
         (the rows of G M^-1/2 on its atoms have rank below their number: the multipliers are
@@ -387,6 +436,30 @@ class HolonomicHBVM:
         h = float(h)
         if not (np.isfinite(h) and h != 0.0):
             raise ValueError(f"`h` must be a nonzero finite number (got h={h!r})")
+        if self.normal_forces == "absorb" or self.absorbing or not len(self.constraints):
+            return self._step(q0, p0, h, offsets, t, absorb=self.normal_forces == "absorb"
+                              or self.absorbing)
+        try:
+            return self._step(q0, p0, h, offsets, t, absorb=False)
+        except ConvergenceError as first:
+            if self.normal_forces == "keep":
+                raise
+            try:
+                out = self._step(q0, p0, h, offsets, t, absorb=True)
+            except ConvergenceError as err:
+                if type(err) is not ConvergenceError:
+                    raise
+                raise ConvergenceError(
+                    h, err.residual, err.iterations, err.solver, t,
+                    f"{err.hint} (this with the forces along the rigid bonds absorbed by the "
+                    f"constraint forces; with the full forces the iteration stopped after "
+                    f"{first.iterations} iterations with increment {first.residual:.3e})") from None
+            self.absorbing = True
+            return out
+
+    def _step(self, q0, p0, h, offsets, t, absorb: bool):
+        """The step of :meth:`step` on checked input; ``absorb``: integrate the stage forces'
+        tangential part (:meth:`_tangential`)."""
         con = self.constraints
         minv = self.minv[:, None]
         c, Pm, W, X, C2, PX, Xinv = self._c, self._P, self._W, self._X, self._C2, self._PX, self._Xinv
@@ -413,6 +486,11 @@ class HolonomicHBVM:
                 raise ValueError(f"`force` returned shape {F.shape} for stage positions of shape "
                                  f"{U.shape}; it must return one force per atom and stage")
             R = con.vectors(U, offsets)
+            floor = 0.0
+            if absorb and np.all(np.isfinite(F)):
+                # the tangential part is known to the rounding of the full forces only
+                floor = 4 * EPS * float(np.max(np.abs(F), initial=0.0))
+                F = self._tangential(F, R)
             WF = np.tensordot(W, F, axes=1)
             dprev = np.inf
             for _ in range(NEWTON_SWEEPS):
@@ -446,7 +524,8 @@ class HolonomicHBVM:
             # stage positions, hence the forces, no longer move beyond STATE_ULPS ulps.  The
             # momenta keep the rounding of the multipliers, eps |q| / h^2 (g(q1) / h is the
             # condition), which lies along the bonds and is removed by the projection.
-            if inc <= 2 * EPS * scale or (it > 1 and move <= STATE_ULPS * EPS * umax):
+            if (inc <= 2 * EPS * scale or inc <= floor
+                    or (it > 1 and move <= STATE_ULPS * EPS * umax)):
                 break
             if it == 1:
                 first = inc

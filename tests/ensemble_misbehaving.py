@@ -19,19 +19,25 @@ def misbehave(x, *, log: str = ""):
         raise KeyboardInterrupt("stop")
     if x == "die":
         os._exit(7)
-    if x == "sigkill" or (x == "sigkill-once" and not Path(log + ".killed").exists()):
-        Path(log + ".killed").touch()
+    # one marker per member: members run in parallel, and "sigkill" must not mark "sigkill-once"
+    # as killed (nor "hang" mark "hang-once" as hung)
+    if x == "sigkill" or (x == "sigkill-once" and not Path(f"{log}.{x}.killed").exists()):
+        Path(f"{log}.{x}.killed").touch()
         os.kill(os.getpid(), signal.SIGKILL)        # as the out-of-memory killer would
-    if x == "hang" or (x == "hang-once" and not Path(log + ".hung").exists()):
-        Path(log + ".hung").touch()
+    if x == "hang" or (x == "hang-once" and not Path(f"{log}.{x}.hung").exists()):
+        Path(f"{log}.{x}.hung").touch()
         while True:             # holds the GIL: no thread could stop this
             pass
     return {"x": x}
 
 
 def sleepy(x, *, log: str):
-    """Writes "worker-pid member-pid" then sleeps 1 s (a member long enough to be killed in)."""
+    """Writes "param worker-pid member-pid"; member 0's first run then waits (up to 120 s) to be
+    killed from outside, every other run returns at once (no race between a kill and a sleep)."""
     with open(log, "a") as f:
-        f.write(f"{os.getppid()} {os.getpid()}\n")
-    time.sleep(1.0)
+        f.write(f"{x} {os.getppid()} {os.getpid()}\n")
+    marker = Path(f"{log}.{x}.started")
+    if x == 0 and not marker.exists():
+        marker.touch()
+        time.sleep(120.0)
     return {"x": x}

@@ -103,3 +103,27 @@ def test_tip3p_rigid_water_conserves_its_energy():
     report = hbvm_md.audit(atoms, units.fs, 30)
     assert report.jumps == []
     assert abs(report.nonconservative_work) < 1e-12 and abs(report.integrator_error) < 1e-11
+
+
+def test_a_structure_that_does_not_move_is_said_not_audited(tmp_path, capsys):
+    """A perfect crystal with no momenta and no --temperature stays where it is: not "conserves
+    its energy" but "did not move ... nothing was audited", with the way out, which moves it;
+    --help gives the default k and why."""
+    from ase.build import bulk
+    from ase.io import write
+    path = tmp_path / "cu.traj"
+    write(path, bulk("Cu", cubic=True))
+    assert main(["audit", str(path), "--calculator", "ase.calculators.emt:EMT", "--steps", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "conserves its energy" not in out
+    assert "The atoms did not move (largest displacement " in out
+    assert "nothing was audited" in out and "--temperature K" in out
+    assert "a sum of magnitudes" in out
+    assert main(["audit", str(path), "--calculator", "ase.calculators.emt:EMT", "--steps", "3",
+                 "--temperature", "300"]) == 0
+    out = capsys.readouterr().out
+    assert "did not move" not in out
+    with pytest.raises(SystemExit):
+        main(["audit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default s + 4: four quadrature nodes beyond s make the quadrature's error " in text

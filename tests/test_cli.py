@@ -91,6 +91,11 @@ def test_demo_quick_writes_plots(tmp_path, capsys):
     assert (out / "energy_md_cluster.png").stat().st_size > 0
     assert "ias15" in text.lower() and "VelocityVerlet" in text
     assert "max rel. angular momentum error" in text and "max abs(L-L0)/abs(L0)" in text
+    # the MD section's cost beside VelocityVerlet's, and when VelocityVerlet is the better choice
+    flat = " ".join(text.split())
+    assert re.search(r"Cost: HBVM\(4, 2\) took [\d.]+x VelocityVerlet's force evaluations and "
+                     r"[\d.]+x its wall time at the same timestep", flat), flat[-1500:]
+    assert "HBVM's best case" in flat and "VelocityVerlet is the better choice" in flat
 
 
 def test_python_dash_m_runs():

@@ -81,10 +81,12 @@ CHILD = textwrap.dedent("""
     y0 = kep.initial_state()
     h = 2 * np.pi / 100
     integrate(HBVM(6, 3), kep, y0, h, 1000)                  # compiled and loaded
-    t0 = time.perf_counter()
-    integrate(HBVM(6, 3), kep, y0, h, 100000, sample_every=1000)
-    per_step = (time.perf_counter() - t0) / 100000
-    steps = int(20.0 / per_step) // 1000 * 1000             # a run of about 20 s
+    per_step = float("inf")
+    for _ in range(3):      # the fastest of three: a loaded machine makes the run longer, not shorter
+        t0 = time.perf_counter()
+        integrate(HBVM(6, 3), kep, y0, h, 30000, sample_every=1000)
+        per_step = min(per_step, (time.perf_counter() - t0) / 30000)
+    steps = int(20.0 / per_step) // 1000 * 1000             # a run of at least about 20 s
     print("ready", steps, flush=True)
     t0 = time.perf_counter()
     try:
@@ -114,7 +116,7 @@ def test_ctrl_c_stops_a_long_compiled_run_and_keeps_its_steps():
         requested = int(line[1])
         time.sleep(1.0)
         os.kill(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=120)
+        out, err = proc.communicate(timeout=600)
     finally:
         if proc.poll() is None:
             proc.kill()

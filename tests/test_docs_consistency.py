@@ -77,3 +77,65 @@ def test_api_pages_do_not_show_internal_base_classes():
     api = (ROOT / "docs" / "api" / "hbvm_md.rst").read_text()
     integrator = api.split(".. autoclass:: HBVMIntegrator")[1].split(".. auto")[0]
     assert ":show-inheritance:" not in integrator
+
+
+# -- issue 58, item 8 ---------------------------------------------------------------------------
+def test_ase_guide_gives_hbvmdynamics_signature_in_its_order():
+    import inspect
+    params = [p for p in inspect.signature(HBVMDynamics.__init__).parameters.values()
+              if p.name != "self" and p.kind is not p.VAR_KEYWORD]
+    wanted = ", ".join(p.name if p.default is p.empty else f"{p.name}={p.default!r}"
+                       for p in params).replace("'", '"')
+    flat = " ".join(ASE_GUIDE.split())
+    assert f"`HBVMDynamics({wanted})`" in flat, wanted
+
+
+def test_quickstart_says_which_subcommands_take_quick():
+    from hbvm_md.cli import build_parser
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+
+    def has_quick(p):
+        if any("--quick" in a.option_strings for a in p._actions):
+            return True
+        inner = [a for a in p._actions if a.__class__.__name__ == "_SubParsersAction"]
+        return bool(inner) and all(has_quick(q) for q in inner[0].choices.values())
+
+    without = sorted(name for name, p in sub.choices.items() if not has_quick(p))
+    text = " ".join((ROOT / "docs" / "quickstart.md").read_text().split())
+    assert without == ["compile"]
+    assert "all but `compile` (which compiles what it is asked) take `--quick`" in text
+    assert "each has `--help` and `--quick`" not in text
+
+
+def test_rebound_guide_quotes_the_readmes_time_against_ias15():
+    readme = (ROOT / "README.md").read_text()
+    guide = " ".join((ROOT / "docs" / "guide" / "rebound.md").read_text().split())
+    ratio = re.search(r"IAS15's energy error \(1\.00x\) in ([\d.]+)x IAS15's time", readme).group(1)
+    assert f"({ratio}x on REBOUND's outer solar system over 1000 Jupiter years" in guide
+    assert "about half of IAS15's time" not in guide
+
+
+def test_api_page_documents_the_ensemble_names_where_run_ensemble_is():
+    """Sphinx's viewcode links a module's objects under the first one's module: run_ensemble,
+    load_store and EnsembleStoreWarning (one source module) are all documented as hbvm_md.*,
+    so the source page's back-links land (they were #hbvm_md.load_store on an anchor
+    hbvm_md.ensemble.load_store)."""
+    import hbvm_md
+    from hbvm_md import ensemble
+    api = (ROOT / "docs" / "api" / "hbvm_md.rst").read_text()
+    part = api.split("Ensembles\n---------")[1].split("\n---")[0]
+    for directive in (".. autofunction:: run_ensemble", ".. autofunction:: load_store",
+                      ".. autoclass:: EnsembleStoreWarning"):
+        assert directive in part
+    assert "currentmodule" not in part and "hbvm_md.ensemble.load_store" not in part
+    assert hbvm_md.load_store is ensemble.load_store
+    assert hbvm_md.EnsembleStoreWarning is ensemble.EnsembleStoreWarning
+
+
+def test_no_section_title_carries_an_issue_number():
+    pages = [*(ROOT / "docs").rglob("*.md"), *(ROOT / "benchmarks" / "results").glob("*.md")]
+    bad = [f"{p.relative_to(ROOT)}: {line}" for p in pages if "_build" not in p.parts
+           for line in p.read_text().splitlines()
+           if line.startswith("#") and re.search(r"\bissues? \d+", line)]
+    assert bad == []

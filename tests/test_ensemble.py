@@ -295,9 +295,10 @@ def test_sigkilled_worker_loses_nothing(client, tmp_path, timeout):
     killed = []
 
     def kill_first_member_worker():
-        while not log.read_text().split():
+        # member 0's first run waits to be killed: kill it once its line is written
+        while not (first := [ln for ln in log.read_text().splitlines() if ln.startswith("0 ")]):
             time.sleep(0.02)
-        worker, member = map(int, log.read_text().split()[:2])
+        worker, member = map(int, first[0].split()[1:3])
         if timeout is None:
             worker = member                 # in-thread: the member runs in the worker
         os.kill(worker, signal.SIGKILL)
@@ -313,7 +314,7 @@ def test_sigkilled_worker_loses_nothing(client, tmp_path, timeout):
     assert len(log.read_text().splitlines()) == 5          # the killed member ran twice
     worker, member = killed[0]
     assert not _running(worker) and not _running(member)    # the member died with its worker
-    client.wait_for_workers(2, timeout=60)
+    client.wait_for_workers(2, timeout=300)
 
 
 def test_store_of_another_ensemble_is_refused(client, tmp_path):
@@ -381,8 +382,10 @@ def test_ensemble_through_a_scheduler_and_two_worker_processes(tmp_path):
         start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], "scheduler")
         for i in range(2):
             start(["worker", addr, "--nthreads", "1", "--no-dashboard", "--name", f"w{i}"], f"worker{i}")
-        with Client(addr, timeout=30) as c:
-            c.wait_for_workers(2, timeout=60)
+        # (generous: on a loaded machine starting a scheduler and two workers can take a while;
+        # a healthy start takes seconds)
+        with Client(addr, timeout=300) as c:
+            c.wait_for_workers(2, timeout=300)
             assert len(c.scheduler_info()["workers"]) == 2
         recs = run_ensemble(CLONE, [4, 5, 6], client=addr)
         assert [r["result"] for r in recs] == [CLONE(4), CLONE(5), CLONE(6)]
@@ -441,3 +444,20 @@ def test_stability_member_uses_megno_by_default_and_keeps_the_clone_indicator():
     with pytest.raises(ValueError, match=r"`indicator` must be one of \('megno', 'clone'\) "
                                          r"\(got 'fli'\)"):
         stability_member((26.0, 0.0), indicator="fli")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals")
+def test_sigkill_members_do_not_share_a_marker(tmp_path):
+    """"sigkill" run first must not mark "sigkill-once" as killed (they shared one marker file,
+    and in parallel the run order decided whether "sigkill-once" was ever killed)."""
+    log = str(tmp_path / "calls.txt")
+    here = str(Path(__file__).resolve().parent)
+
+    def member(x):
+        code = (f"import sys; sys.path.insert(0, {here!r}); "
+                f"from ensemble_misbehaving import misbehave; misbehave({x!r}, log={log!r})")
+        return subprocess.run([sys.executable, "-c", code], timeout=120).returncode
+
+    assert member("sigkill") == -signal.SIGKILL
+    assert member("sigkill-once") == -signal.SIGKILL        # its own first run, killed
+    assert member("sigkill-once") == 0                      # its second, through

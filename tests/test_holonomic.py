@@ -195,3 +195,36 @@ def test_bad_input_named():
         HolonomicHBVM(HBVM(2, 1), BONDS, MASSES[:2], field_force)
     with pytest.raises(ValueError, match="`force` returned shape"):
         HolonomicHBVM(HBVM(2, 1), BONDS, MASSES, lambda Q: Q[:, :2]).step(Q0, np.zeros((3, 3)), 0.1)
+
+
+def stiff_bonds_force(Q):
+    """The field force plus stiff springs along the three bonds of the rigid molecule (as a
+    pair potential that does not exclude a molecule's own pairs): K = 1e6, rest length 0.9."""
+    F = field_force(Q)
+    r = BONDS.vectors(Q)
+    d = np.linalg.norm(r, axis=-1)
+    lam = -1e6 * (d - 0.9) / d
+    return F + BONDS.transpose_apply(lam, r)
+
+
+def test_forces_along_the_bonds_are_absorbed_when_they_make_the_iteration_diverge():
+    """The spring forces are constraint forces on g = 0: "keep" runs away, "auto" absorbs them
+    after that failure (the same trajectory as without the springs, to the method's error), and
+    an ordinary force keeps the full forces (energy to round-off for a polynomial V stays)."""
+    q, p = start(3)
+    with pytest.raises(ConvergenceError, match=r"fixed_point iteration stopped after \d+ "
+                                               r"iterations .*try a smaller timestep"):
+        run(HBVM(3, 2), stiff_bonds_force, q, p, 0.05, 1, normal_forces="keep")
+    st = HolonomicHBVM(HBVM(3, 2), BONDS, MASSES, stiff_bonds_force)
+    plain = HolonomicHBVM(HBVM(3, 2), BONDS, MASSES, field_force)
+    y, z = (q, p), (q, p)
+    for _ in range(40):
+        y = st.step(*y, 0.05)
+        z = plain.step(*z, 0.05)
+    assert st.absorbing and not plain.absorbing
+    assert np.max(np.abs(BONDS.length_errors(y[0]))) < 1e-14
+    assert np.max(np.abs(y[0] - z[0])) < 1e-6
+    assert abs(field_energy(*y) - field_energy(q, p)) < 1e-7 * abs(field_energy(q, p))
+    with pytest.raises(ValueError, match=r"`normal_forces` must be 'auto', 'keep' or 'absorb' "
+                                         r"\(got normal_forces='yes'\)"):
+        HolonomicHBVM(HBVM(3, 2), BONDS, MASSES, field_force, normal_forces="yes")

@@ -29,8 +29,13 @@ def test_no_machine_specific_paths_in_committed_files():
 
 
 def test_pyproject_declares_the_tested_rebound_range():
+    """pyproject accepts exactly the REBOUND versions the adapter accepts (layout.SUPPORTED)."""
+    import re
+    from hbvm_md.rebound.layout import SUPPORTED
+    low, high = re.match(r"REBOUND >= ([\d.]+), < ([\d.]+)", SUPPORTED).groups()
     text = (ROOT / "pyproject.toml").read_text()
-    assert '"rebound>=5.0,<6"' in text
+    assert f'"rebound>={low},<{high}"' in text
+    assert (low, high) == ("5.2", "6")
 
 
 def test_other_rebound_major_versions_are_refused(monkeypatch):

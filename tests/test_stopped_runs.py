@@ -261,8 +261,8 @@ STOPS = [
      {}, ArithmeticError, "failed", ALL, 0),
     ("nan in forces", lambda: SepModel({"forces": (40, _nan)}), {}, NonFiniteError, "failed",
      ("fixed", "newton"), 0),
-    ("nan in forces", lambda: SepModel({"forces": (40, _nan)}), {}, StepSizeError, "failed",
-     ("adaptive",), 0),          # (retried smaller until the step no longer changes t)
+    ("nan in forces", lambda: SepModel({"forces": (40, _nan)}), {}, NonFiniteError, "failed",
+     ("adaptive",), 0),          # (at once: the forces at the step's start are nan too)
     ("no convergence", SepModel, dict(max_iter=2, solver="fixed_point"), ConvergenceError,
      "failed", ("fixed",), 0),
     ("energy check", SepModel, dict(energy_tol=1e-300), UnresolvedStepError, "failed",

@@ -46,6 +46,9 @@ class _AtomsSystem(SeparableSystem):
         self.constraints = constraints
         self.batched = batched
         self.stage_evaluations = 0
+        # (positions (N, 3), all finite, an atom) where the calculator returned a force that is
+        # not finite (None: it has not); the host names the calculator in its NonFiniteError
+        self.nonfinite_at = None
         # a polynomial calculator's degree: the engine's default energy check is then strict
         # (linear constraints keep H polynomial on their subspace; Hookean and ExternalForce
         # terms do not)
@@ -69,6 +72,7 @@ class _AtomsSystem(SeparableSystem):
         X = Q.reshape(n, self.n_atoms, 3)
         self.calc.forces_batch(X, self.atoms, out=target)
         self.stage_evaluations += n
+        self._note_nonfinite(X, target)
         if self.constraints.any:
             self.constraints.forces(X, target)
 
@@ -89,9 +93,22 @@ class _AtomsSystem(SeparableSystem):
                 F[a] = self._checked(self.calc.get_property("forces", self.atoms), X.shape[1:],
                                      "get_property('forces')")
         self.stage_evaluations += X.shape[0]
+        self._note_nonfinite(X, F)
         if self.constraints.any:
             self.constraints.forces(X, F)
         return F.reshape(lead + (self.dim,))
+
+    def _note_nonfinite(self, X: np.ndarray, F: np.ndarray) -> None:
+        """Remember the first stage (n, N, 3) at finite positions whose calculator forces are
+        not finite: the calculator's failure, not the step's (``nonfinite_at``)."""
+        if np.isfinite(F).all():
+            return
+        bad = ~np.isfinite(F).reshape(F.shape[0], -1).all(axis=1)
+        good = np.isfinite(X).reshape(X.shape[0], -1).all(axis=1)
+        rows = np.flatnonzero(bad & good)
+        if rows.size:
+            atom = int(np.flatnonzero(~np.isfinite(F[rows[0]]).all(axis=-1))[0])
+            self.nonfinite_at = (np.array(X[rows[0]]), atom)
 
     def _checked(self, F, shape: tuple, call: str) -> np.ndarray:
         """The calculator's forces, or a ValueError naming it and the shapes (numpy would say

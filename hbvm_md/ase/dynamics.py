@@ -17,7 +17,8 @@ import numpy as np
 from ase import units
 from ase.md.md import MolecularDynamics
 
-from integrators import EQUIP, HBVM, ConvergenceError, Stepper, UnresolvedStepError
+from integrators import (EQUIP, HBVM, ConvergenceError, NonFiniteError, Stepper,
+                         UnresolvedStepError)
 from integrators.engine import (DEFAULT_EPSILON, check_adaptive, check_step, energy_check,
                                 error_check)
 
@@ -330,6 +331,10 @@ class HBVMDynamics(MolecularDynamics):
                   "nodes": self.method.nodes, "solver": self.solver,
                   "tol": self.tol if isinstance(self.tol, str) else self.iteration_tol(),
                   "energy_tol": self.energy_tol, "adaptive": self.adaptive})
+        if self._holonomic is not None:
+            # the rigid-bond step integrates the forces' part across the bonds when the full
+            # forces make its iteration diverge (integrators.holonomic, "forces along the bonds")
+            d["bond_forces_absorbed"] = bool(self._holonomic.stepper.absorbing)
         if self.adaptive:
             d.update({"epsilon": self.epsilon, "inner_steps": self.inner_steps,
                       "inner_rejections": self.inner_rejections})
@@ -380,10 +385,11 @@ class HBVMDynamics(MolecularDynamics):
                 raise ValueError(f"`atoms` {what} are not finite (nan or inf) for atoms {first(bad)}; "
                                  f"check how the structure or the velocities were built")
 
-    def _in_fs(self, err: ConvergenceError) -> ConvergenceError:
+    def _in_fs(self, err: ConvergenceError, own_hint: bool = False) -> ConvergenceError:
         """The same error (same type and attributes, h and t in ASE units) with h and t shown
-        in fs in the message, and a hint in the words of this class."""
-        if type(err) is ConvergenceError:
+        in fs in the message, and a hint in the words of this class (``own_hint``: the
+        error's own, e.g. the rigid-bond step's, which has its own iteration and no Newton)."""
+        if type(err) is ConvergenceError and not own_hint:
             # "auto" has tried Newton after fixed point: suggest a smaller timestep only
             hint = ("try a smaller timestep, or solver='newton' for a stiff problem"
                     if self.solver == "fixed_point" else "try a smaller timestep")
@@ -402,6 +408,36 @@ class HBVMDynamics(MolecularDynamics):
                                 f"(timestep={new.suggested_h / units.fs:.3g} fs or less")
         new.args = (text.replace("use a smaller step", "use a smaller timestep"),)
         return new
+
+    def _calculator_nonfinite(self, err, system, pos0):
+        """``err`` (a NonFiniteError) with a hint that names the calculator when it is the
+        calculator that returned forces that are not finite at finite positions (the system
+        noted them: :attr:`_AtomsSystem.nonfinite_at`); else ``err`` itself."""
+        seen = getattr(system, "nonfinite_at", None)
+        if type(err) is not NonFiniteError or seen is None:
+            return err
+        pos0 = np.asarray(pos0, dtype=float)
+        if not np.array_equal(seen[0], pos0):
+            # the forces at the start too (one calculator call; the atoms are back there)
+            count = system.stage_evaluations
+            try:
+                system.forces(pos0.reshape(1, -1))
+            except Exception:       # (the calculator's own failure: the stage's note stands)
+                pass
+            system.stage_evaluations = count
+            if not np.array_equal(system.nonfinite_at[0], pos0):
+                system.nonfinite_at = seen
+        X, atom = system.nonfinite_at
+        name = type(self.atoms.calc).__name__
+        if np.array_equal(X, pos0):
+            where = "at the positions the step starts from, so no smaller timestep helps"
+        else:
+            where = ("at a stage of the step (finite positions near the step's start); "
+                     "a smaller timestep keeps the stages closer to it")
+        return NonFiniteError(err.h, err.iterations, err.solver, err.t,
+                              hint=f"the calculator {name} returned a force that is not finite "
+                                   f"(nan or inf) on atom {atom} {where}; check the calculator "
+                                   f"(its parameters and its input there)")
 
     def _current_state(self):
         atoms = self.atoms
@@ -482,6 +518,7 @@ class HBVMDynamics(MolecularDynamics):
         saved_calc = calculator_cache(calc)
         saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
+        self._system.nonfinite_at = None
         switches = st.solver_switches
         per_step = self.stage_evaluations / max(self.nsteps, 1)
         try:
@@ -517,7 +554,7 @@ class HBVMDynamics(MolecularDynamics):
                 if jumps:
                     return self._step_through(st, jumps)
             if isinstance(err, (ConvergenceError, UnresolvedStepError)):
-                raise self._in_fs(err) from None
+                raise self._in_fs(self._calculator_nonfinite(err, self._system, pos0)) from None
             raise
         if st.solver_switches > switches:
             self._warn_switch(st, per_step)

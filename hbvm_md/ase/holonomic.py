@@ -28,7 +28,10 @@ refused with the reason (:func:`check_supported`).
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+from ase import units
 from ase.constraints import FixAtoms, FixBondLengths, FixCom, FixLinearTriatomic
 from ase.geometry import find_mic
 
@@ -52,6 +55,16 @@ REFUSED = {
     "ExternalForce": "the constrained step has no energy terms yet",
 }
 HOLONOMIC_CLASSES = (FixBondLengths, FixLinearTriatomic)
+
+
+class BondForcesAbsorbedWarning(RuntimeWarning):
+    """HBVMDynamics' rigid-bond step integrates the forces' part across the bonds from now on:
+    its iteration on the full forces failed (:mod:`integrators.holonomic`, "Forces along the
+    bonds"); warned once per dynamics."""
+
+#: a FixLinearTriatomic's central atom farther than this (relative to the n-m distance) off the
+#: n-m axis at the start is refused: the three atoms are not in a line
+LINEAR_RTOL = 1e-8
 
 
 def bond_constraints(atoms) -> list:
@@ -306,6 +319,7 @@ class HolonomicAtoms:
         ValueError naming a set of bonds whose lengths are not independent."""
         self.stepper.reset()
         self._last = None
+        self._check_linear(atoms)
         y, py = self._reduced(atoms)
         st = self.stepper
         moving = st._moving
@@ -328,6 +342,33 @@ class HolonomicAtoms:
         atoms.set_positions(q, apply_constraint=False)
         atoms.set_momenta(p, apply_constraint=False)
         self._last = (atoms.get_positions(), atoms.get_momenta(), y, py)
+
+    def _check_linear(self, atoms) -> None:
+        """Refuse (ValueError) a FixLinearTriatomic whose three atoms are not in a line at the
+        start: the reduced coordinates would drop the central atom's part off the axis, i.e.
+        straighten the molecule without a word."""
+        t = self.lin.triples
+        if not t.size:
+            return
+        q = atoms.get_positions()
+        r_no, r_nm = q[t[:, 1]] - q[t[:, 0]], q[t[:, 2]] - q[t[:, 0]]
+        if atoms.pbc.any():
+            r_no, _ = find_mic(r_no, atoms.cell, atoms.pbc)
+            r_nm, _ = find_mic(r_nm, atoms.cell, atoms.pbc)
+        d_nm = np.linalg.norm(r_nm, axis=1)
+        off = np.linalg.norm(np.cross(r_no, r_nm), axis=1) / np.maximum(d_nm, 1e-300)
+        bad = np.flatnonzero(off > LINEAR_RTOL * d_nm)
+        if bad.size:
+            n, o, m = (int(x) for x in t[bad[0]])
+            a, b = r_no[bad[0]], r_nm[bad[0]] - r_no[bad[0]]
+            angle = np.degrees(np.arccos(np.clip(np.dot(-a, b) / (np.linalg.norm(a)
+                                                               * np.linalg.norm(b)), -1, 1)))
+            raise ValueError(
+                f"FixLinearTriatomic({n}, {o}, {m}): the three atoms are not in a line (atom {o} "
+                f"is {off[bad[0]]:.3g} A off the axis through atoms {n} and {m}; the angle "
+                f"{n}-{o}-{m} is {angle:.6g} degrees, not 180); the constraint holds a "
+                f"linear molecule: put atom {o} on that axis, or hold a bent molecule with "
+                f"FixBondLengths on its three pairs")
 
     def _name(self, b: int) -> str:
         """A bond of the reduced step as the user wrote it."""
@@ -383,8 +424,12 @@ def holonomic_step(dyn):
             dyn._stage_total += h.system.stage_evaluations
         system = _AtomsSystem(atoms, AtomsConstraints(atoms, other_constraints(atoms)),
                               hasattr(calc, "forces_batch"))
+        absorbing = h is not None and h.stepper.absorbing
         h = dyn._holonomic = HolonomicAtoms(atoms, dyn.method, system, fixed)
+        h.stepper.absorbing = absorbing     # the forces' part along the bonds stays absorbed
     evals = h.system.stage_evaluations
+    h.system.nonfinite_at = None
+    absorbing = h.stepper.absorbing
     try:
         if fresh:
             h.start(atoms)
@@ -398,6 +443,7 @@ def holonomic_step(dyn):
                                         "try a smaller timestep")
     except BaseException as err:
         h.system.stage_evaluations = evals
+        h.stepper.absorbing = absorbing
         if fresh:
             h.stepper.reset()
             h._last = None
@@ -406,8 +452,20 @@ def holonomic_step(dyn):
         if saved_calc is not None:
             calc.atoms, calc.results = saved_calc
         if isinstance(err, StepError):
-            raise dyn._in_fs(err) from None
+            err = dyn._calculator_nonfinite(err, h.system, pos0)
+            raise dyn._in_fs(err, own_hint=True) from None
         raise
     h.written(atoms)
     dyn._written = (*dyn._current_state(), fixed)
+    if h.stepper.absorbing and not absorbing:
+        warnings.warn(
+            f"HBVMDynamics: the rigid-bond step's iteration on the full forces failed at "
+            f"t={t / units.fs:.6g} fs, so from this step on it integrates the forces' part across "
+            "the bonds (the constraint forces absorb the rest; dyn.todict()['bond_forces_"
+            "absorbed']): the bonds and order 2s as before, the energy to O(h^(2s+1)) a step "
+            "instead of the quadrature's error. Expected when the calculator pushes hard along "
+            "the bonds (a pair potential that does not exclude a molecule's own pairs); "
+            "otherwise the timestep is too large: try a smaller one",
+            BondForcesAbsorbedWarning, stacklevel=3)
     return forces
+

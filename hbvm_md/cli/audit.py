@@ -29,7 +29,10 @@ def add_audit_parser(sub) -> None:
                    "momenta, zero if it has none)")
     a.add_argument("--seed", type=int, default=0, help="seed of the momenta drawn (default 0)")
     a.add_argument("-s", type=_positive_int, default=2, help="HBVM's s (order 2s; default 2)")
-    a.add_argument("-k", type=_positive_int, default=None, help="HBVM's k (default s + 4)")
+    a.add_argument("-k", type=_positive_int, default=None,
+                   help="HBVM's k (default s + 4: four quadrature nodes beyond s make the "
+                   "quadrature's error round-off for a smooth calculator, so what remains is "
+                   "the calculator's; the audit measures its k's own share with k + 4 more)")
     a.add_argument("--plot", default=None, metavar="PATH",
                    help="write the energy's parts against time to this image")
     a.add_argument("--quick", action="store_true", help="10 steps (for CI)")

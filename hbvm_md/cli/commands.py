@@ -105,6 +105,34 @@ def _show(title: str, t0: float, result, path, plot_title: str, xlabel: str):
                              angular_momentum=result.angular_momentum_series)
 
 
+#: on ASE's MD tutorial (EMT copper, 108 atoms) HBVM is cheaper in force evaluations than
+#: VelocityVerlet below this energy error per atom (benchmarks/bench_md_cost.py; the README)
+MD_COST_CROSSOVER = 7e-6
+
+
+def md_cost_note(mdc) -> str:
+    """The demo's MD cost, HBVM's against VelocityVerlet's, and when VelocityVerlet is the
+    better choice (the demo's cluster is HBVM's best case: a polynomial potential)."""
+    vv = next((r for r in mdc.rows if r["method"] == "VelocityVerlet"), None)
+    hb = next((r for r in mdc.rows if r["method"] != "VelocityVerlet"), None)
+    if vv is None or hb is None:
+        return ""
+    e_vv, e_hb = vv["max_abs_dE_per_atom_eV"], hb["max_abs_dE_per_atom_eV"]
+    better = (f"an energy error {e_vv / e_hb:.2g}x smaller" if e_hb > 0 else
+              "an energy error at round-off")
+    wall = (f" and {hb['wall_time_s'] / vv['wall_time_s']:.2g}x its wall time"
+            if vv["wall_time_s"] > 0 else "")
+    return (f"Cost: {hb['method']} took {hb['force_evals'] / vv['force_evals']:.3g}x "
+            f"VelocityVerlet's force evaluations{wall} at the same timestep, for {better} "
+            f"({e_hb:.1e} against {e_vv:.1e} eV per atom). This cluster's pair potential is a "
+            "polynomial (a quartic well), on which HBVM(2s, s) keeps the energy exactly: HBVM's "
+            "best case. With a general calculator (EMT, a machine-learned potential) "
+            "VelocityVerlet is the better choice at the usual 1-5 fs accuracy: on ASE's EMT "
+            "copper tutorial it is cheaper for energy errors above about "
+            f"{MD_COST_CROSSOVER:g} eV per atom (benchmarks/bench_md_cost.py), HBVM below that "
+            "and for long constant-energy runs.")
+
+
 def cmd_demo(args) -> int:
     from ..reports.progress import progress
     out = Path(args.out)
@@ -136,6 +164,7 @@ def cmd_demo(args) -> int:
         written.append(_show(f"Polynomial-pair cluster, {len(atoms)} atoms, {md_steps} steps, "
                              "through ASE", t0, mdc, out / "energy_md_cluster.png",
                              f"Polynomial-pair cluster, {len(atoms)} atoms", "t [ps]"))
+        _say("\n" + md_cost_note(mdc))
     except ImportError as err:
         missing.append(f"ASE comparison not available ({err})")
     bar.update(1)

@@ -1,7 +1,8 @@
 """HBVM(k, s) inside REBOUND: an integrator registered with REBOUND's plug-in interface.
 
 ``import hbvm_md`` registers HBVM with REBOUND (``reb_integrator_register``) under the name
-``"hbvm"``, once per process.  Then ``sim.integrator = "hbvm"`` works as for a built-in
+``"hbvm"``, once per process (when REBOUND is imported: at once if it already is, else by an
+import hook, ``hbvm_md._RegisterOnImport``; importing this module registers too).  Then ``sim.integrator = "hbvm"`` works as for a built-in
 integrator, with HBVM's defaults (adaptive steps, s = 6, the default epsilon of
 :mod:`integrators.engine` and k for it), and :class:`HBVMIntegrator` ``(sim, s=..., k=...,
 dt=..., method="hbvm" | "equip", ...)`` selects it with checked settings.  REBOUND owns the run

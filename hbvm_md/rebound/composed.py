@@ -25,6 +25,34 @@ from systems.flow_composed import FlowComposed, composed_bodies
 from systems.nbody import NBody
 
 #: the way out named by every refusal
+#: steps shorter than the shortest orbital period over this are warned about (REBOUND's default
+#: sim.dt is 0.001: a user who forgot to set a step would wait hours, and the flows' round-off
+#: grows with the number of steps)
+KEPLER_FEW_STEPS = 1000
+def warn_short_step(sim, h: float, fix: str, stacklevel: int | None = None,
+                    state: int | None = None) -> None:
+    """The composed method's warning for a step far shorter than it is for (1/25 to 1/50 of
+    the shortest orbital period), naming ``fix`` ("pass dt=", "set sim.dt"); not for the step
+    HBVMIntegrator attached HBVM's ``state`` with (host.KEPLER_SEEN_DT)."""
+    import warnings
+    from hbvm_md.rebound import host as H
+    from hbvm_md.rebound.checks import shortest_period
+    if state is not None and H.KEPLER_SEEN_DT.get(state) == h:
+        return
+    period = shortest_period(sim)
+    if not (math.isfinite(period) and abs(h) < period / KEPLER_FEW_STEPS):
+        return
+    if stacklevel is None:
+        from hbvm_md.rebound.host import _user_stacklevel
+        stacklevel = _user_stacklevel()
+    warnings.warn(
+        f"{'kepler=True' if fix.startswith('pass') else 'sim.integrator.kepler = 1'} steps "
+        f"sim.dt={h!r}, 1/{period / abs(h):.3g} of the shortest orbital period "
+        f"({period:.3g}): the composed method is for long steps (1/25 to 1/50 of it); {fix}, "
+        f"e.g. {'dt' if fix.startswith('pass') else 'sim.dt'}={period / 50:.3g}", RuntimeWarning,
+        stacklevel=stacklevel)
+
+
 WAY_OUT = "use sim.integrator.kepler = 0 (HBVMIntegrator(sim, kepler=False)), plain HBVM"
 
 
@@ -261,6 +289,7 @@ def prepare_composed(sim, p: int, method) -> None:
         if keep:
             y[4 * m + 7] = sim.t          # (the bodies are those of this time)
     if not keep:
+        warn_short_step(sim, h, "set sim.dt", state=p)
         y0 = nb.initial_state()
         check_particles(y0, nb)
         y = H._array(st, L.SL_Y, L.SL_NY, size)

@@ -160,6 +160,7 @@ def register() -> None:
     lib.reb_integrator_register(integ, NAME.encode())
     rebound.clibrebound._hbvm_md_registration = reg
     _install_runs(rebound)
+    _install_repr(rebound)
     _install_operators()
     _self_check(rebound)
 
@@ -184,12 +185,20 @@ def _self_check(rebound) -> None:
                            f"own layout says; HBVM's REBOUND host supports {L.SUPPORTED}")
 
 
+#: HBVM's state (its address) -> the step HBVMIntegrator(sim, kepler=True, ...) attached it with
+#: (given as dt=..., or warned about there): the composed step's preparation does not warn about
+#: that step again (hbvm_md.rebound.composed.warn_short_step).  A new state at the address
+#: (:func:`_create`) forgets it: it is another run
+KEPLER_SEEN_DT: dict[int, float] = {}
+
+
 def _create() -> int:
     """REBOUND's ``create``: a new state with HBVM's defaults (REBOUND then reads saved fields
     into it when it loads or copies a simulation)."""
     p = _LIBC.calloc(L.N_SLOTS, 8)
     if not p:
         return 0
+    KEPLER_SEEN_DT.pop(p, None)
     st, sd = _slots(p)
     d = DEFAULTS
     st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
@@ -239,6 +248,7 @@ def _install_runs(rebound) -> None:
         addr = addressof(self)
         if c_void_p.from_address(addr + step_at).value != dispatch:
             return reb_integrate(self, tmax, exact_finish_time)
+        _check_tmax(tmax)
         with _Run(addr, self) as run:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
@@ -277,6 +287,46 @@ def _install_runs(rebound) -> None:
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _check_tmax(tmax) -> None:
+    """Refuse ``sim.integrate(nan)``: REBOUND's run loop compares t with tmax, and a nan never
+    compares, so the run would never end (IAS15's hangs).  Infinity is REBOUND's run until an
+    exit condition (a collision, an escape, ``sim.exit_min_distance``): kept."""
+    try:
+        nan = math.isnan(tmax)
+    except TypeError:
+        return                      # (REBOUND's own TypeError, from c_double)
+    if nan:
+        raise ValueError(f"sim.integrate(tmax) needs a number for tmax (got tmax={tmax!r}, which "
+                         "no time reaches: the run would never end); pass the time to integrate "
+                         "to, or inf for a run that an exit condition stops")
+
+
+def _install_repr(rebound) -> None:
+    """``repr(sim.integrator)`` of HBVM shows the steps it takes: REBOUND's repr lists the
+    saved fields, and ``sim.integrator.epsilon = 0`` (IAS15's idiom for fixed steps of sim.dt)
+    leaves the field ``adaptive`` at 1 (it must: a later epsilon > 0 is adaptive again), so a
+    fixed-step run showed ``adaptive=1``; it shows ``adaptive=0 (epsilon=0: fixed steps of
+    sim.dt)`` instead.  Other integrators' repr is REBOUND's own."""
+    C = rebound.integrator.IntegratorConfiguration
+    if getattr(C.__repr__, "_hbvm_md", False):
+        return
+    reb_repr = C.__repr__
+
+    def __repr__(self):
+        text = reb_repr(self)
+        try:
+            ours = self.name.decode() == NAME
+        except Exception:  # noqa: BLE001 - (a configuration without a name)
+            ours = False
+        if ours and ", adaptive=1," in text and ", epsilon=0.0," in text:
+            text = text.replace(", adaptive=1,", ", adaptive=0 (epsilon=0: fixed steps of "
+                                "sim.dt),", 1)
+        return text
+
+    __repr__._hbvm_md = True
+    C.__repr__ = __repr__
 
 
 def _warn_step_archive(addr: int) -> None:
@@ -810,6 +860,17 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
         return ConvergenceError(h, math.nan, it, "tangent map", t, hint)
     if status == L.TEST_PARTICLE:
         return _test_particle_failure(sim, st, sd, h, t, counters)
+    nonfinite = status == NOT_FINITE or (status == TOO_SMALL
+                                         and int(sd[L.SL_CAUSE_STATUS]) == NOT_FINITE)
+    # (the step hides its ODEs from REBOUND, sim.N_odes = 0, until the run ends: the ones it
+    # was prepared with)
+    odes = _ODES.get(ctypes.addressof(sim)) if sim is not None else None
+    if nonfinite and odes:
+        culprit = _ode_culprit(sim, odes)
+        if culprit is not None:        # the attached ODE, not an encounter or the step size
+            exc = NonFiniteError(h, int(counters[C_LASTIT]), "fixed_point", t, culprit)
+            exc.encounter = None
+            return exc
     enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
     near = _encounter_text(sim, enc, h)
     which = int(st[L.SL_METHOD])                       # the message names the method run
@@ -848,6 +909,44 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                          s=int(st[L.SL_S]))
     exc.encounter = enc
     return exc
+
+
+#: what yDot holds before an ODE's derivatives is called here: a nan no arithmetic makes
+_UNWRITTEN = np.array([0x7FF8DEAD0000BEEF], dtype=np.int64).view(np.float64)[0]
+
+
+def _ode_culprit(sim, odes) -> str | None:
+    """Why an attached ODE makes the step non-finite, or None: each ODE of ``odes``
+    (:func:`hbvm_md.rebound.forces.ode_signature` as prepared) has its ``derivatives``
+    called once at the step's start (sim as before the step, its own ``y``, sim.t) into a
+    yDot marked unwritten; the first component left unwritten (REBOUND's BS keeps what yDot
+    held, zero at first) or not finite is named, with the way out."""
+    call = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                            ctypes.c_double)
+    t = float(sim.t)
+    for j, (a, n, y, deriv, _pre, _post, _ydot) in enumerate(odes):
+        if not (deriv and y and n):
+            continue
+        yd = np.full(n, _UNWRITTEN)
+        call(deriv)(a, yd.ctypes.data, y, t)
+        unwritten = yd.view(np.int64) == _UNWRITTEN.view(np.int64)
+        bad = ~np.isfinite(yd) & ~unwritten
+        which = f"the attached ODE sim._odes[{j}] (length {n})"
+        if unwritten.any():
+            i = int(np.flatnonzero(unwritten)[0])
+            return (f"{which} leaves yDot[{i}] unwritten in its derivatives (at the step's "
+                    f"start, t={t!r}; {int(unwritten.sum())} of {n} components): HBVM takes no "
+                    "stale value for it (REBOUND's BS keeps whatever yDot held); write every "
+                    f"component, yDot[{i}] = 0.0 for a constant one (a Python derivatives "
+                    "function that raised leaves them unwritten too: its traceback is printed "
+                    "above)")
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            return (f"{which} returns yDot[{i}] = {float(yd[i])!r} from its derivatives at the step's "
+                    f"start (t={t!r}, y[{i}] = "
+                    f"{float(np.ctypeslib.as_array((ctypes.c_double * n).from_address(y))[i])!r}"
+                    "): no step size helps; check the ODE's derivatives function there")
+    return None
 
 
 def _python_core(r: int, p: int) -> int:
@@ -941,7 +1040,16 @@ def _prepare(sim, p: int) -> None:
     ix, ivx, im = (offsets[i - L.R_T] for i in (L.R_X, L.R_VX, L.R_M))
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     if N == 0 or not ptr:
-        raise ValueError("the simulation has no particles")
+        n_odes = int(sim._N_odes)
+        if n_odes:
+            raise ValueError(
+                f"the simulation has no particles, only {n_odes} attached ODE"
+                f"{'s' if n_odes > 1 else ''}: HBVM integrates attached ODEs together with the "
+                "particles (at the bodies' stages) and refuses a scene without bodies; integrate "
+                "ODEs alone with sim.integrator = 'BS' (REBOUND's integrator for ODEs, as its "
+                "test_bs does), or add the particles they belong to")
+        raise ValueError("the simulation has no particles; add them (sim.add(...)) before "
+                         "integrating")
     view = doubles(ptr, N * stride).reshape(N, stride)
     na = sim.N_active
     x, v = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
@@ -958,7 +1066,7 @@ def _prepare(sim, p: int) -> None:
         # them
         _check_host_path(sim, method, reasons)
         _clear_gravity_ignore(sim)
-        if not sim.force_is_velocity_dependent and sim._additional_forces:
+        if sim._additional_forces:
             _probe_velocities(sim, view, ix, ivx, reasons)
         scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
         nb = None
@@ -1139,7 +1247,7 @@ def _probe_run(sim) -> None:
     """:func:`_probe_velocities` at the start of a run on REBOUND's own accelerations (the
     step's preparation probes the first run): a force may start reading the velocities later
     (a drag switched on at some time)."""
-    if not sim._additional_forces or sim.force_is_velocity_dependent:
+    if not sim._additional_forces:
         return
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
     N = sim.N
@@ -1160,22 +1268,44 @@ def _probe_velocities(sim, view, ix, ivx, reasons=None) -> None:
     velocities, order 2s) and a warning names the force and the flag.  The particles' positions
     and velocities are as before; the accelerations are scratch (each stage computes them).
     Done when the step is prepared and at the start of every later run (:func:`_probe_run`):
-    two evaluations of the forces a run."""
+    two evaluations of the forces a run.  A force that writes the particles' velocities or
+    positions (a kick in the force) is warned about: the stages drop what it writes there."""
     lib = _rebound().clibrebound
     ax = _REG["ax"]
     v0 = view[:, ivx:ivx + 3].copy()
+    x0 = view[:, ix:ix + 3].copy()
     scale = float(np.max(np.abs(v0))) or 1.0
     # every component moved, by different amounts, so that no symmetry of a force hides it
     dv = 1e-3 * scale * (1.0 + np.arange(v0.size).reshape(v0.shape) / v0.size)
+    flagged = bool(sim.force_is_velocity_dependent)
     try:
         lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
         a0 = view[:, ax:ax + 3].copy()
+        wrote = {name for name, part, was in (("velocities", view[:, ivx:ivx + 3], v0),
+                                              ("positions", view[:, ix:ix + 3], x0))
+                 if not np.array_equal(part, was)}
+        view[:, ix:ix + 3] = x0
         view[:, ivx:ivx + 3] = v0 + dv
         lib.reb_simulation_update_acceleration(ctypes.c_void_p(ctypes.addressof(sim)))
         a1 = view[:, ax:ax + 3].copy()
+        wrote |= {name for name, part, was in (("velocities", view[:, ivx:ivx + 3], v0 + dv),
+                                               ("positions", view[:, ix:ix + 3], x0))
+                  if not np.array_equal(part, was)}
+        wrote = sorted(wrote, reverse=True)         # (velocities, then positions)
     finally:
         view[:, ivx:ivx + 3] = v0
-    if np.array_equal(a0, a1) or not (np.all(np.isfinite(a0)) and np.all(np.isfinite(a1))):
+        view[:, ix:ix + 3] = x0
+    if wrote:
+        warnings.warn(
+            f"{_force_name(sim, reasons)} writes the particles' {' and '.join(wrote)}: HBVM's "
+            "stages take only the accelerations it writes (each stage sets the positions and "
+            "velocities of its own state before calling it, as IAS15's substeps do), so what it "
+            "writes there is dropped. Write the effect as an acceleration (a drag: "
+            "p.ax -= gamma * p.vx, with sim.force_is_velocity_dependent = 1), or change the "
+            "particles between steps (sim.post_timestep_modifications, a REBOUNDx operator)",
+            RuntimeWarning, stacklevel=_user_stacklevel())
+    if flagged or np.array_equal(a0, a1) or not (np.all(np.isfinite(a0))
+                                                 and np.all(np.isfinite(a1))):
         return
     sim.force_is_velocity_dependent = 1
     warnings.warn(

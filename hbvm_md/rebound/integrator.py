@@ -3,7 +3,6 @@ settings, and reads its state back (it holds none itself)."""
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 
@@ -11,7 +10,8 @@ from hbvm_md.rebound import layout as L
 from hbvm_md.rebound.memory import doubles
 from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
                                     shortest_period)
-from hbvm_md.rebound.host import NAME, _rebound, _slots, method_of, register
+from hbvm_md.rebound.composed import KEPLER_FEW_STEPS  # noqa: F401  (its home is composed)
+from hbvm_md.rebound.host import KEPLER_SEEN_DT, NAME, _rebound, _slots, method_of, register
 from integrators import EQUIP, HBVM
 from integrators.equip import DEFAULT_EPSILON as EQUIP_DEFAULT_EPSILON, DEFAULT_S as EQUIP_DEFAULT_S
 from integrators.core import N_COUNTERS
@@ -20,9 +20,6 @@ from integrators.kchoice import adaptive_k, choose_k, period_steps
 from systems.nbody import NBody
 
 
-#: kepler=True without ``dt`` warns when sim.dt is shorter than the shortest period over this
-#: (the composed method's range is 1/25 to 1/50 of it: docs/guide/rebound.md)
-KEPLER_FEW_STEPS = 1000
 #: a scene with at most this many test particles is probed for k whole (:func:`probe_scene`)
 PROBE_WHOLE = 64
 #: test particles kept from each ranking of :func:`probe_scene` (its probe has at most
@@ -322,17 +319,10 @@ class HBVMIntegrator(Counted):
         else:
             h = _step_size("sim.dt", sim.dt)
         if kepler:
-            from hbvm_md.rebound.composed import check_composed
+            from hbvm_md.rebound.composed import check_composed, warn_short_step
             check_composed(sim)
-            period = shortest_period(sim)
-            if dt is None and abs(h) < period / KEPLER_FEW_STEPS:
-                # (REBOUND's default sim.dt is 0.001: a user who forgot dt= would wait hours,
-                # and the flows' round-off grows with the number of steps)
-                warnings.warn(
-                    f"kepler=True steps sim.dt={h!r}, 1/{period / abs(h):.3g} of the shortest "
-                    f"orbital period ({period:.3g}): the composed method is for long steps (1/25 "
-                    f"to 1/50 of it); pass dt=..., e.g. dt={period / 50:.3g}", RuntimeWarning,
-                    stacklevel=2)
+            if dt is None:
+                warn_short_step(sim, h, "pass dt=...", stacklevel=3)
         if k is None and kepler:
             # benchmarks/results/kepler_composed.md: HBVM(s + 2, s) composed keeps the energy
             # at round-off on the outer solar system (H~ is not polynomial, but its
@@ -365,6 +355,11 @@ class HBVMIntegrator(Counted):
         sd[[L.SL_EPSILON, L.SL_MIN_DT, L.SL_TOL, L.SL_ETOL, L.SL_MAX_DT]] = (
             float(epsilon), float(min_dt), float(tol or 0.0), etol, float(max_dt))
         st[L.SL_KEPLER] = int(kepler)
+        if kepler:
+            # a step given (dt=...) is chosen, a short sim.dt warned about above: the composed
+            # step's preparation does not warn about it again (it warns for
+            # sim.integrator.kepler = 1 with a short sim.dt)
+            KEPLER_SEEN_DT[int(sim.integrator.state)] = h
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":

@@ -46,6 +46,9 @@ MAX_BISECTED = 20
 SPLIT_MARGIN = 1e-9
 #: the audit's parts are separated when the integrator's share is below this fraction of them
 MEANINGFUL = 1e-2
+#: atoms whose largest displacement over the run is at most this (A) did not move: the audit
+#: has then tested nothing (a structure at rest in its equilibrium)
+STILL = 1e-8
 
 
 @dataclass
@@ -106,6 +109,14 @@ class AuditReport:
     seconds: float = 0.0
     force_calls: int = 0
     notes: list = field(default_factory=list)
+    displacement: float = float("nan")
+
+    @property
+    def moved(self) -> bool:
+        """Did the atoms move during the run (largest displacement above :data:`STILL`)?  A
+        structure at rest in equilibrium (no momenta and no force) stays where it is: its
+        energy is trivially kept and nothing was audited."""
+        return not self.displacement <= STILL
 
     @property
     def total(self) -> np.ndarray:
@@ -135,14 +146,21 @@ class AuditReport:
         if n > 10:
             lines.append(f"    ... and {n - 10} more (report.jumps)")
         lines += [f"  non-conservative work    {self.nonconservative_work:+.3e} eV",
-                  f"  integrator's share       {self.integrator_error:.1e} eV"]
+                  f"  integrator's share       {self.integrator_error:.1e} eV (a sum of "
+                  f"magnitudes, |quadrature| + |kink| + |round-off|: a bound, not a signed "
+                  f"part of the change)"]
         if self.kink_error:
             lines.append(f"    of which at the force's jump on the steps across the cutoff "
                          f"{self.kink_error:.1e} eV (measured; it falls with the step)")
         lines.append(f"    of which estimated (quadrature, round-off, pieces halved) "
                      f"{self.uncertainty:.1e} eV")
         parts = abs(self.nonconservative_work) + sum(abs(j.energy) for j in self.jumps)
-        if parts <= 2 * self.uncertainty:
+        if not self.moved:
+            lines.append(f"  The atoms did not move (largest displacement {self.displacement:.1e} "
+                         "A over the run: no momenta and no force to start them): nothing was "
+                         "audited. Start them moving: momenta in the structure, or "
+                         "thermalize_momenta (hbvm-md audit --temperature K).")
+        elif parts <= 2 * self.uncertainty:
             lines.append("  The calculator conserves its energy on this path: no jump and no "
                          "non-conservative work above the estimated part of the integrator's "
                          "share.")
@@ -435,7 +453,8 @@ def _audit(atoms, h, steps, options, copy_options, k, sample, calls) -> AuditRep
         step_change=dH, step_jump=step_jump, step_nonconservative=step_nc,
         method=repr(dyn.method), timestep=h / units.fs, steps=steps,
         calculator=type(calc).__name__, n_atoms=n, seconds=time.perf_counter() - started,
-        force_calls=calls.count, notes=notes)
+        force_calls=calls.count, notes=notes,
+        displacement=float(np.max(np.linalg.norm(Q - Q[0], axis=-1), initial=0.0)))
 
 
 class _CallCounter:
