@@ -91,33 +91,33 @@ N_COUNTERS = 10
 ERROR_BOUND = 1e-3
 # A run of a method not exact for H (energy_tol "auto" negative: k = s, the Gauss method, or k
 # too small for H's quadrature) is refused when its energy stands more than DRIFT_BOUND of the
-# run's kinetic scale, max(T, <T>), away from the energy at its start: T the kinetic energy
-# after the step, <T> its time mean over the run so far.  Neither moves with the potential's
-# zero (a constant added to V changes no force, no step and no T).  Why T: for a bound Kepler
-# orbit the virial theorem gives <T> = -H = |H| (H's zero at infinity), and a relative energy
-# offset delta = dH / |H| shifts the semi-major axis by delta and the mean motion by 1.5 delta:
-# the phase lags by 3 pi delta a period (1e-2 rad at delta = 1e-3), the standard ERROR_BOUND
-# sets for one step.  For any motion along a path, dv / v = dH / (2 T) at the same place: an
-# offset against the T of the moment is the relative error it puts into the body's speed
-# there.  max(T, <T>): a transient bump of a symmetric method inside a pericentre passage is
-# judged against the motion of the passage (T, large there), an offset that lasts against the
-# orbit's mean (<T>, which T falls below on every orbit, at apocentre), and a turning point
-# (T = 0: a pendulum, a radial orbit) against the mean, not against nothing.  No single step
-# can see this: a symmetric method's energy error rises through a pericentre passage and falls
-# back after it, and a run that starts inside the passage keeps half of the bump as a lasting
-# offset, with the same steps and estimates as a run that does not (docs/design/step.md,
-# "What it cannot see", measured there).
+# run's kinetic scale, max(T, <T> sqrt(<T> / Tmax)), away from the energy at its start: T the
+# kinetic energy after the step, <T> its time mean and Tmax its largest over the run so far.
+# None moves with the potential's zero (a constant added to V changes no force, no step, no T).
+# Why: for a bound Kepler orbit the virial theorem gives <T> = -H = |H| (H's zero at infinity),
+# and a relative offset delta = dH / <T> shifts the mean motion by 1.5 delta: the phase lags by
+# 3 pi delta a period, and the position by that times the fastest speed over the mean one,
+# sqrt(Tmax / <T>) (at pericentre: sqrt((1 + e) / (1 - e))), so dH / (<T> sqrt(<T> / Tmax)) at
+# most 1e-3 keeps the position within 1e-2 of the orbit's size a period, the standard
+# ERROR_BOUND sets for one step.  And along a path dv / v = dH / (2 T) at the same place: a
+# transient offset (a symmetric method's bump inside a pericentre passage, which it gives back
+# after it) is judged against the T of the moment.  The larger of the two: a lasting offset is
+# met where T is small (every orbit has such a part), a turning point (T = 0) is judged against
+# the mean.  No single step can see this: a run that starts inside a passage keeps half of the
+# bump as a lasting offset, with the same steps and estimates as a run that does not
+# (docs/design/step.md, "What it cannot see", derived and measured there).
 DRIFT_BOUND = ERROR_BOUND
 # the step's eref, carried between steps by every host: [the energy after the last step, EQUIP's
 # alpha and dE/dalpha (integrators.equip_core.EREF_EQUIP), the energy at the run's start (the
-# anchor of DRIFT_BOUND's rule), the time mean of T over the run so far and the run's elapsed
-# time (|h| summed; the scale of DRIFT_BOUND's rule)]; nan: not known yet (a host that changes
+# anchor of DRIFT_BOUND's rule), the time mean of T over the run so far, the run's elapsed
+# time (|h| summed) and T's largest value (the scale of DRIFT_BOUND's rule)]; nan: not known yet (a host that changes
 # the Hamiltonian or the state sets all of them to nan, so a run starts again from there: the
-# run's start, its mean T and its time start together, when EREF_RUN is nan)
+# run's start, its mean T, its time and its largest T start together, when EREF_RUN is nan)
 EREF_RUN = 3
 EREF_TMEAN = 4
 EREF_TIME = 5
-N_EREF = 6
+EREF_TMAX = 6
+N_EREF = 7
 # A run whose accumulated error estimate (C_RUN_ERR) passes RUN_ERROR_BOUND is warned about
 # (integrators.errors.AccumulatedErrorWarning) by the engine and REBOUND: a hundredth of the
 # motion's scale (docs/design/step.md, "The run's accumulated error")

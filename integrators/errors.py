@@ -141,13 +141,14 @@ class UnresolvedStepError(StepError):
 class EnergyDriftError(UnresolvedStepError):
     """A step of a method not exact for H (k = s, the Gauss method, or k too small for H's
     quadrature) converged and passed its own checks, but the run's energy now stands more than
-    :data:`integrators.core.DRIFT_BOUND` of the run's kinetic energy, max(T, <T>) (T after the
-    step, <T> its time mean over the run), away from its start: the orbit's size and period are
-    off by about as much, its phase by ten times that a period.  No shorter step in
+    :data:`integrators.core.DRIFT_BOUND` of the run's kinetic scale, max(T, <T> sqrt(<T> /
+    Tmax)) (T after the step, <T> its time mean and Tmax its largest over the run), away from
+    its start: the orbit's size and period are off by about as much, its phase by ten times that
+    a period, and its position by that times the fastest speed over the mean one.  No shorter step in
     its place can undo the run's past, so adaptive steps do not retry it.  Nothing was committed.
 
     Attributes (besides :class:`UnresolvedStepError`'s): ``drift``, the energy's distance from
-    its start relative to max(T, <T>) (also ``change``), and ``bound``, the bound it exceeded.
+    its start relative to that scale (also ``change``), and ``bound``, the bound it exceeded.
     The message names no step size: the drift found here is the first to pass the bound, and a
     run's drift can still grow after it (a pericentre passage's offset is set over the whole
     passage), so a step computed from it would not be a way out that works.
@@ -163,7 +164,7 @@ class EnergyDriftError(UnresolvedStepError):
         super().__init__(h, drift, bound, iterations, t, hint, solver)
         RuntimeError.__init__(self, (
             f"{self._where()} leaves the run's energy {drift:.3e} (relative to its kinetic "
-            f"energy, max(T, <T> over the run)) away "
+            f"energy, max(T, <T> sqrt(<T> / Tmax)) over the run) away "
             f"from its start, more than {bound:.1e}: HBVM with this many quadrature nodes does "
             f"not keep this H, and an energy this far off puts the orbit off too (its size and "
             f"period by about as much, its phase by ten times that a period), although every "

@@ -15,7 +15,7 @@ step: the documentation's design page "One step, written once" (``docs/design/st
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ERR, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
-                              C_RUN_ERR, C_STEPS, C_WORST, DRIFT_BOUND, DRIFTED, EREF_RUN, EREF_TIME, EREF_TMEAN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
+                              C_RUN_ERR, C_STEPS, C_WORST, DRIFT_BOUND, DRIFTED, EREF_RUN, EREF_TIME, EREF_TMAX, EREF_TMEAN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
                               resolution_error, run_error_share, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation,
                               all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
@@ -303,22 +303,28 @@ def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
         # while the run keeps an offset that puts its orbit off (core.DRIFT_BOUND).  Only in
         # the separable form, whose kinetic energy is the size of the motion: a full-form H
         # has no such scale (a Poincare-transformed H is zero on the solution).  The scale is
-        # the run's kinetic one, max(T1, <T>) with <T> T's time mean over the run including this
-        # step (core.DRIFT_BOUND: neither moves with the potential's zero)
+        # the run's kinetic one, max(T1, <T> sqrt(<T> / Tmax)) with <T> T's time mean and Tmax
+        # its largest over the run including this step (core.DRIFT_BOUND: none moves with the
+        # potential's zero)
         if not np.isfinite(eref[EREF_RUN]):
             eref[EREF_RUN] = eref[0]
             eref[EREF_TMEAN] = 0.0
             eref[EREF_TIME] = 0.0
+            eref[EREF_TMAX] = 0.0
         run_time = eref[EREF_TIME] + abs(h)
         tmean = eref[EREF_TMEAN] + (abs(t1) - eref[EREF_TMEAN]) * (abs(h) / run_time)
+        tmax = max(eref[EREF_TMAX], abs(t1))
         drift = abs(t1 + v1 - eref[EREF_RUN])
-        kscale = max(abs(t1), tmean)
+        kscale = abs(t1)
+        if tmax > 0.0:
+            kscale = max(kscale, tmean * np.sqrt(tmean / tmax))
         if kscale > 0.0:
             drift = drift / kscale
         if not drift <= DRIFT_BOUND:
             return DRIFTED, drift
         eref[EREF_TMEAN] = tmean
         eref[EREF_TIME] = run_time
+        eref[EREF_TMAX] = tmax
     eref[0] = t1 + v1
     return OK, change
 
