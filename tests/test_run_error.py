@@ -222,6 +222,32 @@ def test_rebound_estimate_is_a_saved_field():
     assert float(sim.copy().integrator.error_estimate) == est
 
 
+def test_rebound_warns_once_and_a_copy_carries_the_estimate():
+    """HBVM(4, 2) on a circular orbit at P/10 for 1000 periods (1.76 off with its energy kept):
+    sim.integrate warns once (not again on the next call); a copy carries the estimate and
+    warns once itself; as an error (a warnings filter) it stops the call."""
+    rebound = pytest.importorskip("rebound")
+    import hbvm_md  # noqa: F401
+    from hbvm_md.rebound.integrator import HBVMIntegrator
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-12, a=1.0)
+    sim.move_to_com()
+    HBVMIntegrator(sim, s=2, k=4, dt=P / 10, adaptive=False)
+    with pytest.warns(AccumulatedErrorWarning, match=r"smaller sim.dt") as rec:
+        sim.integrate(500 * P)
+        sim.integrate(1000 * P)
+    assert len([w for w in rec if w.category is AccumulatedErrorWarning]) == 1
+    est = float(sim.integrator.error_estimate)
+    assert est > RUN_ERROR_BOUND
+    copy = sim.copy()
+    assert float(copy.integrator.error_estimate) == est
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", AccumulatedErrorWarning)
+        with pytest.raises(AccumulatedErrorWarning):
+            copy.integrate(1001 * P)
+
+
 def test_rebound_attached_ode_keeps_the_bodies_drift_check():
     """A trivial attached ODE (dy/dt = 0) beside the planet left the drift check off (0.32
     off IAS15); the check now guards the bodies' H, also across integrate calls."""

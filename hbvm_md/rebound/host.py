@@ -18,11 +18,11 @@ from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
 from integrators.core import (C_LASTIT, C_WORST, ERROR_BOUND, N_COUNTERS, NOT_FINITE, NOT_RESOLVED,
-                              OK, TOO_SMALL, test_particle_error)
+                              OK, RUN_ERROR_BOUND, TOO_SMALL, test_particle_error)
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
-from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
-                                UnresolvedStepError, step_error)
+from integrators.errors import (AccumulatedErrorWarning, ConvergenceError, NonFiniteError,
+                                StepSizeError, UnresolvedStepError, step_error)
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
@@ -256,6 +256,7 @@ def _install_runs(rebound) -> None:
             finally:
                 _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)  # (as REBOUND)
+            _warn_run_error(self, addr)
 
     def steps(self, N_steps):
         addr = addressof(self)
@@ -275,10 +276,28 @@ def _install_runs(rebound) -> None:
             finally:
                 _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)
+            _warn_run_error(self, addr)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
     S.integrate, S.steps = integrate, steps
+
+
+def _warn_run_error(sim, addr: int) -> None:
+    """After a run that returned: warn once a simulation (AccumulatedErrorWarning) when its run's
+    accumulated error estimate (``sim.integrator.error_estimate``, integrators.core.C_RUN_ERR)
+    has passed RUN_ERROR_BOUND."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    est = float(sd[L.SL_RUN_ERR])
+    if est > RUN_ERROR_BOUND and not st[L.SL_RUN_WARNED]:
+        st[L.SL_RUN_WARNED] = 1
+        warnings.warn(AccumulatedErrorWarning(
+            est, RUN_ERROR_BOUND, float(sim.t),
+            "a smaller sim.dt (the estimate falls like dt^(2s)), a larger s, or adaptive steps "
+            "(sim.integrator.epsilon)"), stacklevel=_user_stacklevel())
 
 
 def _warn_step_archive(addr: int) -> None:

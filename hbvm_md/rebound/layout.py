@@ -75,7 +75,10 @@ SL_RUN_ERR = SL_T_WRITTEN + 1
 #: (host.masses_digest), so that a loaded or copied run continues its drift check when the
 #: masses are the same and starts it afresh when they changed
 SL_EREF_MASSES = SL_T_WRITTEN + 2
-N_SLOTS = SL_EREF_MASSES + 1
+#: not saved: 1 once this simulation's run was warned of its accumulated error
+#: (host._warn_run_error: once a simulation; a copy or a loaded one starts at 0, ``create``'s)
+SL_RUN_WARNED = SL_T_WRITTEN + 3
+N_SLOTS = SL_RUN_WARNED + 1
 #: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
 #: starts), the energy at the run's start, T's time mean over the run, the run's time and T's
 #: largest (the anchor and the scale of core.DRIFT_BOUND's rule), in the consecutive slots
