@@ -67,7 +67,7 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
     H0 = float(system.energy(y))
     H_start = H0
     worst, examined, largest, drift = 0.0, 0, 0.0, 0.0
-    tmean, nT = 0.0, 0
+    tmean, tmax, nT = 0.0, 0.0, 0
     for _ in range(steps):
         y1 = st.step(h)
         gamma = st.save_state()[2]
@@ -77,10 +77,12 @@ def flow_margin(method, system, y0, h, steps, **options) -> dict:
         rel = change / (abs(T1) + abs(H1 - T1))
         largest = max(largest, rel)
         # the run's drift (integrators.core.DRIFT_BOUND): H against its start, over the run's
-        # kinetic scale max(T, <T>), <T> the mean of T at the steps' ends so far
+        # kinetic scale max(T, <T> sqrt(<T> / Tmax)), <T> and Tmax the mean and the largest of
+        # T at the steps' ends so far
         nT += 1
         tmean += (abs(T1) - tmean) / nT
-        drift = max(drift, abs(H1 - H_start) / max(abs(T1), tmean))
+        tmax = max(tmax, abs(T1))
+        drift = max(drift, abs(H1 - H_start) / max(abs(T1), tmean * np.sqrt(tmean / tmax)))
         if rel > floor:
             examined += 1
             flow = energy_flow(False, y, kin_w, h, gamma, W, I, np.zeros((0, 0)))
@@ -204,7 +206,7 @@ def scenes_main(ase: bool) -> int:
              "(the steps the rule of a method not exact for H examines), at its recorded setting "
              "with the default checks (`energy_tol=\"auto\"`, and the step's own error estimate: "
              "the coarse Gauss points the diagrams measure with the checks off are refused by it).  "
-             "*largest drift*: the run's energy against its start over max(T, <T>), the checks off "
+             "*largest drift*: the run's energy against its start over max(T, <T> sqrt(<T> / Tmax)), the checks off "
              "(integrators.core.DRIFT_BOUND refuses above 1e-3).  *margin*: the largest "
              "|dH| / (FLOW_FRACTION x the energy the step moved between T and V) over the steps "
              f"whose |dH| / (|T| + |V|) exceeds NOT_A_SOLUTION = {NOT_A_SOLUTION:g}, the check off "
