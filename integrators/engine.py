@@ -11,6 +11,7 @@ import functools
 import math
 import numbers
 import os
+import sys
 import threading
 import time
 import warnings
@@ -651,6 +652,16 @@ class Binding:
         return Newton(V, Vinv, NM)
 
 
+def _caller_stacklevel() -> int:
+    """The stacklevel of warnings.warn, called here, that names the first frame outside this
+    package (the user's call of integrate or Stepper.run, not the engine's own lines)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.dirname(os.path.abspath(frame.f_code.co_filename)) == here:
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _attach(err: BaseException, result) -> None:
     """Give an exception that stopped a run (not a StepError: those carry ``result`` by
     construction) the samples up to the last committed step, and say so in its notes."""
@@ -1174,7 +1185,7 @@ class Stepper(Counted):
             self._run_error_warned = True
             w = AccumulatedErrorWarning(est, RUN_ERROR_BOUND, self.t)
             w.result = res
-            warnings.warn(w, stacklevel=3)
+            warnings.warn(w, stacklevel=_caller_stacklevel())
         return res
 
     def _max_iter(self, solver: str) -> int:
