@@ -122,6 +122,11 @@ N_EREF = 7
 # (integrators.errors.AccumulatedErrorWarning) by the engine and REBOUND: a hundredth of the
 # motion's scale (docs/design/step.md, "The run's accumulated error")
 RUN_ERROR_BOUND = 1e-2
+# ... and a method not exact for H adds, each step, DRIFT_PHASE times its run's drift (the
+# energy's offset from the run's start over DRIFT_BOUND's scale) times the step's share of its
+# motion: an offset delta moves a Kepler orbit's mean motion by 1.5 delta, so the phase it
+# lags over the step is 1.5 delta times the phase the step advances
+DRIFT_PHASE = 1.5
 
 
 def two_product(a, b):

@@ -15,7 +15,7 @@ step: the documentation's design page "One step, written once" (``docs/design/st
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ERR, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
-                              C_RUN_ERR, C_STEPS, C_WORST, DRIFT_BOUND, DRIFTED, EREF_RUN, EREF_TIME, EREF_TMAX, EREF_TMEAN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
+                              C_RUN_ERR, C_STEPS, C_WORST, DRIFT_BOUND, DRIFT_PHASE, DRIFTED, EREF_RUN, EREF_TIME, EREF_TMAX, EREF_TMEAN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
                               resolution_error, run_error_share, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation,
                               all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
@@ -325,8 +325,10 @@ def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
         eref[EREF_TMEAN] = tmean
         eref[EREF_TIME] = run_time
         eref[EREF_TMAX] = tmax
+        eref[0] = t1 + v1
+        return OK, drift
     eref[0] = t1 + v1
-    return OK, change
+    return OK, 0.0
 
 
 def run(system, state, h, E, method, newton, opts, wk, samples):
@@ -548,6 +550,7 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             return fail(counters, NOT_FINITE, work_iter, work_nfev, work_newton)
         err = 0.0
         share = 0.0
+        drift = 0.0
         if ebound > 0.0:
             err, worst, nfev, share = resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb,
                                                        Xb, Fb, Xpb, Fpb, W, tau, h, params, at,
@@ -563,8 +566,9 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             if checked != OK:
                 counters[C_CHANGE] = change
                 return fail(counters, checked, work_iter, work_nfev, work_newton)
+            drift = change
         if ebound > 0.0:     # (committed: the run's accumulated estimate, core.C_RUN_ERR)
-            counters[C_RUN_ERR] += err * share
+            counters[C_RUN_ERR] += (err + DRIFT_PHASE * drift) * share
         copy1(y, yt)
         copy1(cy, cyt)
         copy2(gamma, g)
