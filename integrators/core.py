@@ -80,7 +80,8 @@ ITERATE, POLISH = 0, 1
 # C_ERR, C_WORST: the last step's own error estimate (resolution_error) and the body it names
 # (of the last committed step, or of the refused one)
 # C_RUN_ERR: the run's accumulated error estimate, the sum over its committed steps of each
-# step's own estimate times the share of its body's motion the step turns (run_error_share);
+# step's own estimate, plus DRIFT_PHASE times the run's drift for a method not exact for H,
+# times the share of its body's motion the step turns (run_error_share);
 # like C_STEPS it counts committed steps only, and it rides with the counters wherever they go
 # (a Stepper's calls, REBOUND's saved counters: copies and archives)
 C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_WORST, C_RUN_ERR = range(10)

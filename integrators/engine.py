@@ -812,8 +812,10 @@ class Stepper(Counted):
     @property
     def error_estimate(self) -> float:
         """The run's accumulated error estimate (:data:`integrators.core.C_RUN_ERR`): the sum
-        over the committed steps of each step's own error estimate times the share of its
-        body's motion the step turned (:func:`integrators.core.run_error_share`), an estimate
+        over the committed steps of each step's own error estimate (plus 1.5 times the run's
+        energy drift, for a method that does not keep H: the phase an energy offset makes,
+        :data:`integrators.core.DRIFT_PHASE`) times the share of its body's motion the step
+        turned (:func:`integrators.core.run_error_share`), an estimate
         of the run's error relative to the motion's own scale (an orbit's radius) when the
         steps' errors add, as a periodic orbit's phase error does; a lower bound for a chaotic
         orbit, whose errors grow faster.  Carried by this Stepper across its calls (and
@@ -1267,8 +1269,8 @@ class IntegrationResult:
         the samples up to the last committed step, in its ``result``.
     error_estimate : float
         The run's accumulated error estimate at its end (:attr:`Stepper.error_estimate`): the
-        steps' own estimates, each times the share of its body's motion the step turned,
-        summed; the error relative to the motion's scale (an orbit's radius) of a run whose
+        steps' own estimates (and the phase the energy's drift makes, for a method that does
+        not keep H), each times the share of its body's motion the step turned, summed; the error relative to the motion's scale (an orbit's radius) of a run whose
         steps' errors add (a periodic orbit's phase), a lower bound for a chaotic one.  A run
         that ends above :data:`integrators.core.RUN_ERROR_BOUND` (1e-2) is warned about once
         (:class:`integrators.AccumulatedErrorWarning`).

@@ -174,8 +174,9 @@ class EnergyDriftError(UnresolvedStepError):
 
 class AccumulatedErrorWarning(UserWarning):
     """A run's accumulated error estimate passed :data:`integrators.core.RUN_ERROR_BOUND`
-    (1e-2): the sum over its steps of each step's own error estimate times the share of its
-    body's motion the step turns (:func:`integrators.core.run_error_share`), the error relative
+    (1e-2): the sum over its steps of each step's own error estimate (plus the phase its
+    energy drift makes, for a method that does not keep H) times the share of its body's motion
+    the step turns (:func:`integrators.core.run_error_share`), the error relative
     to the motion's own scale (an orbit's radius) that the steps' errors make when they add, as
     the phase error of a periodic orbit does (a lower bound for a chaotic one, whose errors
     grow faster).  Every step passed its own checks; the run as a whole keeps less than two

@@ -130,9 +130,10 @@ SAVED = (
     ("tmax_run", SL_TMAX_RUN, _DOUBLE, None, ""),
     ("eref_masses", SL_EREF_MASSES, _DOUBLE, None, ""),
     ("error_estimate", SL_RUN_ERR, _DOUBLE, None, "The run's accumulated error estimate: the "
-     "sum over its steps of each step's own error estimate times the share of its motion the "
-     "step turns, relative to the motion's scale (an orbit's radius); HBVM warns "
-     "(AccumulatedErrorWarning) when it passes 1e-2."),
+     "sum over its steps of each step's own error estimate (and the phase its energy drift "
+     "makes, when k does not keep H) times the share of its motion the step turns, relative to "
+     "the motion's scale (an orbit's radius); HBVM warns (AccumulatedErrorWarning) when it "
+     "passes 1e-2."),
     ("t_comp", SL_T_COMP, _DOUBLE, None, "Compensation of sim.t's sum of steps (the exact "
      "time is sim.t - t_comp); 0 after the user sets sim.t."),
     ("t_written", SL_T_WRITTEN, _DOUBLE, None, ""),
