@@ -306,7 +306,9 @@ def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
         # the run's kinetic one, max(T1, <T> sqrt(<T> / Tmax)) with <T> T's time mean and Tmax
         # its largest over the run including this step (core.DRIFT_BOUND: none moves with the
         # potential's zero)
-        if not np.isfinite(eref[EREF_RUN]):
+        if not (np.isfinite(eref[EREF_RUN]) and np.isfinite(eref[EREF_TMEAN])
+                and np.isfinite(eref[EREF_TIME]) and np.isfinite(eref[EREF_TMAX])):
+            # (not known, or a state saved before the scale's terms joined eref: a new run)
             eref[EREF_RUN] = eref[0]
             eref[EREF_TMEAN] = 0.0
             eref[EREF_TIME] = 0.0
