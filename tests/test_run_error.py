@@ -207,8 +207,9 @@ def test_rebound_copies_and_archives_continue_the_drift_check(tmp_path):
         assert cont.value.t == pytest.approx(whole.value.t, abs=1e-12)
 
 
-def test_rebound_estimate_is_a_saved_field():
-    """sim.integrator.error_estimate: the run's accumulated estimate, kept by copies."""
+def test_rebound_estimate_is_a_saved_field(tmp_path):
+    """sim.integrator.error_estimate: the run's accumulated estimate, kept by copies and
+    archives, and added to by the run they continue."""
     rebound = pytest.importorskip("rebound")
     import hbvm_md  # noqa: F401
     from hbvm_md.rebound.integrator import HBVMIntegrator
@@ -221,6 +222,13 @@ def test_rebound_estimate_is_a_saved_field():
     est = float(sim.integrator.error_estimate)
     assert 0 < est < RUN_ERROR_BOUND
     assert float(sim.copy().integrator.error_estimate) == est
+    fn = os.path.join(tmp_path, "run.bin")
+    sim.save_to_file(fn)
+    loaded = rebound.Simulation(fn)
+    assert float(loaded.integrator.error_estimate) == est
+    loaded.integrate(20 * P)
+    sim.integrate(20 * P)
+    assert float(loaded.integrator.error_estimate) == float(sim.integrator.error_estimate) > est
 
 
 def test_rebound_warns_once_and_a_copy_carries_the_estimate():
