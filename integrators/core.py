@@ -79,32 +79,55 @@ ITERATE, POLISH = 0, 1
 # counters: one float64 array, the same layout on every path
 # C_ERR, C_WORST: the last step's own error estimate (resolution_error) and the body it names
 # (of the last committed step, or of the refused one)
-C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_WORST = range(9)
-N_COUNTERS = 9
+# C_RUN_ERR: the run's accumulated error estimate, the sum over its committed steps of each
+# step's own estimate, plus DRIFT_PHASE times the run's drift for a method not exact for H,
+# times the share of its body's motion the step turns (run_error_share);
+# like C_STEPS it counts committed steps only, and it rides with the counters wherever they go
+# (a Stepper's calls, REBOUND's saved counters: copies and archives)
+C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_WORST, C_RUN_ERR = range(10)
+N_COUNTERS = 10
 # A step is a solution when its own estimate of its relative local error (resolution_error) is
 # at most ERROR_BOUND: three correct digits a step.  The derivation and the measurements are in
 # docs/design/step.md, "A step judged by its own error".
 ERROR_BOUND = 1e-3
 # A run of a method not exact for H (energy_tol "auto" negative: k = s, the Gauss method, or k
-# too small for H's quadrature) is refused when its energy stands more than DRIFT_BOUND of
-# |T| + |V| away from the energy at its start.  Why this bound: on a bound orbit |T| + |V| >= |H|,
-# and a relative energy offset delta shifts the semi-major axis by delta and the mean motion by
-# 1.5 delta, so the phase lags by 3 pi delta (1e-2 rad at 1e-3) every period: the run no longer
-# keeps three correct digits of its orbit, the same standard as ERROR_BOUND for one step.  No
-# single step can see this: a symmetric method's energy error rises through a pericentre
-# passage and falls back after it (a bump of 1e-2 of |H| for HBVM(1, 1) at e = 0.9, 3000 steps
-# a period), and a run that starts inside the passage keeps half of the bump as a lasting offset,
-# with the same steps and the same estimates as a run that does not.  Measured on the sweep of
-# benchmarks/bench_error_estimate.py (one period of fixed steps, e 0.9 .. 0.999): the runs that
-# ended more than 0.1 off in silence drifted by 3.9e-3 to 7.9e-2 of |T| + |V|; the runs within
-# 0.07 of their orbit by at most 1e-3 (docs/design/step.md, "What it cannot see").
+# too small for H's quadrature) is refused when its energy stands more than DRIFT_BOUND of the
+# run's kinetic scale, max(T, <T> sqrt(<T> / Tmax)), away from the energy at its start: T the
+# kinetic energy after the step, <T> its time mean and Tmax its largest over the run so far.
+# None moves with the potential's zero (a constant added to V changes no force, no step, no T).
+# Why: for a bound Kepler orbit the virial theorem gives <T> = -H = |H| (H's zero at infinity),
+# and a relative offset delta = dH / <T> shifts the mean motion by 1.5 delta: the phase lags by
+# 3 pi delta a period, and the position by that times the fastest speed over the mean one,
+# sqrt(Tmax / <T>) (at pericentre: sqrt((1 + e) / (1 - e))), so dH / (<T> sqrt(<T> / Tmax)) at
+# most 1e-3 keeps the position within 1e-2 of the orbit's size a period, the standard
+# ERROR_BOUND sets for one step.  And along a path dv / v = dH / (2 T) at the same place: a
+# transient offset (a symmetric method's bump inside a pericentre passage, which it gives back
+# after it) is judged against the T of the moment.  The larger of the two: a lasting offset is
+# met where T is small (every orbit has such a part), a turning point (T = 0) is judged against
+# the mean.  No single step can see this: a run that starts inside a passage keeps half of the
+# bump as a lasting offset, with the same steps and estimates as a run that does not
+# (docs/design/step.md, "What it cannot see", derived and measured there).
 DRIFT_BOUND = ERROR_BOUND
 # the step's eref, carried between steps by every host: [the energy after the last step, EQUIP's
 # alpha and dE/dalpha (integrators.equip_core.EREF_EQUIP), the energy at the run's start (the
-# anchor of DRIFT_BOUND's rule)]; nan: not known yet (a host that changes the Hamiltonian or the
-# state sets all of them to nan, so a run starts again from there)
+# anchor of DRIFT_BOUND's rule), the time mean of T over the run so far, the run's elapsed
+# time (|h| summed) and T's largest value (the scale of DRIFT_BOUND's rule)]; nan: not known yet (a host that changes
+# the Hamiltonian or the state sets all of them to nan, so a run starts again from there: the
+# run's start, its mean T, its time and its largest T start together, when EREF_RUN is nan)
 EREF_RUN = 3
-N_EREF = 4
+EREF_TMEAN = 4
+EREF_TIME = 5
+EREF_TMAX = 6
+N_EREF = 7
+# A run whose accumulated error estimate (C_RUN_ERR) passes RUN_ERROR_BOUND is warned about
+# (integrators.errors.AccumulatedErrorWarning) by the engine and REBOUND: a hundredth of the
+# motion's scale (docs/design/step.md, "The run's accumulated error")
+RUN_ERROR_BOUND = 1e-2
+# ... and a method not exact for H adds, each step, DRIFT_PHASE times its run's drift (the
+# energy's offset from the run's start over DRIFT_BOUND's scale) times the step's share of its
+# motion: an offset delta moves a Kepler orbit's mean motion by 1.5 delta, so the phase it
+# lags over the step is 1.5 delta times the phase the step advances
+DRIFT_PHASE = 1.5
 
 
 def two_product(a, b):
@@ -1273,6 +1296,45 @@ def resolution_error(full, y, minv, g, om, h, group):
                 worst = b
         b += 1
     return err ** ((2.0 * s + 1.0) / (s + 1.0)), worst
+
+
+@jit
+def run_error_share(full, y, minv, g, h, err, worst, group, s):
+    """The share of its motion the step's worst body (:func:`resolution_error`'s ``worst``)
+    turns over the step, w in [0, 1]: |h gamma_0 / m| / (max(|v0|, |v1|) + |h gamma_0 / m|)
+    (:func:`body_motion`, against the bodies' mean when larger, as the estimate is), about
+    omega h for a body on a path of local frequency omega.  The run's accumulated error adds
+    err * w a step (C_RUN_ERR): a step's estimate is its local error relative to the motion over
+    the step (|v| h), and |v| h / (|v| / omega) = omega h, so err * w is the step's error
+    relative to the motion's own scale (|v| / omega: an orbit's radius, an oscillation's
+    amplitude), and the sum over steps that scale's relative error when the steps' errors add
+    (the phase of a periodic orbit).  A body at rest in no force turns nothing (w = 0).  Full
+    form: (err^(s / (2s + 1)))^(1 / s), d^(1/s) ~ omega h from the defect d ~ (omega h)^s,
+    at most 1."""
+    if not err > 0.0:
+        return 0.0
+    if not err < np.inf:
+        return 1.0
+    if full or worst < 0:
+        return min(1.0, err ** (1.0 / (2.0 * s + 1.0)))
+    m = minv.shape[0]
+    w = group if group > 0 else m
+    mean = 0.0
+    nbody = 0
+    for j0 in range(0, m, w):
+        mean += body_motion(y, minv, g, h, j0, min(j0 + w, m))
+        nbody += 1
+    mean = mean / nbody if nbody > 0 else 0.0
+    j0 = worst * w
+    if j0 >= m:
+        return 1.0
+    j1 = min(j0 + w, m)
+    dv = 0.0
+    for j in range(j0, j1):
+        x = h * g[0, j] * minv[j]
+        dv += x * x
+    den = max(body_motion(y, minv, g, h, j0, j1), mean)
+    return min(1.0, np.sqrt(dv) / den) if den > 0.0 else 1.0
 
 
 @jit

@@ -11,20 +11,23 @@ import functools
 import math
 import numbers
 import os
+import sys
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTERS, NOT_FINITE,
-                   OK, velocity_work, work_sizes)
+from .core import (C_ITER, C_NEWTON, C_NFEV, C_RUN_ERR, C_STEPS, DIVERGED, N_COUNTERS,
+                   NOT_FINITE, OK, RUN_ERROR_BOUND, velocity_work, work_sizes)
 from .core import DIVERGED as FAILED_STEP
 from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolation
 from .core import step_error as error_estimate
 from . import ccore
 from .jit import entry_point
-from .errors import EnergyDriftError, NonFiniteError, StepError, StepSizeError, step_error
+from .errors import (AccumulatedErrorWarning, EnergyDriftError, NonFiniteError, StepError,
+                     StepSizeError, step_error)
 from .protocol import _Adapted, adapt_system
 from .records import Method, Newton, Options, Samples, State, System, Work
 from .quadrature import gauss_rule01
@@ -662,6 +665,16 @@ NONFINITE_AT_START = ("the forces at the state the step starts from are not fini
                       "top of each other, a force that breaks down)")
 
 
+def _caller_stacklevel() -> int:
+    """The stacklevel of warnings.warn, called here, that names the first frame outside this
+    package (the user's call of integrate or Stepper.run, not the engine's own lines)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.dirname(os.path.abspath(frame.f_code.co_filename)) == here:
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _attach(err: BaseException, result) -> None:
     """Give an exception that stopped a run (not a StepError: those carry ``result`` by
     construction) the samples up to the last committed step, and say so in its notes."""
@@ -775,7 +788,8 @@ class Stepper(Counted):
         self._gamma = np.zeros((method.s, self.binding.u))
         self._h_prev = None
         self._extrapolation = Extrapolation(method)
-        self._eref = np.full(N_EREF, np.nan)  # [energy, EQUIP's alpha, slope, start] (core.N_EREF)
+        # [energy, EQUIP's alpha, slope, the run's start, its mean T, its time] (core.N_EREF)
+        self._eref = np.full(N_EREF, np.nan)
         self.counters = np.zeros(N_COUNTERS)
         self.binding.watch(self.counters)
         # one step is run() of one step without samples (loop.advance, which compiled callers
@@ -807,6 +821,22 @@ class Stepper(Counted):
     @property
     def nsteps(self) -> int:
         return int(self.counters[C_STEPS])
+
+    @property
+    def error_estimate(self) -> float:
+        """The run's accumulated error estimate (:data:`integrators.core.C_RUN_ERR`): the sum
+        over the committed steps of each step's own error estimate (plus 1.5 times the run's
+        energy drift, for a method that does not keep H: the phase an energy offset makes,
+        :data:`integrators.core.DRIFT_PHASE`) times the share of its body's motion the step
+        turned (:func:`integrators.core.run_error_share`), an estimate
+        of the run's error relative to the motion's own scale (an orbit's radius) when the
+        steps' errors add, as a periodic orbit's phase error does; a lower bound for a chaotic
+        orbit, whose errors grow faster.  Carried by this Stepper across its calls (and
+        pickles); a new Stepper starts at 0.  Steps taken with ``error_bound=None`` (no
+        estimate) add nothing.  :meth:`run` and :meth:`run_adaptive` warn once
+        (:class:`integrators.AccumulatedErrorWarning`) when it passes
+        :data:`integrators.core.RUN_ERROR_BOUND` (1e-2)."""
+        return float(self.counters[C_RUN_ERR])
 
     @property
     def energy_tol(self):
@@ -858,10 +888,17 @@ class Stepper(Counted):
     def __setstate__(self, state: dict) -> None:
         eref = state.get("_eref")
         if eref is not None and eref.shape[0] < N_EREF:
-            # a Stepper pickled before the run's start joined eref (core.N_EREF): the compiled
-            # step indexes eref[EREF_RUN] unchecked, so the array is padded; nan starts the run's
-            # drift afresh from the next step
-            state["_eref"] = np.concatenate([eref, np.full(N_EREF - eref.shape[0], np.nan)])
+            # a Stepper pickled before the run's start (and its mean T) joined eref
+            # (core.N_EREF): the compiled step indexes eref unchecked, so the array is padded;
+            # nan starts the run's drift afresh from the next step
+            eref = np.concatenate([eref, np.full(N_EREF - eref.shape[0], np.nan)])
+            eref[EREF_RUN] = np.nan
+            state["_eref"] = eref
+        counters = state.get("counters")
+        if counters is not None and counters.shape[0] < N_COUNTERS:
+            # (pickled before the run's accumulated estimate joined the counters: from 0)
+            state["counters"] = np.concatenate([counters,
+                                                np.zeros(N_COUNTERS - counters.shape[0])])
         self.__dict__.update(state)
 
     @_one_thread
@@ -999,7 +1036,8 @@ class Stepper(Counted):
             err.result = self._result(out_t[:k], out_y[:k], out_e[:k], h, t_start,
                                       "failed", str(err))
             raise
-        return self._result(out_t, out_y, out_e, h, t_start, "finished", "")
+        return self._warn_run_error(self._result(out_t, out_y, out_e, h, t_start, "finished",
+                                                 ""))
 
     def _run_chunks(self, h, steps, sample_every, start, out_t, out_y, out_e) -> int:
         """The fixed-point steps of :meth:`run` through the step loop, in chunks of about
@@ -1166,9 +1204,20 @@ class Stepper(Counted):
         res.extra.update(adaptive=True, epsilon=epsilon, rejected=self.rejected,
                          h_min=float(np.min(np.abs(hs))) if hs else float("nan"),
                          h_max=float(np.max(np.abs(hs))) if hs else float("nan"))
-        return res
+        return self._warn_run_error(res)
 
     # -- private -----------------------------------------------------------------------
+    def _warn_run_error(self, res: "IntegrationResult") -> "IntegrationResult":
+        """Warn once (AccumulatedErrorWarning) when the run's accumulated estimate has passed
+        RUN_ERROR_BOUND; as an error (a warnings filter), it carries ``res`` in ``result``."""
+        est = self.error_estimate
+        if est > RUN_ERROR_BOUND and not getattr(self, "_run_error_warned", False):
+            self._run_error_warned = True
+            w = AccumulatedErrorWarning(est, RUN_ERROR_BOUND, self.t)
+            w.result = res
+            warnings.warn(w, stacklevel=_caller_stacklevel())
+        return res
+
     def _max_iter(self, solver: str) -> int:
         return int(self.max_iter or MAX_ITER[solver])
 
@@ -1222,7 +1271,8 @@ class Stepper(Counted):
         return IntegrationResult(np.array(t, dtype=float), y, np.array(e, dtype=float), self.method, h,
                                  self.nsteps, self.nfev, self.niter, self.binding.name,
                                  time.perf_counter() - t_start, self.newton_steps,
-                                 self.solver_switches, status=status, message=message)
+                                 self.solver_switches, status=status, message=message,
+                                 error_estimate=self.error_estimate)
 
 
 @dataclass
@@ -1245,6 +1295,13 @@ class IntegrationResult:
         function) or "interrupted" (KeyboardInterrupt, SystemExit), with the exception's
         message: a stopped :func:`integrate` raises that exception and carries this result,
         the samples up to the last committed step, in its ``result``.
+    error_estimate : float
+        The run's accumulated error estimate at its end (:attr:`Stepper.error_estimate`): the
+        steps' own estimates (and the phase the energy's drift makes, for a method that does
+        not keep H), each times the share of its body's motion the step turned, summed; the error relative to the motion's scale (an orbit's radius) of a run whose
+        steps' errors add (a periodic orbit's phase), a lower bound for a chaotic one.  A run
+        that ends above :data:`integrators.core.RUN_ERROR_BOUND` (1e-2) is warned about once
+        (:class:`integrators.AccumulatedErrorWarning`).
     """
 
     t: np.ndarray
@@ -1262,6 +1319,7 @@ class IntegrationResult:
     status: str = "finished"
     message: str = ""
     extra: dict = field(default_factory=dict)
+    error_estimate: float = float("nan")
 
     @property
     def energy_error(self) -> np.ndarray:

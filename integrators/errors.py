@@ -141,12 +141,14 @@ class UnresolvedStepError(StepError):
 class EnergyDriftError(UnresolvedStepError):
     """A step of a method not exact for H (k = s, the Gauss method, or k too small for H's
     quadrature) converged and passed its own checks, but the run's energy now stands more than
-    :data:`integrators.core.DRIFT_BOUND` of |T| + |V| away from its start: the orbit's size and
-    period are off by about as much, its phase by ten times that a period.  No shorter step in
+    :data:`integrators.core.DRIFT_BOUND` of the run's kinetic scale, max(T, <T> sqrt(<T> /
+    Tmax)) (T after the step, <T> its time mean and Tmax its largest over the run), away from
+    its start: the orbit's size and period are off by about as much, its phase by ten times that
+    a period, and its position by that times the fastest speed over the mean one.  No shorter step in
     its place can undo the run's past, so adaptive steps do not retry it.  Nothing was committed.
 
     Attributes (besides :class:`UnresolvedStepError`'s): ``drift``, the energy's distance from
-    its start relative to |T| + |V| (also ``change``), and ``bound``, the bound it exceeded.
+    its start relative to that scale (also ``change``), and ``bound``, the bound it exceeded.
     The message names no step size: the drift found here is the first to pass the bound, and a
     run's drift can still grow after it (a pericentre passage's offset is set over the whole
     passage), so a step computed from it would not be a way out that works.
@@ -161,12 +163,41 @@ class EnergyDriftError(UnresolvedStepError):
                 f"h^{2 * s}); or energy_tol=None to accept the drift")
         super().__init__(h, drift, bound, iterations, t, hint, solver)
         RuntimeError.__init__(self, (
-            f"{self._where()} leaves the run's energy {drift:.3e} (relative to |T| + |V|) away "
+            f"{self._where()} leaves the run's energy {drift:.3e} (relative to its kinetic "
+            f"energy, max(T, <T> sqrt(<T> / Tmax)) over the run) away "
             f"from its start, more than {bound:.1e}: HBVM with this many quadrature nodes does "
             f"not keep this H, and an energy this far off puts the orbit off too (its size and "
             f"period by about as much, its phase by ten times that a period), although every "
             f"step passed its own checks; {hint}"))
         self.drift, self.bound = drift, bound
+
+
+class AccumulatedErrorWarning(UserWarning):
+    """A run's accumulated error estimate passed :data:`integrators.core.RUN_ERROR_BOUND`
+    (1e-2): the sum over its steps of each step's own error estimate (plus the phase its
+    energy drift makes, for a method that does not keep H) times the share of its body's motion
+    the step turns (:func:`integrators.core.run_error_share`), the error relative
+    to the motion's own scale (an orbit's radius) that the steps' errors make when they add, as
+    the phase error of a periodic orbit does (a lower bound for a chaotic one, whose errors
+    grow faster).  Every step passed its own checks; the run as a whole keeps less than two
+    digits of its path.  Warned once a run (the engine, REBOUND); ASE reports the estimate and
+    never warns.  Make it an error with ``warnings.simplefilter("error",
+    AccumulatedErrorWarning)``.
+
+    Attributes: ``estimate`` (the run's accumulated estimate), ``bound``, ``t`` (the time it
+    was found at, the end of the call that passed it)."""
+
+    def __init__(self, estimate: float, bound: float, t: float | None = None,
+                 way_out: str = "a smaller step (the estimate falls like h^(2s)) or a larger s"):
+        where = f" at t={t!r}" if t is not None else ""
+        super().__init__(
+            f"the run's accumulated error estimate is {estimate:.3g}{where}, above {bound:g} "
+            f"of the motion's scale (an orbit's radius): each step kept its own error below its "
+            f"bound, but their sum over the run, the error of a periodic orbit's phase (a lower "
+            f"bound for a chaotic one), leaves fewer than two correct digits of the path; use "
+            f"{way_out}.  warnings.simplefilter('error', AccumulatedErrorWarning) makes this an "
+            f"error")
+        self.estimate, self.bound, self.t = estimate, bound, t
 
 
 def unresolved_by_estimate(h: float, estimate: float, bound: float, body: int, s: int,

@@ -15,8 +15,8 @@ step: the documentation's design page "One step, written once" (``docs/design/st
 import numpy as np
 
 from integrators.core import (C_CHANGE, C_ERR, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
-                              C_STEPS, C_WORST, DRIFT_BOUND, DRIFTED, EREF_RUN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
-                              resolution_error, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
+                              C_RUN_ERR, C_STEPS, C_WORST, DRIFT_BOUND, DRIFT_PHASE, DRIFTED, EREF_RUN, EREF_TIME, EREF_TMAX, EREF_TMEAN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
+                              resolution_error, run_error_share, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
                               TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation,
                               all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
@@ -244,7 +244,8 @@ def resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb, Xb, Fb, Xpb, Fpb, 
     omitted Legendre coefficient goes into Fpb[0] (the Lipschitz probe's scratch, free by now):
     from the stage values when k > s, else from one evaluation at y1 (the full form's grad H
     into Fpb[0], J grad H back over the stage in Xpb[0]).  Returns (estimate, the worst body
-    as the whole state numbers it, evaluations made)."""
+    as the whole state numbers it, evaluations made, the share of its motion the worst body
+    turned: :func:`integrators.core.run_error_share`, for the run's accumulated estimate)."""
     om = Fpb[0]
     s = gb.shape[0]
     nfev = 0
@@ -264,9 +265,10 @@ def resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb, Xb, Fb, Xpb, Fpb, 
         endpoint_defect(gb, f1[0], om)
         nfev = 1
     err, worst = resolution_error(full, yb, mb, gb, om, h, group)
+    share = run_error_share(full, yb, mb, gb, h, err, worst, group, s)
     if _FOLLOWERS and at >= 0 and worst >= 0 and group > 0:
         worst = int(params[at + 4 + worst * group]) // group
-    return err, worst, nfev
+    return err, worst, nfev, share
 
 
 def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
@@ -299,17 +301,36 @@ def energy_check(full, y, yt, m, kin_w, params, etol, eref, h, g, W, I, G):
     if etol < 0.0 and not full:
         # ... and the run's energy against its start: each step of a symmetric method may pass
         # while the run keeps an offset that puts its orbit off (core.DRIFT_BOUND).  Only in
-        # the separable form, whose |T| + |V| is the size of a physical energy: a full-form H
-        # has no such scale (a Poincare-transformed H is zero on the solution)
-        if not np.isfinite(eref[EREF_RUN]):
+        # the separable form, whose kinetic energy is the size of the motion: a full-form H
+        # has no such scale (a Poincare-transformed H is zero on the solution).  The scale is
+        # the run's kinetic one, max(T1, <T> sqrt(<T> / Tmax)) with <T> T's time mean and Tmax
+        # its largest over the run including this step (core.DRIFT_BOUND: none moves with the
+        # potential's zero)
+        if not (np.isfinite(eref[EREF_RUN]) and np.isfinite(eref[EREF_TMEAN])
+                and np.isfinite(eref[EREF_TIME]) and np.isfinite(eref[EREF_TMAX])):
+            # (not known, or a state saved before the scale's terms joined eref: a new run)
             eref[EREF_RUN] = eref[0]
+            eref[EREF_TMEAN] = 0.0
+            eref[EREF_TIME] = 0.0
+            eref[EREF_TMAX] = 0.0
+        run_time = eref[EREF_TIME] + abs(h)
+        tmean = eref[EREF_TMEAN] + (abs(t1) - eref[EREF_TMEAN]) * (abs(h) / run_time)
+        tmax = max(eref[EREF_TMAX], abs(t1))
         drift = abs(t1 + v1 - eref[EREF_RUN])
-        if scale > 0.0:
-            drift = drift / scale
+        kscale = abs(t1)
+        if tmax > 0.0:
+            kscale = max(kscale, tmean * np.sqrt(tmean / tmax))
+        if kscale > 0.0:
+            drift = drift / kscale
         if not drift <= DRIFT_BOUND:
             return DRIFTED, drift
+        eref[EREF_TMEAN] = tmean
+        eref[EREF_TIME] = run_time
+        eref[EREF_TMAX] = tmax
+        eref[0] = t1 + v1
+        return OK, drift
     eref[0] = t1 + v1
-    return OK, change
+    return OK, 0.0
 
 
 def run(system, state, h, E, method, newton, opts, wk, samples):
@@ -529,9 +550,13 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
                 eq.commit_correction(yt, cyt, minv, h, g, es[0], ts[eq.TS_S0])
         if not all_finite(yt):
             return fail(counters, NOT_FINITE, work_iter, work_nfev, work_newton)
+        err = 0.0
+        share = 0.0
+        drift = 0.0
         if ebound > 0.0:
-            err, worst, nfev = resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb, Xb, Fb,
-                                                Xpb, Fpb, W, tau, h, params, at, pb, group)
+            err, worst, nfev, share = resolution_check(full, vel, yt, cyt, m, minv, gb, yb, mb,
+                                                       Xb, Fb, Xpb, Fpb, W, tau, h, params, at,
+                                                       pb, group)
             counters[C_NFEV] += nfev
             counters[C_ERR] = err
             counters[C_WORST] = worst
@@ -543,6 +568,9 @@ def run(system, state, h, E, method, newton, opts, wk, samples):
             if checked != OK:
                 counters[C_CHANGE] = change
                 return fail(counters, checked, work_iter, work_nfev, work_newton)
+            drift = change
+        if ebound > 0.0:     # (committed: the run's accumulated estimate, core.C_RUN_ERR)
+            counters[C_RUN_ERR] += (err + DRIFT_PHASE * drift) * share
         copy1(y, yt)
         copy1(cy, cyt)
         copy2(gamma, g)

@@ -43,7 +43,11 @@ def test_order_2s_for_several_k(kepler_reference, s):
     Ns = np.array(N_GRID[s])
     for k in (s, s + 2, 2 * s + 2):
         m = HBVM(k, s)
-        errs = [np.max(np.abs(integrate(m, kep, y0, T_ORDER / N, int(N), sample_every=int(N)).y[-1] - ref))
+        # (energy_tol=None: the order is measured at every step size, the coarse ones too;
+        # the midpoint rule at P/50 ends 0.097 off and the run's drift check refuses it, 1.1e-3
+        # of its kinetic scale, integrators.core.DRIFT_BOUND)
+        errs = [np.max(np.abs(integrate(m, kep, y0, T_ORDER / N, int(N), sample_every=int(N),
+                                        energy_tol=None).y[-1] - ref))
                 for N in Ns]
         slope = convergence_order(T_ORDER / Ns, errs)
         assert abs(slope - 2 * s) <= 0.3, (k, s, slope, errs)
@@ -111,10 +115,13 @@ def test_compiled_and_numpy_paths_agree():
         y0 = system.initial_state()
         for k, s in [(2, 2), (5, 3)]:
             m = HBVM(k, s)
-            # (the paths compared at coarse steps too: the step's own check off)
-            fast = integrate(m, system, y0, h, 20, fast=True, error_bound=None)
-            sep = integrate(m, system, y0, h, 20, fast=False, error_bound=None)
-            full = integrate(m, system, y0, h, 20, fast=False, form="full", error_bound=None)
+            # (the paths compared at coarse steps too: the step's own check off, and the run's
+            # drift check, which refuses Gauss(2) on Henon-Heiles at h = 0.5 at its first step,
+            # 1.5e-3 of T)
+            off = dict(error_bound=None, energy_tol=None)
+            fast = integrate(m, system, y0, h, 20, fast=True, **off)
+            sep = integrate(m, system, y0, h, 20, fast=False, **off)
+            full = integrate(m, system, y0, h, 20, fast=False, form="full", **off)
             assert (fast.path, sep.path, full.path) == ("compiled-separable", "python-separable", "python-full")
             assert np.max(np.abs(fast.y - sep.y)) <= 1e-13 * max(1, np.max(np.abs(sep.y)))
             assert np.max(np.abs(full.y - sep.y)) <= 1e-12 * max(1, np.max(np.abs(sep.y)))

@@ -474,3 +474,7 @@ def test_the_registered_c_functions_name_the_layout_they_were_compiled_for():
     digest = hashlib.sha256(Path(layout.__file__).read_bytes()).hexdigest()[:16]
     assert cabi.LAYOUT_DIGEST == digest, f"set LAYOUT_DIGEST = {digest!r} in hbvm_md/rebound/cabi.py"
     assert cabi._CACHE
+    # (so do the compiled helpers of particles.py and masses.py, cached on their own files)
+    from hbvm_md.rebound import masses, particles
+    for mod in (particles, masses):
+        assert mod.LAYOUT_DIGEST == digest, f"set LAYOUT_DIGEST = {digest!r} in {mod.__file__}"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from integrators import HBVM, EnergyDriftError, Stepper, integrate
-from integrators.core import DRIFT_BOUND, EREF_RUN
+from integrators.core import DRIFT_BOUND, EREF_RUN, N_EREF
 from integrators.kchoice import choose_k
 from systems import Kepler
 
@@ -149,6 +149,6 @@ def test_a_stepper_pickled_before_the_run_s_start_joined_eref_steps_safely():
     state["_eref"] = state["_eref"][:3].copy()          # the older layout
     old = Stepper.__new__(Stepper)
     old.__setstate__(pickle.loads(pickle.dumps(state)))
-    assert old._eref.shape == (4,) and np.isnan(old._eref[EREF_RUN])
+    assert old._eref.shape == (N_EREF,) and np.isnan(old._eref[EREF_RUN])
     ref = pickle.loads(pickle.dumps(st))
     assert np.array_equal(old.step(P / 200), ref.step(P / 200))

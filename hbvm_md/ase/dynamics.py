@@ -159,6 +159,16 @@ class HBVMDynamics(MolecularDynamics):
     stage_evaluations : int
         Force evaluations at stage configurations so far (plus one per step at the final
         positions, made through ``atoms.get_forces``).
+    error_estimate : float
+        The run's accumulated error estimate (the engine's
+        :attr:`integrators.Stepper.error_estimate`, summed over the engines this dynamics
+        started: a new calculator, a changed Hamiltonian): each step's own error estimate
+        times the share of its atom's motion the step turned, summed, the error of the
+        atoms' paths relative to their motion's scale when the steps' errors add.  Molecular
+        trajectories are chaotic, so it is a lower bound of the path's error, and MD asks for
+        the energy and the statistics, not the path: reported (also in :meth:`todict`), never
+        warned.  Steps of a holonomic run (``FixBondLengths``, ``FixLinearTriatomic``) and
+        steps over a calculator's accepted jump carry no estimate and add nothing.
     jumps : list of hbvm_md.ase.discontinuity.Jump
         The calculator's energy jumps the run stepped through (each also warned once).
 
@@ -253,6 +263,7 @@ class HBVMDynamics(MolecularDynamics):
         self._holonomic = None      # the constrained step when the atoms have rigid bonds
         self._written = None
         self._stage_total = 0
+        self._run_error_prior = 0.0     # (the estimate of the engines replaced: error_estimate)
         self.hamiltonian_changes = 0
         super().__init__(atoms, timestep, trajectory=trajectory, logfile=logfile,
                          loginterval=loginterval, **kwargs)
@@ -267,6 +278,12 @@ class HBVMDynamics(MolecularDynamics):
     @property
     def s(self) -> int:
         return self.method.s
+
+    @property
+    def error_estimate(self) -> float:
+        """The run's accumulated error estimate (class docstring); reported, never warned."""
+        return self._run_error_prior + (self._stepper.error_estimate
+                                        if self._stepper is not None else 0.0)
 
     @property
     def stage_evaluations(self) -> int:
@@ -330,7 +347,8 @@ class HBVMDynamics(MolecularDynamics):
         d.update({"method": repr(self.method), "k": self.k, "s": self.s,
                   "nodes": self.method.nodes, "solver": self.solver,
                   "tol": self.tol if isinstance(self.tol, str) else self.iteration_tol(),
-                  "energy_tol": self.energy_tol, "adaptive": self.adaptive})
+                  "energy_tol": self.energy_tol, "adaptive": self.adaptive,
+                  "error_estimate": self.error_estimate})
         if self._holonomic is not None:
             # the rigid-bond step integrates the forces' part across the bonds when the full
             # forces make its iteration diverge (integrators.holonomic, "forces along the bonds")
@@ -458,6 +476,8 @@ class HBVMDynamics(MolecularDynamics):
             self._check_atoms(atoms)
             if sys_ is not None:
                 self._stage_total += sys_.stage_evaluations
+            if self._stepper is not None:
+                self._run_error_prior += self._stepper.error_estimate
             batched = hasattr(atoms.calc, "forces_batch")
             kind = _AtomsSystemWithHessian if callable(getattr(atoms.calc, "hessian", None)) else _AtomsSystem
             sys_ = kind(atoms, constraints, batched)
@@ -665,6 +685,7 @@ class HBVMDynamics(MolecularDynamics):
         self.hamiltonian_changes += 1
         _log.info("HBVMDynamics: the Hamiltonian changed at t=%.6g fs (%s): the run goes on "
                   "with the new one", self._stepper.t / units.fs, why)
+        self._run_error_prior += self._stepper.error_estimate
         self._stepper = None
         return self._ensure_stepper(self._constraints(self.atoms))
 

@@ -67,8 +67,9 @@ bodies' largest velocity when the step is prepared (1 when either is 0; taken ba
 saved state, :meth:`ReboundScene.adopt_sigma`): the iteration's stop rule, the step's error
 estimate (body by body: the ODE's components in groups of three, as a body's coordinates) and the
 controller (the largest weighted coefficients over the state) then compare the ODE with the
-bodies as a body moving at its own rate.  An ODE has no energy in general: the energy check is
-off for such a scene (:func:`hamiltonian`).  The glue (:mod:`hbvm_md.rebound.glue`) calls each
+bodies as a body moving at its own rate.  An ODE has no energy in general: the energy check
+(and the run's drift check, integrators.core.DRIFT_BOUND) guards the bodies' H, in which the
+ODEs have no weight, and is off when an added force has no potential (:func:`hamiltonian`).  The glue (:mod:`hbvm_md.rebound.glue`) calls each
 ODE's ``pre_timestep`` and rereads a changed ``y`` before a step, writes ``y`` (and calls
 ``post_timestep``) after it, or writes back the state from before a failed step, and hides the
 ODEs from REBOUND's own stepping of them (``sim->N_odes`` = 0 between its steps).
@@ -488,8 +489,8 @@ def ode_entries(sim, vscale: float) -> tuple[list[float], int]:
 def hamiltonian(sim) -> bool:
     """Does the scene conserve the H of the module docstring: no added force, or only REBOUNDx
     forces whose potential REBOUNDx exports (:data:`POTENTIALS`)?"""
-    if sim._N_odes > 0:         # (an attached ODE has no energy in general)
-        return False
+    # (attached ODEs ride in the momenta with no kinetic weight and no potential: the H guarded
+    # is the bodies', which an ODE changes only through an added force, judged below)
     if not sim._additional_forces:
         return True
     rebx = reboundx_forces(sim)

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import carray
 
-from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_STEPS, ERROR_BOUND, OK, TINY_RATIO, copy1,
+from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_RUN_ERR, C_STEPS, EREF_RUN, ERROR_BOUND, OK, TINY_RATIO, copy1,
                               copy2, select_extrapolation, test_particle_error)
 from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
@@ -36,7 +36,7 @@ from hbvm_md.rebound.layout import (A_HOST, A_KINW, A_MINV, A_PARAMS, A_WRITTEN,
                                     A_TP, A_TO, BAD_DT, BAD_SETTINGS, D_M, D_N, D_P, D_PTR, D_S,
                                     N_HOST, N_RES, RESYNC, R_DT, R_DTL, R_G, R_M, R_NACTIVE,
                                     R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_CAUSE_ERR,
-                                    SL_CAUSE_STATUS, SL_ECHECK, SL_EPSILON, SL_ETOL, SL_H_FAIL,
+                                    SL_CAUSE_STATUS, SL_ECHECK, SL_RUN_ERR, SL_EPSILON, SL_ETOL, SL_H_FAIL,
                                     SL_H_PREV, SL_MAX_DT, SL_MAX_ITER, SL_MIN_DT, SL_NSTEPS,
                                     SL_REJECTED, SL_RES, SL_RESYNCS, SL_TOL, SL_T_FAIL,
                                     TEST_PARTICLE)
@@ -292,8 +292,11 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     if not sliver:
         # EQUIP's alpha and dE/dalpha (warm starts of its energy condition), as gamma: a
         # sliver's slope, of the order of its h, would misguide the next regular step
-        for i in range(1, eref.shape[0]):
+        for i in range(1, EREF_RUN):
             eref[i] = ereft[i]
+    for i in range(EREF_RUN, eref.shape[0]):      # the run's start, mean T and time: any step's
+        eref[i] = ereft[i]
+    sd[SL_RUN_ERR] = counters[C_RUN_ERR]          # (sim.integrator.error_estimate)
     for i in range(view.shape[0]):
         for c in range(3):
             view[i, ix + c] = y[3 * i + c]

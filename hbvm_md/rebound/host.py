@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import math
 import os
 import sys
@@ -17,11 +18,11 @@ from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM
 from integrators.core import (C_LASTIT, C_WORST, ERROR_BOUND, N_COUNTERS, NOT_FINITE, NOT_RESOLVED,
-                              OK, TOO_SMALL, test_particle_error)
+                              OK, RUN_ERROR_BOUND, TOO_SMALL, test_particle_error)
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
                                 energy_check)
-from integrators.errors import (ConvergenceError, NonFiniteError, StepSizeError,
-                                UnresolvedStepError, step_error)
+from integrators.errors import (AccumulatedErrorWarning, ConvergenceError, NonFiniteError,
+                                StepSizeError, UnresolvedStepError, step_error)
 from integrators.kchoice import adaptive_k
 from integrators.tangent import TANGENT_FAILED, tangent_sizes
 from systems.nbody import NBody, nbody_force_jvp
@@ -208,6 +209,7 @@ def _create() -> int:
         d["epsilon"], d["min_dt"], 0.0, d["energy_tol"], np.nan)
     sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, alpha, slope, run's start: unknown
     sd[L.SL_T_WRITTEN] = np.nan                        # (sim.t is then taken as it is)
+    sd[L.SL_EREF_MASSES] = np.nan                      # (no masses yet: see masses_digest)
     st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
     return p
 
@@ -256,7 +258,7 @@ def _install_runs(rebound) -> None:
             if addr in _HOST_PATH:
                 _probe_run(self)
             _recheck_forces(self, addr)
-            _forget_host_energy(addr)
+            _forget_host_energy(addr, self)
             c_int.from_address(addr + eft_at).value = exact_finish_time  # a TypeError as REBOUND's
             _recheck_odes(self, addr)
             try:
@@ -264,6 +266,7 @@ def _install_runs(rebound) -> None:
             finally:
                 _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)  # (as REBOUND)
+            _warn_run_error(self, addr)
 
     def steps(self, N_steps):
         addr = addressof(self)
@@ -276,13 +279,14 @@ def _install_runs(rebound) -> None:
             if addr in _HOST_PATH:
                 _probe_run(self)
             _recheck_forces(self, addr)
-            _forget_host_energy(addr)
+            _forget_host_energy(addr, self)
             _recheck_odes(self, addr)
             try:
                 status = c_steps(addr, c_size_t(N_steps))
             finally:
                 _release_odes(addr)
             _after_run(self, addr, status, messages_at, run.raised)
+            _warn_run_error(self, addr)
 
     integrate.__doc__, steps.__doc__ = reb_integrate.__doc__, reb_steps.__doc__
     integrate._hbvm_md = steps._hbvm_md = True
@@ -327,6 +331,23 @@ def _install_repr(rebound) -> None:
 
     __repr__._hbvm_md = True
     C.__repr__ = __repr__
+
+
+def _warn_run_error(sim, addr: int) -> None:
+    """After a run that returned: warn once a simulation (AccumulatedErrorWarning) when its run's
+    accumulated error estimate (``sim.integrator.error_estimate``, integrators.core.C_RUN_ERR)
+    has passed RUN_ERROR_BOUND."""
+    p = ctypes.c_void_p.from_address(addr + _REG["state_at"]).value
+    if not p:
+        return
+    st, sd = _slots(p)
+    est = float(sd[L.SL_RUN_ERR])
+    if est > RUN_ERROR_BOUND and not st[L.SL_RUN_WARNED]:
+        st[L.SL_RUN_WARNED] = 1
+        warnings.warn(AccumulatedErrorWarning(
+            est, RUN_ERROR_BOUND, float(sim.t),
+            "a smaller sim.dt (the estimate falls like dt^(2s)), a larger s, or adaptive steps "
+            "(sim.integrator.epsilon)"), stacklevel=_user_stacklevel())
 
 
 def _warn_step_archive(addr: int) -> None:
@@ -542,7 +563,7 @@ def _recheck_odes(sim, addr: int) -> None:
     _ODES.pop(addr, None)
 
 
-def _forget_host_energy(addr: int) -> None:
+def _forget_host_energy(addr: int, sim) -> None:
     """On REBOUND's own accelerations the H the energy check guards holds the added forces'
     potentials, whose parameters (REBOUNDx ``gr_potential``'s ``c``, ``J2``, ``Acentral``: in
     ``params`` of a force or a particle) a user may change between runs without changing a word
@@ -556,7 +577,10 @@ def _forget_host_energy(addr: int) -> None:
     prepared = _prepared(addr)
     if prepared is not None and prepared[2][L.D_HOST]:
         prepared[1][L.SL_EREF] = np.nan
-        prepared[1][L.SL_EREF_RUN] = np.nan     # (H may have changed: the run's start too)
+        if sim._additional_forces:
+            # (H may have changed: the run's start too; attached ODEs alone change nothing of
+            # the bodies' H, so their run's drift check goes on across calls)
+            prepared[1][L.SL_EREF_RUN] = np.nan
 
 
 def _install_operators() -> None:
@@ -1121,10 +1145,11 @@ def _prepare(sim, p: int) -> None:
         # by the same function that computed the saved one at the last commit (loop.
         # energy_check), so an unchanged run continues bit for bit; EQUIP's alpha and slope
         # (an initial guess and its slope) stay.  The run's start (the drift check's anchor,
-        # core.DRIFT_BOUND) starts afresh as well: measured from the saved start, a mass
-        # changed after loading would read as the run's drift
+        # core.DRIFT_BOUND), its mean T and time stay when the masses are those they were
+        # taken with (SL_EREF_MASSES, saved): the continued run refuses or passes as the
+        # uninterrupted one; with other masses (changed after loading) they start afresh,
+        # since measured from the saved start a mass change would read as the run's drift
         sd[L.SL_EREF] = np.nan
-        sd[L.SL_EREF_RUN] = np.nan
     if not keep:
         if nb is not None:
             q0 = x.reshape(-1).copy()
@@ -1141,6 +1166,9 @@ def _prepare(sim, p: int) -> None:
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan    # energy, EQUIP's alpha, slope, run's start
         st[L.SL_RESYNCS] += 1
+    if keep and not st[L.SL_CTX] and sd[L.SL_EREF_MASSES] != masses_digest(sim):
+        sd[L.SL_EREF_RUN] = np.nan          # (a loaded or copied run with other masses)
+    sd[L.SL_EREF_MASSES] = masses_digest(sim)
     if nb is None:       # (a loaded or copied run's reference: as _forget_host_energy)
         sd[L.SL_EREF] = np.nan
     if nb is None and scene.nz:
@@ -1208,6 +1236,16 @@ def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
         return True
     # (a state of velocities does not see a mass changed)
     return host and _masses_changed(st, sim)
+
+
+def masses_digest(sim) -> float:
+    """The particles' masses (and their number) as one double, saved with the run's start
+    (layout.SL_EREF_MASSES): 52 bits of their SHA-256, so that a loaded or copied run tells
+    whether its drift check's anchor was taken with the masses it now has."""
+    m = np.zeros(sim.N)
+    sim.serialize_particle_data(m=m)
+    d = hashlib.sha256(np.ascontiguousarray(m, dtype=float).tobytes()).digest()
+    return float(int.from_bytes(d[:8], "little") >> 12)
 
 
 def _masses_changed(st: np.ndarray, sim) -> bool:

@@ -27,10 +27,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import carray
 
-from integrators.core import ERROR_BOUND, NOT_FINITE, OK, copy1, copy2
+from integrators.core import C_RUN_ERR, ERROR_BOUND, NOT_FINITE, OK, copy1, copy2
 from integrators.pointers import address_of, float64_pointer
 from integrators.records import Adaptive, Options, System
-from hbvm_md.rebound.layout import (A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SETTINGS, D_M, D_N,
+from hbvm_md.rebound.layout import (SL_RUN_ERR, A_HOST, A_PARAMS, A_WRITTEN, BAD_DT, BAD_SETTINGS, D_M, D_N,
                                     D_P, D_PTR, N_HOST, N_RES, RESYNC, R_DT, R_DTL, R_G, R_M,
                                     R_NACTIVE, R_STRIDE, R_T, R_VX, R_X, SL_ADAPTIVE, SL_ECHECK,
                                     SL_EPSILON, SL_ETOL, SL_H_FAIL, SL_H_PREV, SL_MAX_ITER,
@@ -111,6 +111,7 @@ def kepler_step_arrays(simd, simi, view, ctx, st, sd, res, written, host, com, s
     com[7] = t_end
     simd[ctx[R_DTL]] = h_done
     st[SL_NSTEPS] += 1
+    sd[SL_RUN_ERR] = wk.counters[C_RUN_ERR]       # (sim.integrator.error_estimate)
     return OK
 
 

@@ -45,11 +45,12 @@ TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error 
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
- SL_H_PREV, SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN, SL_METHOD, SL_NSTEPS, SL_REJECTED,
- SL_RESYNCS, SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS, SL_NCOUNTERS,
+ SL_H_PREV, SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN, SL_TMEAN_RUN, SL_TIME_RUN, SL_TMAX_RUN,
+ SL_METHOD, SL_NSTEPS, SL_REJECTED, SL_RESYNCS, SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS,
+ SL_NCOUNTERS,
  # not saved: this process's addresses, and what a failed step recorded
  SL_CORE, SL_CTX, SL_PREPARE, SL_FAIL, SL_FREE, SL_ECHECK,
- SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(36)
+ SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(39)
 N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, its status
 #: saved: the largest adaptive step (0: no bound), after the unsaved slots so that no slot
 #: number above moved when it was added
@@ -67,14 +68,26 @@ SL_KEPLER = SL_MAX_DT + 1
 #: sim.t as exact (t_comp 0).  After SL_KEPLER for the same reason as it
 SL_T_COMP = SL_KEPLER + 1
 SL_T_WRITTEN = SL_KEPLER + 2
-N_SLOTS = SL_T_WRITTEN + 1
+#: saved: the run's accumulated error estimate (integrators.core.C_RUN_ERR, copied here after
+#: each committed step so that REBOUND shows it as ``sim.integrator.error_estimate``)
+SL_RUN_ERR = SL_T_WRITTEN + 1
+#: saved: a digest of the gravitating masses the run's start (SL_EREF_RUN) was taken with
+#: (host.masses_digest), so that a loaded or copied run continues its drift check when the
+#: masses are the same and starts it afresh when they changed
+SL_EREF_MASSES = SL_T_WRITTEN + 2
+#: not saved: 1 once this simulation's run was warned of its accumulated error
+#: (host._warn_run_error: once a simulation; a copy or a loaded one starts at 0, ``create``'s)
+SL_RUN_WARNED = SL_T_WRITTEN + 3
+N_SLOTS = SL_RUN_WARNED + 1
 #: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
-#: starts) and the energy at the run's start (the anchor of core.DRIFT_BOUND's rule), in the
-#: consecutive slots SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN.  Saved fields are found by name
+#: starts), the energy at the run's start, T's time mean over the run, the run's time and T's
+#: largest (the anchor and the scale of core.DRIFT_BOUND's rule), in the consecutive slots
+#: SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN, SL_TMEAN_RUN, SL_TIME_RUN, SL_TMAX_RUN.  Saved fields are found by name
 #: in REBOUND's binary format, so a slot added here leaves older archives readable (a field
 #: they lack keeps the value ``create`` gave it: nan for these)
-N_EREF = 4
-assert (SL_ALPHA, SL_SLOPE, SL_EREF_RUN) == (SL_EREF + 1, SL_EREF + 2, SL_EREF + 3)
+N_EREF = 7
+assert (SL_ALPHA, SL_SLOPE, SL_EREF_RUN, SL_TMEAN_RUN, SL_TIME_RUN, SL_TMAX_RUN) == tuple(
+    SL_EREF + i for i in range(1, N_EREF))
 
 NODES = ("gauss", "lobatto")
 #: the integrators' family (``sim.integrator.method``): integrators.HBVM, integrators.EQUIP
@@ -112,6 +125,15 @@ SAVED = (
     ("alpha", SL_ALPHA, _DOUBLE, None, ""),
     ("slope", SL_SLOPE, _DOUBLE, None, ""),
     ("eref_run", SL_EREF_RUN, _DOUBLE, None, ""),
+    ("tmean_run", SL_TMEAN_RUN, _DOUBLE, None, ""),
+    ("time_run", SL_TIME_RUN, _DOUBLE, None, ""),
+    ("tmax_run", SL_TMAX_RUN, _DOUBLE, None, ""),
+    ("eref_masses", SL_EREF_MASSES, _DOUBLE, None, ""),
+    ("error_estimate", SL_RUN_ERR, _DOUBLE, None, "The run's accumulated error estimate: the "
+     "sum over its steps of each step's own error estimate (and the phase its energy drift "
+     "makes, when k does not keep H) times the share of its motion the step turns, relative to "
+     "the motion's scale (an orbit's radius); HBVM warns (AccumulatedErrorWarning) when it "
+     "passes 1e-2."),
     ("t_comp", SL_T_COMP, _DOUBLE, None, "Compensation of sim.t's sum of steps (the exact "
      "time is sim.t - t_comp); 0 after the user sets sim.t."),
     ("t_written", SL_T_WRITTEN, _DOUBLE, None, ""),

@@ -27,6 +27,12 @@ from hbvm_md.rebound.layout import (A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF,
                                     SL_NODES, SL_S, SL_TOL, SL_T_COMP, SL_T_FAIL,
                                     SL_T_WRITTEN, SL_Y)
 
+#: layout.py's digest (as cabi.LAYOUT_DIGEST): numba caches this module's compiled functions
+#: with layout's slot numbers compiled in, keyed on this file alone, so a layout change must
+#: change this file too (tests/test_rebound_host.py keeps it current); else a ``git pull`` of a
+#: new layout over an old cache loads code that indexes the state with the old slots
+LAYOUT_DIGEST = "ed2e9e140230c448"
+
 
 @jit
 def particles_match(view, written, ix, ivx, im):

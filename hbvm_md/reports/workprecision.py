@@ -108,7 +108,7 @@ def _core_run(scene, label, family, method, system, y0, h, n, q_ref, d, note="")
         # the diagram measures each run's error against its reference, the coarse steps' too:
         # the step's own error check (which refuses steps that miss a thousandth of their
         # motion, e.g. Gauss(2) at h = P/25) and the run's drift (a Gauss run whose energy
-        # stands 1e-3 of |T| + |V| off its start, integrators.core.DRIFT_BOUND) would leave
+        # stands 1e-3 of its kinetic scale off its start, integrators.core.DRIFT_BOUND) would leave
         # those points out
         r = integrate(method, system, y0, h, n, sample_every=sample_interval(n, 200),
                       error_bound=None, energy_tol=None)
