@@ -45,10 +45,15 @@ enum {
 
 /* counters: integrators.core's layout */
 enum { C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_WORST,
-       N_COUNTERS };
+       C_RUN_ERR, N_COUNTERS };
 
+/* eref: integrators.core's layout (the energy, EQUIP's two, the run's start, T's time mean over
+ * the run, the run's time, T's largest) */
 #define HBVM_EREF_RUN 3
-#define HBVM_N_EREF 4
+#define HBVM_EREF_TMEAN 4
+#define HBVM_EREF_TIME 5
+#define HBVM_EREF_TMAX 6
+#define HBVM_N_EREF 7
 
 typedef int (*hbvm_force_fn)(void *ctx, const double *X, int m, int kp, int n,
                              const double *params, double *F);

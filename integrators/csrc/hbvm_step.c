@@ -26,6 +26,7 @@ static const double EXTRAPOLATED_ULPS = 1e-3;
 static const double TOL_CONTRACTION = 0.25;
 static const double RUNAWAY = 1e8;
 static const double DRIFT_BOUND = 1e-3;
+static const double DRIFT_PHASE = 1.5;
 static const double FLOW_FRACTION[3] = {1.0, 1.5e-2, 1e-3};
 
 enum { ITERATE = 0, POLISH = 1 };
@@ -44,6 +45,7 @@ enum { ITERATE = 0, POLISH = 1 };
 
 /* Python's max(a, b) (the first unless the second is larger), as the Python-side step takes it */
 static inline double py_max(double a, double b) { return b > a ? b : a; }
+static inline double py_min(double a, double b) { return b < a ? b : a; }
 
 static inline void two_product(double a, double b, double *hi, double *lo)
 {
@@ -570,19 +572,72 @@ PIECE int energy_check(const hbvm_kernel *kernel, const hbvm_system *sys, const 
         return HBVM_UNRESOLVED;
     }
     if (etol < 0.0) {
-        if (!isfinite(eref[HBVM_EREF_RUN]))
-            eref[HBVM_EREF_RUN] = eref[0];
-        double drift = fabs(t1 + v1 - eref[HBVM_EREF_RUN]);
-        if (scale > 0.0)
-            drift = drift / scale;
+        /* the run's energy against its start, on the run's kinetic scale
+         * max(T1, <T> sqrt(<T> / Tmax)) (integrators.loop.energy_check, core.DRIFT_BOUND) */
+        double *e = eref;
+        if (!(isfinite(e[HBVM_EREF_RUN]) && isfinite(e[HBVM_EREF_TMEAN])
+              && isfinite(e[HBVM_EREF_TIME]) && isfinite(e[HBVM_EREF_TMAX]))) {
+            e[HBVM_EREF_RUN] = e[0];
+            e[HBVM_EREF_TMEAN] = 0.0;
+            e[HBVM_EREF_TIME] = 0.0;
+            e[HBVM_EREF_TMAX] = 0.0;
+        }
+        const double run_time = e[HBVM_EREF_TIME] + fabs(h);
+        const double tmean = e[HBVM_EREF_TMEAN]
+                             + (fabs(t1) - e[HBVM_EREF_TMEAN]) * (fabs(h) / run_time);
+        const double tmax = py_max(e[HBVM_EREF_TMAX], fabs(t1));
+        double drift = fabs(t1 + v1 - e[HBVM_EREF_RUN]);
+        double kscale = fabs(t1);
+        if (tmax > 0.0)
+            kscale = py_max(kscale, tmean * sqrt(tmean / tmax));
+        if (kscale > 0.0)
+            drift = drift / kscale;
         if (!(drift <= DRIFT_BOUND)) {
             *change_out = drift;
             return HBVM_DRIFTED;
         }
+        e[HBVM_EREF_TMEAN] = tmean;
+        e[HBVM_EREF_TIME] = run_time;
+        e[HBVM_EREF_TMAX] = tmax;
+        e[0] = t1 + v1;
+        *change_out = drift;
+        return HBVM_OK;
     }
     eref[0] = t1 + v1;
-    *change_out = change;
+    *change_out = 0.0;
     return HBVM_OK;
+}
+
+/* the share of its motion the step's worst body turns over the step (core.run_error_share,
+ * separable), for the run's accumulated estimate */
+PIECE double run_error_share(const double *y, const double *minv, const double *g, int gs,
+                             double h, double err, int worst, int m, int s, int group)
+{
+    if (!(err > 0.0))
+        return 0.0;
+    if (!(err < INFINITY))
+        return 1.0;
+    if (worst < 0)
+        return py_min(1.0, pow(err, 1.0 / (2.0 * s + 1.0)));
+    const int w = group > 0 ? group : m;
+    double mean = 0.0;
+    int nbody = 0;
+    for (int j0 = 0; j0 < m; j0 += w) {
+        mean += body_motion(y, minv, g, gs, h, m, j0, j0 + w < m ? j0 + w : m);
+        nbody += 1;
+    }
+    mean = nbody > 0 ? mean / nbody : 0.0;
+    const int j0 = worst * w;
+    if (j0 >= m)
+        return 1.0;
+    const int j1 = j0 + w < m ? j0 + w : m;
+    double dv = 0.0;
+    for (int j = j0; j < j1; ++j) {
+        const double x = h * g[j * gs] * minv[j];
+        dv += x * x;
+    }
+    const double den = py_max(body_motion(y, minv, g, gs, h, m, j0, j1), mean);
+    return den > 0.0 ? py_min(1.0, sqrt(dv) / den) : 1.0;
 }
 
 static int all_zero(const double *a, int n)
@@ -715,6 +770,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
             result = fail(counters, HBVM_NOT_FINITE, it0, nfev0, newton0);
             break;
         }
+        double err = 0.0, share = 0.0, drift = 0.0;
         if (opts->ebound > 0.0) {
             /* the first Legendre coefficient the step leaves out: from the stages (k > s), else
              * from one evaluation at the step's end (core.omitted_coefficient, endpoint_defect) */
@@ -743,7 +799,8 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
                 counters[C_NFEV] += 1;
             }
             int worst;
-            const double err = resolution_error(y, minv, g, w.sp, w.om, h, m, s, opts->group, &worst);
+            err = resolution_error(y, minv, g, w.sp, w.om, h, m, s, opts->group, &worst);
+            share = run_error_share(y, minv, g, w.sp, h, err, worst, m, s, opts->group);
             counters[C_ERR] = err;
             counters[C_WORST] = worst;
             if (!(err <= opts->ebound)) {
@@ -760,7 +817,10 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
                 result = fail(counters, checked, it0, nfev0, newton0);
                 break;
             }
+            drift = change;
         }
+        if (opts->ebound > 0.0)      /* (committed: the run's accumulated estimate) */
+            counters[C_RUN_ERR] += (err + DRIFT_PHASE * drift) * share;
         memcpy(y, w.yt, d * sizeof(double));
         memcpy(cy, w.cyt, d * sizeof(double));
         for (int l = 0; l < s; ++l)

@@ -301,7 +301,7 @@ static PyObject *py_run(PyObject *self, PyObject *args)
             goto fail;
         if ((i < 2 && sh[0] != 2 * m) || (i == 2 && (sh[0] != s || sh[1] != m))
             || (i == 3 && sh[0] < HBVM_N_EREF) || (i == 4 && sh[0] < 2))
-            SHAPE_ERR(snames[i], i < 2 ? "(2m,)" : i == 2 ? "(s, m)" : i == 3 ? "(4,)" : "(2,)");
+            SHAPE_ERR(snames[i], i < 2 ? "(2m,)" : i == 2 ? "(s, m)" : i == 3 ? "(7,)" : "(2,)");
     }
     hbvm_state st = {.y = sp[0], .cy = sp[1], .gamma = sp[2], .eref = sp[3], .clock = sp[4]};
     const double *E = get(&bs, Eo, "E", 2, 0, sh);
@@ -348,7 +348,7 @@ static PyObject *py_run(PyObject *self, PyObject *args)
     if (!counters)
         goto fail;
     if (sh[0] < N_COUNTERS)
-        SHAPE_ERR("work.counters", "(9,)");
+        SHAPE_ERR("work.counters", "(10,)");
     /* samples: (nsteps, every, t (n,), y (n, 2m), e (n,)) */
     hbvm_samples smp;
     {
