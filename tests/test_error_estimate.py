@@ -123,7 +123,7 @@ def test_the_one_controller():
     """core.adapt_step: accept at or below epsilon and propose the step that meets it; reject
     above it; a failed step is retried a quarter as long; too small below min_dt or when t no
     longer changes."""
-    acc, h1, small = adapt_step(0.1, OK, 1e-4, 1e-3, 4, 0.0, 0.0)
+    acc, h1, small = adapt_step(0.1, OK, 1e-7, 1e-3, 4, 0.0, 0.0)    # 0.7 (1e4)^(1/9)
     assert acc and 0.1 < h1 <= 0.2 and not small
     acc, h1, small = adapt_step(0.1, OK, 1e-2, 1e-3, 4, 0.0, 0.0)
     assert not acc and h1 < 0.1 and not small
@@ -161,7 +161,8 @@ def test_ase_adaptive_steps_advance_exactly_the_timestep_with_inner_steps_counte
     from hbvm_md import HBVMDynamics
     atoms = _copper()
     E0 = atoms.get_total_energy()
-    dyn = HBVMDynamics(atoms, 8 * units.fs, s=4, adaptive=True)
+    dyn = HBVMDynamics(atoms, 8 * units.fs, adaptive=True, epsilon=1e-10)
+    assert dyn.s == 4 and HBVMDynamics(_copper(), units.fs).s == 2    # the defaults
     times = []
     dyn.attach(lambda: times.append(dyn.get_time()))
     dyn.run(5)
