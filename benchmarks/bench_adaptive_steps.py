@@ -199,7 +199,7 @@ def md_row(name, s, epsilon, t_end=200.0, outer=8.0):
         e, c, _, _ = md_run(name, t_end, outer, m, s, error_bound=None, energy_tol=None)
         costs[m] = c
         return e
-    m = fewest_fixed(err_of, err, max(1, steps // int(round(t_end / outer))), n_max=64)
+    m = fewest_fixed(err_of, err, max(1, steps // int(round(t_end / outer))), n_max=32)
     return dict(scene=name, s=s, k=s + 1, epsilon=epsilon, steps=steps, rejected=rejected,
                 err=err, fixed=None if m is None else m * int(round(t_end / outer)),
                 ratio=(steps + rejected) / (m * int(round(t_end / outer))) if m else float("nan"),

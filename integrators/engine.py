@@ -22,7 +22,7 @@ from .core import (C_ERR, C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTER
 from .core import DIVERGED as FAILED_STEP
 from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolation
 from .jit import entry_point
-from .errors import EnergyDriftError, StepError, StepSizeError, step_error
+from .errors import EnergyDriftError, StepError, StepSizeError, UnresolvedStepError, step_error
 from .protocol import _Adapted, adapt_system
 from .records import Method, Newton, Options, Samples, State, System, Work
 from .quadrature import gauss_rule01
@@ -780,6 +780,11 @@ class Stepper(Counted):
         # point is tried again
         self._newton_run, self._newton_hold = 0, NEWTON_HOLD
         self.rejected = 0
+        # a host's way through a step the energy check refused whatever its size (ASE: a
+        # calculator's jump, hbvm_md.ase.discontinuity): called by step_adaptive as
+        # through_refusal(err, h) at the first such refusal of a step; True when it took the
+        # step itself (committed, t advanced by h), False to shrink as usual
+        self.through_refusal = None
         self.status = "running"
 
     # -- public ------------------------------------------------------------------------
@@ -1050,6 +1055,7 @@ class Stepper(Counted):
         ebound = self._ebound
         if not ebound > 0.0:
             self._ebound = math.inf
+        hook = self.through_refusal
         try:
             while True:
                 snap = self.save_state()
@@ -1061,6 +1067,15 @@ class Stepper(Counted):
                     status, err_est, cause = FAILED_STEP, math.nan, f"{type(err).__name__}: {err}"
                     if getattr(err, "suggested_h", None) is not None:    # its own estimate
                         status, err_est = NOT_RESOLVED, float(err.estimate)
+                    elif hook is not None and isinstance(err, UnresolvedStepError):
+                        h_hook, hook = h, None          # (once a step: the host's test costs)
+                        self._ebound = ebound
+                        try:
+                            taken = self.through_refusal(err, h_hook)
+                        finally:
+                            self._ebound = ebound if ebound > 0.0 else math.inf
+                        if taken:
+                            return h_hook, h_hook
                 else:
                     status, err_est = OK, float(self.counters[C_ERR])
                     cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"

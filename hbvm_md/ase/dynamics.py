@@ -17,7 +17,8 @@ import numpy as np
 from ase import units
 from ase.md.md import MolecularDynamics
 
-from integrators import EQUIP, HBVM, ConvergenceError, Stepper, UnresolvedStepError
+from integrators import EQUIP, HBVM, ConvergenceError, Stepper, StepError, UnresolvedStepError
+from integrators.errors import EnergyDriftError
 from integrators.engine import (check_adaptive, check_step, energy_check,
                                 error_check)
 
@@ -264,6 +265,9 @@ class HBVMDynamics(MolecularDynamics):
         self.inner_steps = 0        # adaptive: the inner steps taken and rejected so far
         self.inner_rejections = 0
         self._h_inner = None        # adaptive: the inner step the controller proposes next
+        self._energy_scale = np.nan  # |T| + |V| (eV) at a failed step's start, for its message
+        self._clock0 = (0.0, 0.0)    # (the run's time, the engine's) at the step's start
+        self._elapsed = 0.0          # the run's time: the steps taken, each of its own timestep
         self._stepper = None
         self._system = None
         self._holonomic = None      # the constrained step when the atoms have rigid bonds
@@ -397,9 +401,14 @@ class HBVMDynamics(MolecularDynamics):
                 raise ValueError(f"`atoms` {what} are not finite (nan or inf) for atoms {first(bad)}; "
                                  f"check how the structure or the velocities were built")
 
-    def _in_fs(self, err: ConvergenceError) -> ConvergenceError:
-        """The same error (same type and attributes, h and t in ASE units) with h and t shown
-        in fs in the message, and a hint in the words of this class."""
+    def _in_fs(self, err: ConvergenceError, t_of=None) -> ConvergenceError:
+        """The same error (same type and attributes, h and t in ASE units) with every h and t
+        of the message in fs, and a hint in the words of this class.  ``t_of``: the run's time
+        (ASE's, :meth:`get_time` at the step's start plus the engine's time since) of an
+        engine time, for the step's own time in the message (the engine's clock restarts at 0
+        with every fresh engine); None: the error's own t."""
+        if t_of is None:
+            t_of = lambda t: t          # noqa: E731
         if type(err) is ConvergenceError:
             # "auto" has tried Newton after fixed point: suggest a smaller timestep only
             hint = ("try a smaller timestep, or solver='newton' for a stiff problem"
@@ -410,14 +419,43 @@ class HBVMDynamics(MolecularDynamics):
                                    "auto" if self.solver == "auto" else err.solver, err.t, hint)
         else:
             new = copy.copy(err)
-        where = f"h={err.h / units.fs:.6g} fs" + ("" if err.t is None else f" at t={err.t / units.fs:.6g} fs")
-        text = re.sub(r"h=\S+( at t=\S+)?", lambda _: where, str(new), count=1)
-        # the method's own name (EQUIP's steps are not HBVM's), the timestep in ASE's words
-        text = re.sub(r"^HBVM step", f"{type(self.method).__name__} step", text)
+
+        def where(match):       # every "h=... at t=..." (a cause quoted inside a message too)
+            try:
+                h = float(match.group(1))
+                t = None if match.group(2) is None else float(match.group(2))
+            except ValueError:
+                return match.group(0)
+            return (f"h={h / units.fs:.6g} fs"
+                    + ("" if t is None else f" at t={t_of(t) / units.fs:.6g} fs"))
+        text = str(new)
         if getattr(new, "suggested_h", None) is not None:     # the step that would pass, in fs
             text = text.replace(f"(h={new.suggested_h:.3g} or less",
                                 f"(timestep={new.suggested_h / units.fs:.3g} fs or less")
-        new.args = (text.replace("use a smaller step", "use a smaller timestep"),)
+        text = re.sub(r"h=([-+0-9.eE]+)(?: at t=([-+0-9.eE]+))?(?![-+0-9.eE]| fs)", where, text)
+        # the method's own name (EQUIP's steps are not HBVM's), the timestep in ASE's words
+        text = re.sub(r"^HBVM step", f"{type(self.method).__name__} step", text)
+        text = text.replace("use a smaller step", "use a smaller timestep")
+        if isinstance(new, UnresolvedStepError) and not getattr(new, "suggested_h", None) \
+                and not isinstance(new, EnergyDriftError) and np.isfinite(self._energy_scale):
+            # the energy check's relative change, in eV too
+            text = re.sub(r"changed the energy by (\S+) \(relative\)",
+                          lambda m: f"changed the energy by {m.group(1)} (relative, "
+                                    f"{float(m.group(1)) * self._energy_scale:.3g} eV)", text,
+                          count=1)
+        if self.adaptive:
+            # a run with adaptive steps is not advised to take them; HBVMDynamics has no min_dt
+            text = text.replace(", or adaptive steps (adaptive=True), which shrink through it", "")
+            text = text.replace(", or adaptive steps)", ")").replace(", or adaptive steps;", ";")
+            text = text.replace("lower min_dt, raise epsilon, or check the state (two bodies on "
+                                "top of each other, a singular force)",
+                                "raise epsilon or the timestep's resolution (a larger s), or "
+                                "check the structure (two atoms on top of each other, a "
+                                "calculator whose forces are not finite or whose energy jumps "
+                                "where no cutoff is known)")
+            text = text.replace("the smallest step that changes t", "the smallest inner step "
+                                "that changes the time")
+        new.args = (text,)
         return new
 
     def _current_state(self):
@@ -468,9 +506,15 @@ class HBVMDynamics(MolecularDynamics):
         mark = st.t + self.dt
         h = self._h_inner or self.dt
         steps, rejected = 0, st.rejected
-        while st.t < mark:
-            _, h = st.step_toward(mark, h, self.epsilon, 0.0)
-            steps += 1
+        # an inner step the energy check refuses is tested for the calculator's jump before
+        # the controller shrinks it (:meth:`_inner_jump`), as a fixed step is
+        st.through_refusal = None if self._through_jump else self._inner_jump
+        try:
+            while st.t < mark:
+                _, h = st.step_toward(mark, h, self.epsilon, 0.0)
+                steps += 1
+        finally:
+            st.through_refusal = None
         self._h_inner = h
         self.inner_steps += steps
         self.inner_rejections += st.rejected - rejected
@@ -488,7 +532,9 @@ class HBVMDynamics(MolecularDynamics):
         if len(atoms) == 0:
             return np.zeros((0, 3))      # nothing moves, as with VelocityVerlet
         if bond_constraints(atoms):
-            return holonomic_step(self)     # rigid bonds: hbvm_md.ase.holonomic
+            forces = holonomic_step(self)   # rigid bonds: hbvm_md.ase.holonomic
+            self._elapsed += self.dt
+            return forces
         st = self._ensure_stepper(self._constraints(atoms))
         if self._hamiltonian_changed(st):
             st = self._new_hamiltonian("the energy at the step's start no longer matches the "
@@ -499,8 +545,10 @@ class HBVMDynamics(MolecularDynamics):
         saved_calc = calculator_cache(calc)
         saved_stepper = st.save_state()
         saved_count = self._system.stage_evaluations
+        saved_jumps = len(self.jumps)
         switches = st.solver_switches
         per_step = self.stage_evaluations / max(self.nsteps, 1)
+        self._clock0 = (self._elapsed, st.t)
         try:
             y = self._advance(st)
             n = len(atoms)
@@ -516,6 +564,7 @@ class HBVMDynamics(MolecularDynamics):
             # succeeded before the forces at the new positions failed), then the atoms
             st.restore_state(saved_stepper)
             self._system.stage_evaluations = saved_count
+            del self.jumps[saved_jumps:]        # (an adaptive step's inner jumps: not taken)
             atoms.set_positions(pos0, apply_constraint=False)
             atoms.set_momenta(mom0, apply_constraint=False)
             if saved_calc is not None:
@@ -533,12 +582,18 @@ class HBVMDynamics(MolecularDynamics):
                 jumps = self._calculator_jumps(pos0, mom0)
                 if jumps:
                     return self._step_through(st, jumps)
-            if isinstance(err, (ConvergenceError, UnresolvedStepError)):
-                raise self._in_fs(err) from None
+            if isinstance(err, StepError):
+                try:
+                    self._energy_scale = float(atoms.get_kinetic_energy()
+                                               + abs(atoms.get_potential_energy()))
+                except Exception:
+                    self._energy_scale = np.nan
+                raise self._in_fs(err, self._run_time) from None
             raise
         if st.solver_switches > switches:
             self._warn_switch(st, per_step)
         self._written = self._current_state()
+        self._elapsed = self._clock0[0] + self.dt
         return forces
 
     # -- a calculator's own discontinuity -----------------------------------------------------
@@ -559,19 +614,29 @@ class HBVMDynamics(MolecularDynamics):
         e1 = work.get_potential_energy() + work.get_kinetic_energy()
         return e1 - e0, work.get_positions(), work.get_momenta()
 
-    def _calculator_jumps(self, pos0, mom0) -> list:
+    def _run_time(self, t: float) -> float:
+        """The run's time of the engine's time t within the current step: the steps taken
+        before it, each of its own timestep (the engine's clock restarts at 0 with every fresh
+        engine; ASE's :meth:`get_time`, nsteps times the current timestep, moves when the
+        timestep is changed), plus the engine's time since the step's start."""
+        return self._clock0[0] + (t - self._clock0[1])
+
+    def _calculator_jumps(self, pos0, mom0, h: float | None = None,
+                          t0: float | None = None) -> list:
         """After a step refused for its energy change: the step again at h, h/2 and h/4 on
         copies (:func:`hbvm_md.ase.discontinuity.change_persists`); when the change does not
-        shrink, the calculator's jumps on the step (:func:`locate_jumps`), else [].  The
+        shrink, the calculator's jumps on the step (:func:`locate_jumps`), else [].  h: the
+        step (default the timestep), t0 its start in the run's time (default the step's).  The
         calculator's cached results are put back."""
+        h = self.dt if h is None else h
+        t0 = self._clock0[0] if t0 is None else t0
         calc = self.atoms.calc
         saved = calculator_cache(calc)
         try:
-            runs = [self._copy_run(pos0, mom0, self.dt / n, n) for n in (1, 2, 4)]
+            runs = [self._copy_run(pos0, mom0, h / n, n) for n in (1, 2, 4)]
             if not change_persists([r[0] for r in runs]):
                 return []
-            t0 = self._stepper.t
-            jumps = locate_jumps(self.atoms, pos0, mom0, runs[0][1], runs[0][2], self.dt, t0,
+            jumps = locate_jumps(self.atoms, pos0, mom0, runs[0][1], runs[0][2], h, t0,
                                  step=self.nsteps)
         except (ConvergenceError, UnresolvedStepError):
             return []
@@ -582,6 +647,36 @@ class HBVMDynamics(MolecularDynamics):
             _log.info("HBVMDynamics: a step's energy change did not shrink with the step but no "
                       "jump of the calculator's energy was found on it")
         return jumps
+
+    def _inner_jump(self, err, h: float) -> bool:
+        """An adaptive inner step of size h refused by the energy check (``err``): when its
+        energy change does not shrink with the step (:meth:`_calculator_jumps` from the
+        engine's state), the calculator's jump is warned (one
+        :class:`~hbvm_md.ase.discontinuity.CalculatorDiscontinuityWarning`, as for a fixed
+        step) and the inner step taken through it without the energy check and the step's
+        own error check (a jump in the force makes its omitted term large at any step); True
+        then, False (the controller shrinks the step) otherwise."""
+        st = self._stepper
+        n = len(self.atoms)
+        y = st.y
+        jumps = self._calculator_jumps(y[:3 * n].reshape(n, 3), y[3 * n:].reshape(n, 3), h,
+                                       self._run_time(st.t))
+        if not jumps:
+            return False
+        warn_jumps(jumps, stacklevel=7)
+        etol, ebound = st.energy_tol, st.error_bound
+        st.energy_tol = float(np.finfo(float).max)      # (as _step_through: see there)
+        st.error_bound = None
+        before = st.energy_reference
+        try:
+            st.step(h)
+            st.accept_energy_jump(st.energy_reference - before)
+        except StepError:
+            return False
+        finally:
+            st.energy_tol, st.error_bound = etol, ebound
+        self.jumps.extend(jumps)
+        return True
 
     def _step_through(self, st: Stepper, jumps: list):
         """The step through the calculator's jumps: warned first (so that a warning made an
