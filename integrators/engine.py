@@ -21,6 +21,7 @@ from .core import (C_ERR, C_ITER, C_NEWTON, C_NFEV, C_STEPS, DIVERGED, N_COUNTER
                    NOT_RESOLVED, OK, velocity_work, work_sizes)
 from .core import DIVERGED as FAILED_STEP
 from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolation
+from .core import test_particle_control
 from .jit import entry_point
 from .errors import EnergyDriftError, StepError, StepSizeError, UnresolvedStepError, step_error
 from .protocol import _Adapted, adapt_system
@@ -1078,6 +1079,11 @@ class Stepper(Counted):
                             return h_hook, h_hook
                 else:
                     status, err_est = OK, float(self.counters[C_ERR])
+                    b = self.binding
+                    if b.follow is not None and b.kin_w.shape[0] == self._gamma.shape[1]:
+                        # the test particles, solved apart (core.test_particle_control)
+                        err_est = float(test_particle_control(self._gamma, b.minv, b.kin_w,
+                                                              err_est))
                     cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
                 # the one controller (core.adapt_step, as loop.attempt calls it)
                 accept, h_new, too_small = adapt_step(h, status, err_est, epsilon, s, self.t,
