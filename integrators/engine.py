@@ -1065,7 +1065,11 @@ class Stepper(Counted):
                 except EnergyDriftError:
                     raise           # the run's past: no shorter step in its place undoes it
                 except StepError as err:
-                    status, err_est, cause = FAILED_STEP, math.nan, f"{type(err).__name__}: {err}"
+                    # (the cause quoted without advising adaptive steps to a run that has them)
+                    cause = (f"{type(err).__name__}: {err}"
+                             .replace(", or adaptive steps (adaptive=True), which shrink through "
+                                      "it", "").replace(", or adaptive steps", ""))
+                    status, err_est = FAILED_STEP, math.nan
                     if getattr(err, "suggested_h", None) is not None:    # its own estimate
                         status, err_est = NOT_RESOLVED, float(err.estimate)
                     elif hook is not None and isinstance(err, UnresolvedStepError):

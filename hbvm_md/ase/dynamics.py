@@ -432,7 +432,7 @@ class HBVMDynamics(MolecularDynamics):
         if getattr(new, "suggested_h", None) is not None:     # the step that would pass, in fs
             text = text.replace(f"(h={new.suggested_h:.3g} or less",
                                 f"(timestep={new.suggested_h / units.fs:.3g} fs or less")
-        text = re.sub(r"h=([-+0-9.eE]+)(?: at t=([-+0-9.eE]+))?(?![-+0-9.eE]| fs)", where, text)
+        text = re.sub(r"\bh=([-+0-9.eE]+)(?: at t=([-+0-9.eE]+))?(?![-+0-9.eE]| fs)", where, text)
         # the method's own name (EQUIP's steps are not HBVM's), the timestep in ASE's words
         text = re.sub(r"^HBVM step", f"{type(self.method).__name__} step", text)
         text = text.replace("use a smaller step", "use a smaller timestep")
