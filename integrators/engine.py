@@ -1292,9 +1292,11 @@ class IntegrationResult:
 
 #: adaptive steps: the bound on each step's estimated local error relative to the motion over
 #: the step (core.resolution_error, the quantity core.adapt_step controls); measured
-#: (benchmarks/bench_defaults.py): with s = 6 (k = 8 from kchoice.adaptive_k) IAS15's energy
-#: error and 2x its position error on the outer solar system in about 0.6 of its time
-DEFAULT_EPSILON = 1e-14
+#: (benchmarks/bench_defaults.py, 9 starts): with s = 6 (k = 8 from kchoice.adaptive_k) REBOUND's
+#: outer solar system over 1000 Jupiter years at 1.1x IAS15's energy error (3.1e-15) in 17959
+#: steps; 1e-14 took 16307 steps to 1.6x (4.5e-15), the bar being 1.5x; HLW's over 1e6 days
+#: at 2x IAS15's position error (1e-14: 2.1x)
+DEFAULT_EPSILON = 3e-15
 
 
 def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
@@ -1345,11 +1347,11 @@ def integrate(method, system, y0, h: float, steps: int | None = None, *, t0: flo
         5828 steps, 4.8e-6; s = 6, 20 steps, 6.3e-11; ``benchmarks/bench_adaptive_steps.py``
         compares each s with the fewest fixed steps that reach its error).  The energy stays
         at round-off whatever the steps (HBVM conserves H at any step size once k is large
-        enough: :func:`integrators.kchoice.adaptive_k`).  The default, 1e-14 for s = 6 (k = 8),
-        gives IAS15's energy error and 2x its position error on the outer solar system in
-        about 0.6 of its time (``benchmarks/bench_defaults.py``).  (Until issue 58 epsilon
+        enough: :func:`integrators.kchoice.adaptive_k`).  The default, 3e-15 for s = 6 (k = 8),
+        gives IAS15's energy error (1.1x) and 2x its position error on the outer solar system
+        in about 0.6-0.7 of its time (``benchmarks/bench_defaults.py``).  (Until issue 58 epsilon
         bounded the highest force coefficient, IAS15's quantity, whose meaning changed with s:
-        epsilon = 1e-3 at s = 6 is about 1e-14 now.)
+        epsilon = 1e-3 at s = 6 took about the steps 3e-15 takes now.)
         The default (None) is DEFAULT_EPSILON.
     t_end, sample_times
         Adaptive runs end exactly at t_end and also land exactly on each of sample_times.

@@ -246,7 +246,7 @@ def adaptive_k(s: int, epsilon: float) -> int:
     like (omega h)^(2s+1), omega the motion's local frequency, so the steps it takes have
     omega h about epsilon^(1 / (2s + 1)), and the quadrature error of HBVM(k, s) in the energy,
     about (omega h)^(2k), stays at round-off on every step the control takes.  For REBOUND's
-    default s = 6, epsilon = 1e-13 (:data:`integrators.engine.DEFAULT_EPSILON`) it gives
+    default s = 6, epsilon = 3e-15 (:data:`integrators.engine.DEFAULT_EPSILON`) it gives
     k = 8; measured (`python benchmarks/bench_defaults.py --variant`, REBOUND's outer solar
     system over 1000 Jupiter years, 5 starts): HBVM(8, 6) at epsilon 1e-13 keeps the energy at
     4.1e-15 (IAS15 2.7e-15); at 1e-10, where this gives k = 11, HBVM(8, 6) leaves it at 6e-13."""

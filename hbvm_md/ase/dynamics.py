@@ -404,9 +404,10 @@ class HBVMDynamics(MolecularDynamics):
     def _in_fs(self, err: ConvergenceError, t_of=None) -> ConvergenceError:
         """The same error (same type and attributes, h and t in ASE units) with every h and t
         of the message in fs, and a hint in the words of this class.  ``t_of``: the run's time
-        (ASE's, :meth:`get_time` at the step's start plus the engine's time since) of an
-        engine time, for the step's own time in the message (the engine's clock restarts at 0
-        with every fresh engine); None: the error's own t."""
+        of an engine time (:meth:`_run_time`), for the step's own time in the message (the
+        engine's clock restarts at 0 with every fresh engine); None: the error's own t.  The
+        energy check's relative change is given in eV too, against |T| + |V| at the step's
+        start (``_energy_scale``)."""
         if t_of is None:
             t_of = lambda t: t          # noqa: E731
         if type(err) is ConvergenceError:
@@ -440,7 +441,7 @@ class HBVMDynamics(MolecularDynamics):
                 and not isinstance(new, EnergyDriftError) and np.isfinite(self._energy_scale):
             # the energy check's relative change, in eV too
             text = re.sub(r"changed the energy by (\S+) \(relative\)",
-                          lambda m: f"changed the energy by {m.group(1)} (relative, "
+                          lambda m: f"changed the energy by {m.group(1)} (relative, about "
                                     f"{float(m.group(1)) * self._energy_scale:.3g} eV)", text,
                           count=1)
         if self.adaptive:

@@ -194,7 +194,7 @@ class HBVMIntegrator(Counted):
     epsilon : float, optional
         Precision of the adaptive control: the bound on each step's estimated local error
         relative to the motion, the same accuracy at every s (:func:`integrators.core.
-        adapt_step`; not IAS15's quantity).  None: 1e-14 for HBVM
+        adapt_step`; not IAS15's quantity).  None: 3e-15 for HBVM
         (``integrators.engine.DEFAULT_EPSILON``), 1e-17 for EQUIP
         (:data:`integrators.equip.DEFAULT_EPSILON`).
     min_dt : float
