@@ -931,14 +931,17 @@ def monomial_weight(j):
 
 @jit
 def step_error(gamma, w):
-    """The local error estimate of a step from its own coefficients, at no extra evaluation:
-    max |w gamma_{s-1}| / (c_{s-1} max |w gamma_0|), the size of the highest term of the force
-    polynomial, a^(s-1) h^(s-1) / (s-1)!, relative to the force over the step: the quantity
-    IAS15 bounds by its ``epsilon`` (its last coefficient b6 against the acceleration, for a
-    polynomial of degree 7 where this one has degree s - 1).  gamma_j = int_0^1 P_j(x) f(y(xh))
-    dx starts with c_j a^(j) h^j / j! (:func:`monomial_weight`), so the estimate grows like
-    h^(s-1) (the exponent of :func:`next_step`); the step's own error, O(h^(2s+1)), is about
-    the estimate to the power 2s / (s-1) times the motion over the step.
+    """The size of the highest term of a step's force polynomial from its own coefficients, at
+    no extra evaluation: max |w gamma_{s-1}| / (c_{s-1} max |w gamma_0|), a^(s-1) h^(s-1) /
+    (s-1)! relative to the force over the step (the kind of quantity IAS15 makes its step
+    from: its last coefficient b6 against the acceleration, for a polynomial of degree 7 where
+    this one has degree s - 1).  gamma_j = int_0^1 P_j(x) f(y(xh)) dx starts with
+    c_j a^(j) h^j / j! (:func:`monomial_weight`), so it grows like h^(s-1), and the step's own
+    error, O(h^(2s+1)), is about its power 2s / (s-1) times the motion over the step: one bound
+    on it asks for different accuracies at different s, so the adaptive control no longer uses
+    it (until issue 58 it did; :func:`adapt_step` controls :func:`resolution_error`); the test
+    particles' checks (:func:`test_particle_error`, :func:`test_particle_control`) compare it
+    between bodies of one step.
     For the separable form w = 1/m turns the forces into accelerations, so that light bodies
     count as much as heavy ones (a planetesimal's encounter is invisible in its tiny forces),
     and test particles (w = 1) are part of it; with w empty (the full form) the coefficients

@@ -59,9 +59,10 @@ def test_a_rejected_step_leaves_no_trace():
 
 @pytest.mark.parametrize("s", [4, 6])
 def test_the_error_estimate_is_the_force_polynomials_highest_term(s):
-    """epsilon means what IAS15's does: the estimate is |a^(s-1)| h^(s-1) / (s-1)! against |a|,
-    the highest term of the force over the step (IAS15: b6 against a, degree 7).  On the
-    circular orbit (|a| = 1, omega = 1) that is h^(s-1) / (s-1)!, to O(h^2)."""
+    """core.step_error (the test particles' checks compare it between bodies) is
+    |a^(s-1)| h^(s-1) / (s-1)! against |a|, the highest term of the force over the step (IAS15:
+    b6 against a, degree 7).  On the circular orbit (|a| = 1, omega = 1) that is
+    h^(s-1) / (s-1)!, to O(h^2)."""
     from integrators.core import step_error
     kep = Kepler(0.0)
     for h in (0.2, 0.1):
