@@ -146,7 +146,7 @@ def main(argv=None) -> int:
               t_end, ["hbvm adaptive", "hbvm dt=250", "ias15"], a.starts, a.samples, lines)
     scene("Close encounter of two Jupiters (hard case), T = 200",
           lambda: encounter_scene().to_rebound(), 200.0,
-          ["hbvm adaptive", "hbvm epsilon=1e-4", "hbvm dt=0.0314159", "ias15"], a.starts,
+          ["hbvm adaptive", "hbvm epsilon=1e-17", "hbvm dt=0.0314159", "ias15"], a.starts,
           a.samples, lines)
     n = 30 if a.quick else a.disk_n
     scene(f"Planetesimal disk, Sun + Jupiter + {n} bodies, 25 years", lambda: disk(n), 25 * 365.25,

@@ -26,9 +26,9 @@ over 1e5 and 1e6 days, as :mod:`benchmarks.bench_rebound` measures: 200 output t
 angular momentum (``sim.energy()``, ``sim.angular_momentum()``) read outside the timing, the
 largest relative changes over the outputs; medians over ``--starts`` starts (planet positions
 scaled by 1 + r 1e-13), every setting once per start in turn.  The EQUIP settings: its
-defaults (HBVMIntegrator's for method="equip": adaptive, s = 8, epsilon = 1e-4, k =
-adaptive_k; HBVM beside it at its own, s = 6, epsilon = 1e-3), HBVM's defaults (s = 6,
-epsilon = 1e-3), adaptive with a smaller epsilon, and fixed steps (HLW's days, scaled by Jupiter's period on REBOUND's
+defaults (HBVMIntegrator's for method="equip": adaptive, s = 8, epsilon = 1e-17, k =
+adaptive_k; HBVM beside it at its own, s = 6, epsilon = 3e-15), HBVM's defaults (s = 6,
+epsilon = 3e-15), adaptive with a smaller epsilon, and fixed steps (HLW's days, scaled by Jupiter's period on REBOUND's
 scene), each beside HBVM at the same setting (the cost ratio).  Writes
 benchmarks/results/equip_rebound.md.
 
@@ -89,13 +89,13 @@ def _ase(method, seed, steps):
 # -- through REBOUND ------------------------------------------------------------------------
 HLW_PJ = 4332.6                      # Jupiter's period in HLW's days (dt below scale with it)
 #: (label, method, s or None (the default), dt in HLW days or None (adaptive), epsilon or
-#: None (the default)); "defaults": each method at its own (HBVM s = 6, epsilon 1e-3; EQUIP
-#: s = 8, epsilon 1e-4)
+#: None (the default)); "defaults": each method at its own (HBVM s = 6, epsilon 3e-15; EQUIP
+#: s = 8, epsilon 1e-17: issue 58's controller, about the steps of the earlier 1e-3 and 1e-4)
 REBOUND_VARIANTS = (
     ("defaults", "equip", None, None, None),
-    ("adaptive, s 6, epsilon 1e-3", "equip", 6, None, 1e-3),
-    ("adaptive, epsilon 1e-4", "equip", 6, None, 1e-4),
-    ("adaptive, s 8, epsilon 1e-4", "equip", 8, None, 1e-4),
+    ("adaptive, s 6, epsilon 3e-15", "equip", 6, None, 3e-15),
+    ("adaptive, epsilon 1e-17", "equip", 6, None, 1e-17),
+    ("adaptive, s 8, epsilon 1e-17", "equip", 8, None, 1e-17),
     ("fixed", "equip", 6, 150.0, None),
     ("fixed", "equip", 6, 200.0, None),
     ("fixed", "equip", 6, 250.0, None),

@@ -8,7 +8,8 @@ Both run the same engine step, :class:`integrators.Stepper` with HBVM(9, 6) (the
 default through REBOUND), on the two-body problem as an N-body system (G = 1, masses 1 and
 1e-3, a = 1), started at pericentre:
 
-* **plain**: ``Stepper.step_adaptive`` at epsilon = 1e-5 (the default): the error estimate of
+* **plain**: ``Stepper.step_adaptive`` at epsilon = 2e-20 (about the steps the earlier
+  controller took at its 1e-5, the setting the recorded results ran; issue 58): the error estimate of
   each step (its last Legendre coefficient) sets the next step; rejected steps are retried;
 * **reversible**: the explicit, time-reversible step-density recursion of Hairer and Soderlind
   (SIAM J. Sci. Comput. 26, 2005): rho_(n+1/2) = rho_(n-1/2) + eps_r G(y_n), h_(n+1/2) =
@@ -97,7 +98,7 @@ def density(nb, y):
     return rho, 0.5 * drho2 / rho2
 
 
-def run_plain(T, epsilon=1e-5):
+def run_plain(T, epsilon=2e-20):
     nb, y0, n = start()
     st = Stepper(HBVM(9, 6), nb, y0, solver="fixed_point")
     h = 2 * math.pi / n / 50
@@ -159,7 +160,7 @@ def main(argv=None) -> int:
              "the plain controller's number of steps.", "",
              "| controller | steps | rejected | energy error | angular momentum error | position error | mean anomaly error | wall (s) |",
              "|---|---|---|---|---|---|---|---|"]
-    for name, fn in (("plain (epsilon = 1e-5)", lambda: run_plain(T)),
+    for name, fn in (("plain (epsilon = 2e-20)", lambda: run_plain(T)),
                      (f"reversible (eps_r = {eps_r:.4f})", lambda: run_reversible(T, eps_r))):
         st, wall, nb, n = fn()
         lines.append(report(name, st, wall, nb, n, T, y0))

@@ -59,9 +59,10 @@ def errors(got: np.ndarray, ref: np.ndarray, N: int = 2) -> tuple[float, float]:
 RUNS = [("IAS15 epsilon 1e-9", "ias15", 1e-9, {}),
         ("IAS15 epsilon 1e-11", "ias15", 1e-11, {}),
         ("IAS15 epsilon 1e-14", "ias15", 1e-14, {}),
-        ("HBVM defaults (s = 6, epsilon 1e-3)", "hbvm", None, {}),
-        ("HBVM epsilon 1e-2", "hbvm", None, dict(epsilon=1e-2)),
-        ("HBVM s = 8, k = 9, epsilon 1e-2", "hbvm", None, dict(s=8, k=9, epsilon=1e-2))]
+        ("HBVM defaults (s = 6, epsilon 3e-15)", "hbvm", None, {}),
+        ("HBVM epsilon 1e-12", "hbvm", None, dict(epsilon=1e-12)),
+        ("HBVM s = 8, k = 9, epsilon 1e-12", "hbvm", None, dict(s=8, k=9, epsilon=1e-12))]
+# (the epsilons of issue 58's controller, about the steps the earlier one took at 1e-3 and 1e-2)
 
 
 def main() -> None:

@@ -954,14 +954,17 @@ def monomial_weight(j):
 
 @jit
 def step_error(gamma, w):
-    """The local error estimate of a step from its own coefficients, at no extra evaluation:
-    max |w gamma_{s-1}| / (c_{s-1} max |w gamma_0|), the size of the highest term of the force
-    polynomial, a^(s-1) h^(s-1) / (s-1)!, relative to the force over the step: the quantity
-    IAS15 bounds by its ``epsilon`` (its last coefficient b6 against the acceleration, for a
-    polynomial of degree 7 where this one has degree s - 1).  gamma_j = int_0^1 P_j(x) f(y(xh))
-    dx starts with c_j a^(j) h^j / j! (:func:`monomial_weight`), so the estimate grows like
-    h^(s-1) (the exponent of :func:`next_step`); the step's own error, O(h^(2s+1)), is about
-    the estimate to the power 2s / (s-1) times the motion over the step.
+    """The size of the highest term of a step's force polynomial from its own coefficients, at
+    no extra evaluation: max |w gamma_{s-1}| / (c_{s-1} max |w gamma_0|), a^(s-1) h^(s-1) /
+    (s-1)! relative to the force over the step (the kind of quantity IAS15 makes its step
+    from: its last coefficient b6 against the acceleration, for a polynomial of degree 7 where
+    this one has degree s - 1).  gamma_j = int_0^1 P_j(x) f(y(xh)) dx starts with
+    c_j a^(j) h^j / j! (:func:`monomial_weight`), so it grows like h^(s-1), and the step's own
+    error, O(h^(2s+1)), is about its power 2s / (s-1) times the motion over the step: one bound
+    on it asks for different accuracies at different s, so the adaptive control no longer uses
+    it (until issue 58 it did; :func:`adapt_step` controls :func:`resolution_error`); the test
+    particles' checks (:func:`test_particle_error`, :func:`test_particle_control`) compare it
+    between bodies of one step.
     For the separable form w = 1/m turns the forces into accelerations, so that light bodies
     count as much as heavy ones (a planetesimal's encounter is invisible in its tiny forces),
     and test particles (w = 1) are part of it; with w empty (the full form) the coefficients
@@ -1032,6 +1035,50 @@ def test_particle_error(gamma, w, kin_w, floor, factor, source_floor=0.0):
 
 
 @jit
+def test_particle_control(gamma, w, kin_w, err_sources):
+    """The adaptive control's estimate (:func:`adapt_step`) for the test particles (kin_w 0),
+    which the step solves as followers and whose omitted Legendre term it does not compute:
+    each test particle's ratio r_i of its highest force coefficient to its force
+    (:func:`step_error` over its three coordinates) against the sources' r, taken to the power
+    of the local error, err_sources (r_i / r)^((2s+1)/(s-1)): r goes like (omega h)^(s-1) and
+    the local error like (omega h)^(2s+1) for the same step h, so a comet in an encounter
+    (omega large) counts as its own motion would.  Returns the largest of err_sources and the
+    test particles' values; err_sources for s = 1 (r is then 1) or no test particle."""
+    s, u = gamma.shape
+    if s < 2:
+        return err_sources
+    cw = monomial_weight(s - 1)
+    top = 0.0
+    low = 0.0
+    for j in range(u):
+        if kin_w[j] != 0.0:
+            if abs(w[j] * gamma[s - 1, j]) > top:
+                top = abs(w[j] * gamma[s - 1, j])
+            if abs(w[j] * gamma[0, j]) > low:
+                low = abs(w[j] * gamma[0, j])
+    if not (low > 0.0 and top > 0.0):
+        return err_sources
+    r = top / (cw * low)
+    p = (2.0 * s + 1.0) / (s - 1.0)
+    out = err_sources
+    for i in range(u // 3):
+        if kin_w[3 * i] != 0.0:
+            continue
+        t = 0.0
+        lo = 0.0
+        for c in range(3 * i, 3 * i + 3):
+            if abs(gamma[s - 1, c]) > t:
+                t = abs(gamma[s - 1, c])
+            if abs(gamma[0, c]) > lo:
+                lo = abs(gamma[0, c])
+        if lo > 0.0:
+            e = err_sources * (t / (cw * lo) / r) ** p
+            if e > out:
+                out = e
+    return out
+
+
+@jit
 def extrapolation_matrix(r, t, w, E):
     """E_ij = int_0^1 P_i(x) P_j(1 + r x) dx by the s-point Gauss rule (t, w) on [0, 1], exact
     for these degrees: the previous step's polynomial continued over a step r times as long.
@@ -1068,14 +1115,15 @@ def extrapolation_matrix(r, t, w, E):
 
 @jit
 def next_step(h, err, epsilon, s, safety=0.7, shrink=0.2, grow=2.0):
-    """The step size a controller proposes after a step of size h with error estimate err:
-    h (epsilon / err)^(1 / (s - 1)) times ``safety``, limited to [shrink h, grow h].  The
-    exponent is the estimate's own (err ~ h^(s-1), :func:`step_error`), as IAS15's 1/7 is its
-    b6's: the step whose estimate lands at epsilon; controlling the step's O(h^(2s+1)) error
-    instead (exponent 1/(2s) on err^(2s/(s-1))) gives the same steps for a rescaled epsilon."""
-    if err <= 0.0:
+    """The step size a controller proposes after a step of size h whose estimated local error
+    (:func:`resolution_error`, relative to the motion over the step) is err:
+    h (epsilon / err)^(1 / (2s + 1)) times ``safety``, limited to [shrink h, grow h].  The
+    exponent is the local error's own: a step of order 2s errs like (omega h)^(2s+1) (omega the
+    motion's local frequency), so this is the step whose error lands at epsilon; it is defined
+    for every s >= 1 (s = 1, the midpoint rule and HBVM(k, 1): 1/3)."""
+    if not err > 0.0:
         return h * grow
-    f = safety * (epsilon / err) ** (1.0 / (s - 1))
+    f = safety * (epsilon / err) ** (1.0 / (2.0 * s + 1.0))
     return h * min(grow, max(shrink, f))
 
 
@@ -1085,17 +1133,28 @@ FAILURE_SHRINK = 0.25      # a step whose iteration or a check failed is tried a
 @jit
 def adapt_step(h, status, err, epsilon, s, t, min_dt):
     """The one step-size controller of every host (the engine's adaptive runs, REBOUND's and
-    ASE's steps through :func:`integrators.loop.attempt`), called once per attempted step as
-    diffrax's ``adapt_step_size`` and IAS15's ``predict_next_step`` are: (accept, the next step
-    to try, too small).  A converged step (status OK) is accepted when its error estimate err
-    (:func:`step_error`) is at most epsilon, and the next step is :func:`next_step`'s (grown or
-    shrunk to meet epsilon); a failed step (its iteration, its own error check or the energy
-    check) is retried FAILURE_SHRINK times as long.  ``too small``: the step to try next would
-    fall below min_dt or no longer change t (steps shrinking into a collision)."""
+    ASE's steps through :func:`integrators.loop.attempt`), called once per attempted step:
+    (accept, the next step to try, too small).
+
+    err is the step's own estimate of its local error relative to the motion over the step
+    (:func:`resolution_error`, the quantity the step's resolution check bounds by
+    :data:`ERROR_BOUND`), so that epsilon asks for the same accuracy whatever s is: each step
+    keeps its own motion to about epsilon.  A converged step (status OK) is accepted when err
+    is at most epsilon, and the next step is :func:`next_step`'s, h (epsilon / err)^(1/(2s+1))
+    times 0.7, as the local error of an order-2s step goes like h^(2s+1).  A step refused by
+    its own resolution check (NOT_RESOLVED, err known and above the bound) is retried at
+    :func:`next_step`'s shorter step; any other failure (its iteration, the energy check) is
+    retried FAILURE_SHRINK times as long.  (The shape of diffrax's ``adapt_step_size``, an
+    error-per-step controller; IAS15 instead takes its step from the ratio of its last
+    coefficient b6 to the acceleration to the power 1/7, and its ``predict_next_step``
+    predicts the next step's coefficients, not its size.)  ``too small``: the step to try
+    next would fall below min_dt or no longer change t (steps shrinking into a collision)."""
     if status == OK:
         h_new = next_step(h, err, epsilon, s)
         if err <= epsilon:
             return True, h_new, False
+    elif status == NOT_RESOLVED and err > 0.0 and err < np.inf:
+        h_new = next_step(h, err, epsilon, s)
     else:
         h_new = FAILURE_SHRINK * h
     return False, h_new, abs(h_new) < min_dt or h_new == 0.0 or t + h_new == t

@@ -19,15 +19,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core import (C_ITER, C_NEWTON, C_NFEV, C_RUN_ERR, C_STEPS, DIVERGED, N_COUNTERS,
-                   NOT_FINITE, OK, RUN_ERROR_BOUND, velocity_work, work_sizes)
+from .core import (C_ERR, C_ITER, C_NEWTON, C_NFEV, C_RUN_ERR, C_STEPS, DIVERGED, N_COUNTERS,
+                   NOT_FINITE, NOT_RESOLVED, OK, RUN_ERROR_BOUND, velocity_work, work_sizes)
 from .core import DIVERGED as FAILED_STEP
 from .core import ERROR_BOUND, EREF_RUN, N_EREF, adapt_step, select_extrapolation
-from .core import step_error as error_estimate
+from .core import test_particle_control
 from . import ccore
 from .jit import entry_point
 from .errors import (AccumulatedErrorWarning, EnergyDriftError, NonFiniteError, StepError,
-                     StepSizeError, step_error)
+                     StepSizeError, UnresolvedStepError, step_error)
 from .protocol import _Adapted, adapt_system
 from .records import Method, Newton, Options, Samples, State, System, Work
 from .quadrature import gauss_rule01
@@ -807,6 +807,11 @@ class Stepper(Counted):
         # point is tried again
         self._newton_run, self._newton_hold = 0, NEWTON_HOLD
         self.rejected = 0
+        # a host's way through a step the energy check refused whatever its size (ASE: a
+        # calculator's jump, hbvm_md.ase.discontinuity): called by step_adaptive as
+        # through_refusal(err, h) at the first such refusal of a step; True when it took the
+        # step itself (committed, t advanced by h), False to shrink as usual
+        self.through_refusal = None
         self.status = "running"
 
     # -- public ------------------------------------------------------------------------
@@ -1096,35 +1101,65 @@ class Stepper(Counted):
         if why:        # (a system whose coefficients the controller's estimate cannot read)
             raise ValueError(f"adaptive steps are not available for {type(self.system).__name__}: "
                              f"{why}")
-        while True:
-            snap = self.save_state()
-            try:
-                self.step(h)
-            except EnergyDriftError:
-                raise               # the run's past: no shorter step in its place undoes it
-            except StepError as err:
-                if type(err) is NonFiniteError and not self._finite_forces_at_start():
-                    # a force that is not finite where every step starts: no shorter step
-                    # helps (it would halve down to the smallest step first)
+        # the controller reads each step's own error estimate (core.resolution_error): with
+        # the check off (error_bound=None) it is computed at an infinite bound, never refused
+        ebound = self._ebound
+        if not ebound > 0.0:
+            self._ebound = math.inf
+        hook = self.through_refusal
+        try:
+            while True:
+                snap = self.save_state()
+                try:
+                    self.step(h)
+                except EnergyDriftError:
+                    raise           # the run's past: no shorter step in its place undoes it
+                except StepError as err:
+                    if type(err) is NonFiniteError and not self._finite_forces_at_start():
+                        # a force that is not finite where every step starts: no shorter step
+                        # helps (it would halve down to the smallest step first)
+                        self.status = "failed"
+                        raise NonFiniteError(err.h, err.iterations, err.solver, err.t,
+                                             hint=NONFINITE_AT_START) from None
+                    # (the cause quoted without advising adaptive steps to a run that has them)
+                    cause = (f"{type(err).__name__}: {err}"
+                             .replace(", or adaptive steps (adaptive=True), which shrink through "
+                                      "it", "").replace(", or adaptive steps", ""))
+                    status, err_est = FAILED_STEP, math.nan
+                    if getattr(err, "suggested_h", None) is not None:    # its own estimate
+                        status, err_est = NOT_RESOLVED, float(err.estimate)
+                    elif hook is not None and isinstance(err, UnresolvedStepError):
+                        h_hook, hook = h, None          # (once a step: the host's test costs)
+                        self._ebound = ebound
+                        try:
+                            taken = self.through_refusal(err, h_hook)
+                        finally:
+                            self._ebound = ebound if ebound > 0.0 else math.inf
+                        if taken:
+                            return h_hook, h_hook
+                else:
+                    status, err_est = OK, float(self.counters[C_ERR])
+                    b = self.binding
+                    if b.follow is not None and b.kin_w.shape[0] == self._gamma.shape[1]:
+                        # the test particles, solved apart (core.test_particle_control)
+                        err_est = float(test_particle_control(self._gamma, b.minv, b.kin_w,
+                                                              err_est))
+                    cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
+                # the one controller (core.adapt_step, as loop.attempt calls it)
+                accept, h_new, too_small = adapt_step(h, status, err_est, epsilon, s, self.t,
+                                                      min_dt)
+                if accept:
+                    return h, h_new
+                if status == OK:
+                    self.restore_state(snap)
+                self.rejected += 1
+                self.status = "running"
+                if too_small:
                     self.status = "failed"
-                    raise NonFiniteError(err.h, err.iterations, err.solver, err.t,
-                                         hint=NONFINITE_AT_START) from None
-                status, err_est, cause = FAILED_STEP, math.nan, f"{type(err).__name__}: {err}"
-            else:
-                status, err_est = OK, error_estimate(self._gamma, self.binding.minv)
-                cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
-            # the one controller (core.adapt_step, as loop.attempt calls it)
-            accept, h_new, too_small = adapt_step(h, status, err_est, epsilon, s, self.t, min_dt)
-            if accept:
-                return h, h_new
-            if status == OK:
-                self.restore_state(snap)
-            self.rejected += 1
-            self.status = "running"
-            if too_small:
-                self.status = "failed"
-                raise StepSizeError(h, min_dt, self.t, cause)
-            h = h_new
+                    raise StepSizeError(h, min_dt, self.t, cause)
+                h = h_new
+        finally:
+            self._ebound = ebound
 
     def _finite_forces_at_start(self) -> bool:
         """The forces (grad H in the full form) at the current state are finite: one
@@ -1340,10 +1375,13 @@ class IntegrationResult:
         return float(np.polyfit(self.t - self.t[0], self.energy_error, 1)[0]) if len(self.t) > 2 else 0.0
 
 
-#: adaptive steps: the bound on the relative size of the force polynomial's highest term over a
-#: step (core.step_error); measured (benchmarks/bench_defaults.py): IAS15's energy and position
-#: accuracy on the outer solar system in about 0.6 of its time
-DEFAULT_EPSILON = 1e-3
+#: adaptive steps: the bound on each step's estimated local error relative to the motion over
+#: the step (core.resolution_error, the quantity core.adapt_step controls); measured
+#: (benchmarks/bench_defaults.py, 9 starts): with s = 6 (k = 8 from kchoice.adaptive_k) REBOUND's
+#: outer solar system over 1000 Jupiter years at 1.1x IAS15's energy error (3.1e-15) in 17959
+#: steps; 1e-14 took 16307 steps to 1.6x (4.5e-15), the bar being 1.5x; HLW's over 1e6 days
+#: at 2x IAS15's position error (1e-14: 2.1x)
+DEFAULT_EPSILON = 3e-15
 
 
 def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
@@ -1351,16 +1389,13 @@ def check_adaptive(epsilon, min_dt, s: int) -> tuple[float, float]:
     if isinstance(epsilon, bool) or not isinstance(epsilon, (int, float, np.number)) \
             or not (np.isfinite(epsilon) and 0 < epsilon < 1):
         raise ValueError(f"`epsilon` must be a number in (0, 1) (got epsilon={epsilon!r}); "
-                         f"it bounds the relative size of the force polynomial's highest term "
-                         f"over a step, like IAS15's; the default is {DEFAULT_EPSILON:g}")
+                         f"it bounds each adaptive step's estimated local error relative to the "
+                         f"motion over the step; the default is {DEFAULT_EPSILON:g}")
     if min_dt is None:
         min_dt = 0.0
     if isinstance(min_dt, bool) or not isinstance(min_dt, (int, float, np.number)) \
             or not (np.isfinite(min_dt) and min_dt >= 0):
         raise ValueError(f"`min_dt` must be a finite number >= 0 (got min_dt={min_dt!r})")
-    if s < 2:
-        raise ValueError(f"adaptive steps need s >= 2 (got s={s}): the error estimate is the "
-                         "weight of gamma_(s-1) against gamma_0")
     return float(epsilon), float(min_dt)
 
 
@@ -1385,23 +1420,23 @@ def integrate(method, system, y0, h: float, steps: int | None = None, *, t0: flo
         step that fails its iteration or energy check is retried smaller, down to ``min_dt``
         (default 0) and while t + h != t (else :class:`integrators.StepSizeError`).
     epsilon : float
-        The precision of adaptive steps, in (0, 1), with the meaning of IAS15's ``epsilon``: a
-        bound on the relative size of the highest term of the force polynomial over a step,
-        |a^(s-1)| h^(s-1) / (s-1)! against |a| (max over the coordinates, accelerations for
-        the separable form: :func:`integrators.core.step_error`), from the step's own Legendre
-        coefficients (no extra evaluation).  A step is accepted when its estimate is at most
-        epsilon; the next one is proposed at 0.7 of the step that would reach epsilon
-        (:func:`integrators.core.next_step`), so smooth motion runs near 0.7^(s-1) epsilon,
-        epsilon / 6 for s = 6.  IAS15 bounds the same quantity for its degree-7
-        polynomial; here the degree is s - 1, so the same step gives a larger number (the
-        circular orbit at omega h = 0.2: 2.7e-6 for s = 6, 2.5e-9 for IAS15's degree 7).
-        The step's own error is O(h^(2s+1)), so the solution's accuracy (positions, phases),
-        not only the energy, follows epsilon: the position error over a fixed time goes like
-        epsilon^(2s / (s - 1)) (measured 2.7 for s = 6, predicted 2.4).  The energy stays at
-        round-off whatever the steps (HBVM conserves H at any step size once k is large
-        enough: :func:`integrators.kchoice.adaptive_k`).  The
-        default, 1e-3 for s = 6, gives IAS15's energy and position error on the outer solar
-        system in about 0.6 of its time (``benchmarks/bench_defaults.py``).
+        The precision of adaptive steps, in (0, 1): a bound on each step's own estimate of its
+        local error relative to the motion over the step (:func:`integrators.core.
+        resolution_error`, the estimate the step's resolution check bounds by
+        ``error_bound``; no extra evaluation for k > s, one for k = s), the same accuracy
+        whatever s is.  A step is accepted when its estimate is at most epsilon; the next one
+        is proposed at 0.7 of the step that would reach epsilon, h (epsilon / err)^(1/(2s+1))
+        (:func:`integrators.core.next_step`: an order-2s step errs like h^(2s+1)).  Over a
+        fixed time the error of the solution (positions, phases) is about epsilon times the
+        number of steps or less (measured on Kepler e = 0.6 over one period: s = 1 at 1e-9,
+        5828 steps, 4.8e-6; s = 6, 20 steps, 6.3e-11; ``benchmarks/bench_adaptive_steps.py``
+        compares each s with the fewest fixed steps that reach its error).  The energy stays
+        at round-off whatever the steps (HBVM conserves H at any step size once k is large
+        enough: :func:`integrators.kchoice.adaptive_k`).  The default, 3e-15 for s = 6 (k = 8),
+        gives IAS15's energy error (1.1x) and 2x its position error on the outer solar system
+        in about 0.6-0.7 of its time (``benchmarks/bench_defaults.py``).  (Until issue 58 epsilon
+        bounded the highest force coefficient, IAS15's quantity, whose meaning changed with s:
+        epsilon = 1e-3 at s = 6 took about the steps 3e-15 takes now.)
         The default (None) is DEFAULT_EPSILON.
     t_end, sample_times
         Adaptive runs end exactly at t_end and also land exactly on each of sample_times.

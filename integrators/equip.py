@@ -101,14 +101,16 @@ from . import equip_core as _ec
 from .tableau import HBVM, _check_int, _readonly, _sort, xi
 
 #: EQUIP's adaptive defaults through REBOUND (``HBVMIntegrator(sim, method="equip")``): s = 8
-#: at epsilon = 1e-4 keeps the Gauss step's own energy residual far below an ulp at the steps
-#: the control takes on planetary orbits, so alpha is rarely needed and the step costs about
-#: HBVM(8, 6)'s force evaluations at IAS15's energy and angular momentum (outer solar system,
-#: 1e6 days: 63 evaluations a step over 3367 steps; s = 6 at epsilon = 1e-3, HBVM's defaults,
-#: has Gauss residuals of a systematic 0.2-0.9 ulp that alpha must correct at every step: 110
-#: evaluations a step over 3925 steps; ``benchmarks/bench_equip.py --rebound``)
+#: keeps the Gauss step's own energy residual far below an ulp at the steps the control takes
+#: on planetary orbits, so alpha is rarely needed and the step costs about HBVM(8, 6)'s force
+#: evaluations at IAS15's energy and angular momentum (s = 6 has Gauss residuals of a
+#: systematic 0.2-0.9 ulp that alpha must correct at every step: 110 evaluations a step;
+#: ``benchmarks/bench_equip.py --rebound``).  epsilon (the bound on each step's estimated
+#: local error, integrators.core.adapt_step) 1e-17, k = 9 from kchoice.adaptive_k: the outer
+#: solar system (HLW) over 1e6 days in 2692 steps at 2.1e-15 in the energy (issue 58's
+#: controller; the earlier one took 3367 steps at its epsilon 1e-4); 1e-16, 2336 steps, 3.6e-15
 DEFAULT_S = 8
-DEFAULT_EPSILON = 1e-4
+DEFAULT_EPSILON = 1e-17
 
 
 class EQUIP:

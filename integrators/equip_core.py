@@ -34,14 +34,14 @@ EREF_EQUIP, carried whole between steps (alpha and the slope ride in eref[1:3]; 
 copies all of it into the trial and a host commits all of it back).
 
 Measured and not adopted (outer solar system, HLW's, over 1e6 days, EQUIP(8, 6) adaptive at
-epsilon 1e-3, where every step measures the slope: 110 force evaluations a step against
+epsilon 1e-3 of the earlier controller, where every step measures the slope: 110 force evaluations a step against
 HBVM(8, 6)'s 56, energy 1.1e-14): forgetting alpha and the slope once alpha moves E by less
 than 1/16 or 1/64 ulp of its terms (the next steps then take Gauss's residual, at round-off,
 without a slope) cost 56-66 evaluations a step but drifted the energy to 2-4e-14, since
 Gauss's residual there is a systematic 0.2-0.9 ulp that alpha's last correction removes at
 every step; moving gamma to alpha's last correction along the secant through the last two
 converged coefficients, instead of iterating it again, drifted it to 1.5e-12.  EQUIP's
-defaults through REBOUND are s = 8 at epsilon 1e-4 instead (:data:`integrators.equip.DEFAULT_S`),
+defaults through REBOUND are s = 8 (at epsilon 1e-17 of issue 58's controller) instead (:data:`integrators.equip.DEFAULT_S`),
 where Gauss's residual stays far below an ulp and alpha is seldom needed.
 
 Every function here runs as plain Python under ``NUMBA_DISABLE_JIT=1``.

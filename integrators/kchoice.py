@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core import monomial_weight
 from .errors import StepError
 from .tableau import HBVM
 
@@ -240,16 +239,16 @@ def choose_k(system, y0, s: int, h: float, steps: int, k_max: int | None = None,
 
 
 def adaptive_k(s: int, epsilon: float) -> int:
-    """k for adaptive steps: the smallest k > s with (c epsilon)^(2k / (s - 1)) <= 1e-17,
-    c = c_(s-1) (:func:`integrators.core.monomial_weight`, 1.2e-3 for s = 6).
+    """k for adaptive steps: the smallest k > s with epsilon^(2k / (2s + 1)) <= 1e-16.
 
-    The control keeps the error estimate, about (h / T)^(s - 1) / (s - 1)! for the local time
-    scale T, near epsilon; c epsilon is then the size of the Legendre coefficient gamma_(s-1)
-    against gamma_0, and the quadrature error of HBVM(k, s) in the energy, about that to the
-    power 2k / (s - 1), stays below round-off on every step the control takes.  For the
-    default s = 6, epsilon = 1e-3 it gives k = 8; measured (`python benchmarks/bench_defaults.py`,
-    REBOUND's outer solar system over 1000 Jupiter years, medians of 7-9 starts, same steps for
-    every k): k = 9 gives no smaller energy error (4.4e-15 against 2.7e-15) for 5-10 % more
-    time, k = 7 3.5e-15 to 3.9e-15 for 5 % less."""
-    need = 17.0 * (s - 1) / (2.0 * -math.log10(monomial_weight(s - 1) * epsilon))
+    The control keeps each step's estimated local error (:func:`integrators.core.
+    resolution_error`, relative to the motion over the step) near epsilon; that error goes
+    like (omega h)^(2s+1), omega the motion's local frequency, so the steps it takes have
+    omega h about epsilon^(1 / (2s + 1)), and the quadrature error of HBVM(k, s) in the energy,
+    about (omega h)^(2k), stays at round-off on every step the control takes.  For REBOUND's
+    default s = 6, epsilon = 3e-15 (:data:`integrators.engine.DEFAULT_EPSILON`) it gives
+    k = 8; measured (`python benchmarks/bench_defaults.py --variant`, REBOUND's outer solar
+    system over 1000 Jupiter years, 5 starts): HBVM(8, 6) at epsilon 1e-13 keeps the energy at
+    4.1e-15 (IAS15 2.7e-15); at 1e-10, where this gives k = 11, HBVM(8, 6) leaves it at 6e-13."""
+    need = 16.0 * (2 * s + 1) / (2.0 * -math.log10(epsilon))
     return int(min(128, max(s + 1, math.ceil(need - 1e-9))))

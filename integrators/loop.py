@@ -17,16 +17,15 @@ import numpy as np
 from integrators.core import (C_CHANGE, C_ERR, C_ITER, C_LAST, C_LASTIT, C_NEWTON, C_NFEV,
                               C_RUN_ERR, C_STEPS, C_WORST, DRIFT_BOUND, DRIFT_PHASE, DRIFTED, EREF_RUN, EREF_TIME, EREF_TMAX, EREF_TMEAN, NOT_RESOLVED, endpoint_defect, omitted_coefficient,
                               resolution_error, run_error_share, DIVERGED, EPS, FLOW_FRACTION, ITERATE, NARROW, LIPSCHITZ_ULPS, NOT_FINITE, OK, POLISH,
-                              TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation,
+                              TOO_SMALL, UNRESOLVED, adapt_step, select_extrapolation, test_particle_control,
                               all_finite, all_zero, carve, carve_velocities, energy_flow, fail, follower_size, lipschitz_probe, commit_full, commit_separable, copy1, copy2,
                               full_stages, full_stages_narrow,
                               guess, guess_narrow, max_abs, newton_update, project, project_compensated, project_narrow,
                               stage_positions, stage_positions_narrow, stage_velocities, step_constants,
                               stop_action, symplectic, tick, weighted_kinetic, work_sizes)
-from integrators.core import step_error as error_estimate
 from integrators import equip_core as eq
 from integrators.pointers import view, view1
-from integrators.records import Samples, State, StepConstants, Tableau
+from integrators.records import Options, Samples, State, StepConstants, Tableau
 from integrators.followers import follow
 
 _force = None        # bound by integrators.specialise
@@ -605,9 +604,11 @@ def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts,
     :class:`integrators.records.Extrapolation`).
 
     adaptive.epsilon = 0: a fixed step; returns its status.  epsilon > 0: adaptive; a step whose
-    error estimate (``core.step_error`` with weights minv) exceeds epsilon, or whose iteration,
-    own error check or energy check fails, is tried again smaller (the one controller,
-    ``core.adapt_step``), leaving no trace in the counters; TOO_SMALL when the step would fall
+    own estimate of its local error (``core.resolution_error``, computed by the step's
+    resolution check, which adaptive steps always run: with opts.ebound 0 at an infinite bound)
+    exceeds epsilon, or whose iteration, own error check or energy check fails, is tried again
+    smaller (the one controller, ``core.adapt_step``), leaving no trace in the counters;
+    TOO_SMALL when the step would fall
     below adaptive.min_dt (or vanish at t_start).  adaptive.res: [h taken (or last tried), next
     h proposed, rejections (added), last rejection's error estimate (nan after a failed
     iteration), last failure's status]."""
@@ -618,6 +619,9 @@ def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts,
     s = gamma.shape[0]
     snap = np.empty(counters.shape[0])
     clock0, clock1 = clock[0], clock[1]
+    if epsilon > 0.0 and not opts.ebound > 0.0:
+        # (the controller reads the step's own error estimate: computed, never refused)
+        opts = Options(opts.max_iter, opts.tol, opts.etol, np.inf, opts.group)
     while True:
         copy1(yt, y)
         copy1(cyt, cy)
@@ -634,7 +638,9 @@ def attempt(system, state, trial, h, h_prev, t_start, ext, method, newton, opts,
         res[1] = h
         if epsilon <= 0.0 or status == DRIFTED:   # (the run's past: no shorter step undoes it)
             return status
-        err = error_estimate(gammat, system.minv) if status == OK else np.nan
+        err = counters[C_ERR] if status == OK or status == NOT_RESOLVED else np.nan
+        if _FOLLOWERS and status == OK:     # (the test particles, solved apart: core's docs)
+            err = test_particle_control(gammat, system.minv, system.kin_w, err)
         accept, h_new, too_small = adapt_step(h, status, err, epsilon, s, t_start, min_dt)
         if accept:
             res[1] = h_new

@@ -30,10 +30,11 @@ def test_an_adaptive_option_given_to_fixed_steps_is_refused(name, value, fix):
 def test_the_same_options_run_adaptive_steps():
     """The control: with adaptive=True the same arguments are taken (epsilon's default when
     left out is DEFAULT_EPSILON)."""
+    from integrators.engine import DEFAULT_EPSILON
     y0 = KEP.initial_state()
     res = integrate(HBVM(8, 4), KEP, y0, 0.05, adaptive=True, t_end=3.0, sample_times=[1.0],
                     epsilon=1e-6, min_dt=1e-9)
     assert res.t[-1] == 3.0 and 1.0 in res.t
     a = integrate(HBVM(8, 4), KEP, y0, 0.05, adaptive=True, t_end=3.0)
-    b = integrate(HBVM(8, 4), KEP, y0, 0.05, adaptive=True, t_end=3.0, epsilon=1e-3)
-    assert np.array_equal(a.y, b.y) and a.extra["epsilon"] == 1e-3
+    b = integrate(HBVM(8, 4), KEP, y0, 0.05, adaptive=True, t_end=3.0, epsilon=DEFAULT_EPSILON)
+    assert np.array_equal(a.y, b.y) and a.extra["epsilon"] == DEFAULT_EPSILON

@@ -79,13 +79,16 @@ def test_bad_arguments_are_named(kwargs, name):
 
 
 def test_adaptive_k_keeps_the_quadrature_below_round_off_at_the_controls_precision():
-    assert adaptive_k(6, 1e-3) == 8                      # the REBOUND driver's default
-    ks = [adaptive_k(6, eps) for eps in (1e-1, 1e-3, 1e-5, 1e-7)]
+    from integrators.engine import DEFAULT_EPSILON
+    from integrators.equip import DEFAULT_EPSILON as EQUIP_EPSILON
+    assert adaptive_k(6, DEFAULT_EPSILON) == 8           # the REBOUND driver's default
+    assert adaptive_k(8, EQUIP_EPSILON) == 9              # ... and EQUIP's
+    ks = [adaptive_k(6, eps) for eps in (1e-3, 1e-6, 1e-9, 1e-12)]
     assert ks == sorted(ks, reverse=True) and all(k > 6 for k in ks)
-    for s, eps in [(4, 1e-2), (6, 1e-3), (8, 1e-3)]:
+    for s, eps in [(1, 1e-9), (4, 1e-10), (6, 1e-14), (8, 1e-12)]:
         k = adaptive_k(s, eps)
-        r = monomial_weight(s - 1) * eps        # gamma_(s-1) / gamma_0 at the bound
-        assert r ** (2 * k / (s - 1)) <= 1e-17 < r ** (2 * (k - 1) / (s - 1)) or k == s + 1
+        wh = eps ** (1.0 / (2 * s + 1))     # omega h of a step whose local error is epsilon
+        assert wh ** (2 * k) <= 1e-16 < wh ** (2 * (k - 1)) or k == s + 1
 
 
 @pytest.mark.parametrize("y0, match", [(np.full(4, np.nan), "non-finite"), (np.zeros((2, 4)), "shape"),

@@ -164,7 +164,7 @@ def _check_readme_ase(ns, out):
 
 def _check_notebook_pattern(ns, out):
     assert ns["sim"].t == 1000.0 and ns["sim"].integrator == "hbvm"
-    assert out.split() == ["6", "8", "0.001"], out         # the defaults the comment names
+    assert out.split() == ["6", "8", "3e-15"], out         # the defaults the comment names
 
 
 def _check_comparison(ns, out):

@@ -335,7 +335,7 @@ def test_adaptive_step_size_error_leaves_the_state():
     """An adaptive step that cannot be resolved above min_dt raises StepSizeError naming it,
     with the particles, t and dt as before (the first step, 87 d, is refused)."""
     sim = outer_solar_system().to_rebound()
-    HBVMIntegrator(sim, epsilon=1e-15, min_dt=80.0)
+    HBVMIntegrator(sim, epsilon=1e-24, min_dt=80.0)
     before, dt = _xv(sim), sim.dt
     with pytest.raises(StepSizeError, match="min_dt=80"):
         sim.integrate(1e4)
@@ -409,9 +409,10 @@ def test_equip_is_a_setting_saved_with_the_run_and_k_is_hbvms():
     method (the run continues from the same particles, L kept from then on)."""
     sim = outer_solar_system().to_rebound()
     d = HBVMIntegrator(sim, method="equip")
-    # EQUIP's own adaptive defaults (s = 8, epsilon = 1e-4: integrators.equip; they were
-    # HBVM's, s = 6 and 1e-3, before issue 38)
-    assert d.method == EQUIP(adaptive_k(8, 1e-4), 8) and str(sim.integrator.method) == "equip"
+    # EQUIP's own adaptive defaults (s = 8, epsilon = 1e-17 since issue 58's controller, 1e-4
+    # before: integrators.equip; they were HBVM's, s = 6 and 1e-3, before issue 38)
+    assert d.method == EQUIP(adaptive_k(8, 1e-17), 8) == EQUIP(9, 8)
+    assert str(sim.integrator.method) == "equip"
     a, b = outer_solar_system().to_rebound(), outer_solar_system().to_rebound()
     ka = HBVMIntegrator(a, s=4, dt=200.0).method
     kb = HBVMIntegrator(b, s=4, dt=200.0, method="equip").method

@@ -214,14 +214,14 @@ def test_adaptive_tangent_approximates_the_flow_and_ignores_rejected_attempts():
     """Adaptive steps map the tangents once per accepted step: over one period of Kepler
     e = 0.9 (attempts rejected on the way) the tangents at the samples (every 50th step, the
     sample times 1.0 and 2.5, the end) agree with the exact flow's Jacobian there: to 1.4e-11
-    relative at the end (epsilon = 1e-9, 1e-6 and 1e-5 alike), to 1.5e-9 at the first sample
+    relative at the end (epsilon = 1e-12, 1e-14 and 1e-15 alike), to 2e-10 at the first sample
     (t = 0.0026, |J| = 5: the steps' own error).  A rejected attempt mapped too would be off by
     O(1), a sample paired with its neighbouring step by about 1e-2 (J moves by O(1) per unit
     time near pericentre, the steps there are 1e-4 long)."""
     system = Kepler(0.9)
     y0 = system.initial_state()
     P = system.period
-    res = integrate(HBVM(6, 3), system, y0, 0.05, adaptive=True, t_end=P, epsilon=1e-5,
+    res = integrate(HBVM(6, 3), system, y0, 0.05, adaptive=True, t_end=P, epsilon=1e-12,
                     variational=np.eye(4), sample_every=50, sample_times=[1.0, 2.5])
     V = res.extra["variational"]
     assert res.extra["rejected"] > 0

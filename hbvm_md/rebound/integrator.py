@@ -167,7 +167,7 @@ class HBVMIntegrator(Counted):
         time a step where the steps resolve the orbits well and 2.5 times near the longest
         steps, where the Gauss step's own energy residual is a fraction of an ulp that alpha
         corrects at every step.  Its adaptive defaults are therefore its own, s = 8 at
-        epsilon = 1e-4 (EQUIP(9, 8)): on the outer solar system over 1e5 and 1e6 days they
+        epsilon = 1e-17 (EQUIP(9, 8)): on the outer solar system over 1e5 and 1e6 days they
         keep both invariants at IAS15's level in less time than IAS15
         (``benchmarks/bench_equip.py --rebound``).  Saved as ``sim.integrator.method``; set
         that way (``sim.integrator = "hbvm"`` then ``sim.integrator.method = "equip"``), s
@@ -182,14 +182,17 @@ class HBVMIntegrator(Counted):
         Quadrature of the line integral.
     adaptive : bool or None
         Step-size control (None, the default: adaptive unless ``dt`` is given, as with IAS15).
-        Each step's error estimate, the weight of its last Legendre coefficient
-        max|gamma_(s-1)| / max|gamma_0| (no extra force evaluation), is kept below ``epsilon``;
+        Each step's own estimate of its local error relative to the motion over the step
+        (:func:`integrators.core.resolution_error`, from its first omitted Legendre term: no
+        extra force evaluation for k > s), is kept below ``epsilon``;
         a step whose estimate, iteration or energy check fails is retried smaller within the
         same REBOUND step, which then records the step taken (``sim.t``,
         ``sim.dt_last_done``); ``sim.dt`` shows the next step proposed.
     epsilon : float, optional
-        Precision of the adaptive control (dimensionless, like IAS15's).  None: 1e-3 for HBVM
-        (``integrators.engine.DEFAULT_EPSILON``), 1e-4 for EQUIP
+        Precision of the adaptive control: the bound on each step's estimated local error
+        relative to the motion, the same accuracy at every s (:func:`integrators.core.
+        adapt_step`; not IAS15's quantity).  None: 3e-15 for HBVM
+        (``integrators.engine.DEFAULT_EPSILON``), 1e-17 for EQUIP
         (:data:`integrators.equip.DEFAULT_EPSILON`).
     min_dt : float
         Smallest step the adaptive control may take; below it a step that cannot be resolved
