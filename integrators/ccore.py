@@ -121,6 +121,18 @@ class CoreStep:
             self._scratch = np.zeros(n)
         return self._scratch
 
+    def __getstate__(self) -> dict:
+        # (a pickled Stepper: the work arrays and the numba step are rebuilt where it lands)
+        state = self.__dict__.copy()
+        state.update(_numba=None, _scratch=np.zeros(0))
+        state.pop("_buffers", None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if isinstance(self, PythonCoreStep):
+            self._buffers = {}
+
     def numba_step(self):
         if self._numba is None:
             self._numba = self._fallback()

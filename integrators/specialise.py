@@ -41,6 +41,7 @@ A compile that is about to run logs one line (logger ``hbvm_md``) saying so;
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.util
 import logging
@@ -384,8 +385,8 @@ def specialise(force, potential, python: bool = False, glue: str | None = None, 
         stepper = ccore.core_step(
             force, potential, refs, full=full, equip=equip, velocities=velocities, glue=glue,
             jvp=jvp, follow=follow, recentre=recentre,
-            fallback=lambda: _numba_step(force, potential, glue, jvp, follow, full, equip,
-                                         velocities, recentre))
+            fallback=functools.partial(_numba_step, force, potential, glue, jvp, follow, full,
+                                       equip, velocities, recentre))
         if stepper is not None:
             return stepper
     return _numba_step(force, potential, glue, jvp, follow, full, equip, velocities, recentre)

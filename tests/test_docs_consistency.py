@@ -111,7 +111,7 @@ def test_quickstart_says_which_subcommands_take_quick():
 def test_rebound_guide_quotes_the_readmes_time_against_ias15():
     readme = (ROOT / "README.md").read_text()
     guide = " ".join((ROOT / "docs" / "guide" / "rebound.md").read_text().split())
-    ratio = re.search(r"IAS15's energy error \(1\.00x\) in ([\d.]+)x IAS15's time", readme).group(1)
+    ratio = re.search(r"IAS15's energy error \([^)]*\) in ([\d.]+)x IAS15's time", readme).group(1)
     assert f"({ratio}x on REBOUND's outer solar system over 1000 Jupiter years" in guide
     assert "about half of IAS15's time" not in guide
 
