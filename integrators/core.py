@@ -986,6 +986,22 @@ def step_error(gamma, w):
 
 
 @jit
+def sources_terms(gamma, w, kin_w):
+    """(max |w gamma_{s-1}|, max |w gamma_0|) over the gravitating coordinates (kin_w != 0):
+    the highest and the first force coefficient of the sources, as accelerations."""
+    s, u = gamma.shape
+    top = 0.0
+    low = 0.0
+    for j in range(u):
+        if kin_w[j] != 0.0:
+            if abs(w[j] * gamma[s - 1, j]) > top:
+                top = abs(w[j] * gamma[s - 1, j])
+            if abs(w[j] * gamma[0, j]) > low:
+                low = abs(w[j] * gamma[0, j])
+    return top, low
+
+
+@jit
 def test_particle_error(gamma, w, kin_w, floor, factor, source_floor=0.0):
     """A fixed step's check of its test particles, from its own coefficients (no evaluation).
 
@@ -999,14 +1015,7 @@ def test_particle_error(gamma, w, kin_w, floor, factor, source_floor=0.0):
     worst offending particle's index, or -1, its estimate, the bound it exceeds)."""
     s, u = gamma.shape
     cw = monomial_weight(s - 1)
-    top = 0.0
-    low = 0.0
-    for j in range(u):
-        if kin_w[j] != 0.0:
-            if abs(w[j] * gamma[s - 1, j]) > top:
-                top = abs(w[j] * gamma[s - 1, j])
-            if abs(w[j] * gamma[0, j]) > low:
-                low = abs(w[j] * gamma[0, j])
+    top, low = sources_terms(gamma, w, kin_w)
     bound = floor
     if low > 0.0 and factor * top / (cw * low) > bound:
         bound = factor * top / (cw * low)
@@ -1048,14 +1057,7 @@ def test_particle_control(gamma, w, kin_w, err_sources):
     if s < 2:
         return err_sources
     cw = monomial_weight(s - 1)
-    top = 0.0
-    low = 0.0
-    for j in range(u):
-        if kin_w[j] != 0.0:
-            if abs(w[j] * gamma[s - 1, j]) > top:
-                top = abs(w[j] * gamma[s - 1, j])
-            if abs(w[j] * gamma[0, j]) > low:
-                low = abs(w[j] * gamma[0, j])
+    top, low = sources_terms(gamma, w, kin_w)
     if not (low > 0.0 and top > 0.0):
         return err_sources
     r = top / (cw * low)

@@ -487,18 +487,25 @@ static double body_motion(const double *y, const double *minv, const double *g, 
     return sqrt(v0 > v1 ? v0 : v1) + sqrt(a0);
 }
 
+/* the bodies' mean motion over the step (bodies of w coordinates; a last shorter one a body) */
+static double mean_motion(const double *y, const double *minv, const double *g, int gs,
+                          double h, int m, int w)
+{
+    double mean = 0.0;
+    int nbody = 0;
+    for (int j0 = 0; j0 < m; j0 += w) {
+        mean += body_motion(y, minv, g, gs, h, m, j0, j0 + w < m ? j0 + w : m);
+        nbody += 1;
+    }
+    return nbody > 0 ? mean / nbody : 0.0;
+}
+
 /* the step's own estimate of its relative local error (core.resolution_error, separable) */
 PIECE double resolution_error(const double *y, const double *minv, const double *g, int gs,
                                const double *om, double h, int m, int s, int group, int *worst)
 {
     const int wdt = group > 0 ? group : m;
-    double mean = 0.0;
-    int nbody = 0;
-    for (int j0 = 0; j0 < m; j0 += wdt) {
-        mean += body_motion(y, minv, g, gs, h, m, j0, j0 + wdt < m ? j0 + wdt : m);
-        nbody += 1;
-    }
-    mean = nbody > 0 ? mean / nbody : 0.0;
+    const double mean = mean_motion(y, minv, g, gs, h, m, wdt);
     double err = 0.0;
     int b = 0;
     *worst = -1;
@@ -620,13 +627,7 @@ PIECE double run_error_share(const double *y, const double *minv, const double *
     if (worst < 0)
         return py_min(1.0, pow(err, 1.0 / (2.0 * s + 1.0)));
     const int w = group > 0 ? group : m;
-    double mean = 0.0;
-    int nbody = 0;
-    for (int j0 = 0; j0 < m; j0 += w) {
-        mean += body_motion(y, minv, g, gs, h, m, j0, j0 + w < m ? j0 + w : m);
-        nbody += 1;
-    }
-    mean = nbody > 0 ? mean / nbody : 0.0;
+    const double mean = mean_motion(y, minv, g, gs, h, m, w);
     const int j0 = worst * w;
     if (j0 >= m)
         return 1.0;
