@@ -302,7 +302,8 @@ class HBVMDynamics(MolecularDynamics):
 
     @property
     def error_estimate(self) -> float:
-        """The run's accumulated error estimate (class docstring); reported, never warned."""
+        # (documented in the class docstring's Attributes: a docstring here would describe it
+        # twice on the API page); reported, never warned
         return self._run_error_prior + (self._stepper.error_estimate
                                         if self._stepper is not None else 0.0)
 
