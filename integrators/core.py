@@ -1250,6 +1250,19 @@ def body_motion(y, minv, g, h, j0, j1):
 
 
 @jit
+def mean_motion(y, minv, g, h, w):
+    """The bodies' mean :func:`body_motion` (bodies of w coordinates; a last shorter group a
+    body), 0 without bodies."""
+    m = minv.shape[0]
+    mean = 0.0
+    nbody = 0
+    for j0 in range(0, m, w):
+        mean += body_motion(y, minv, g, h, j0, min(j0 + w, m))
+        nbody += 1
+    return mean / nbody if nbody > 0 else 0.0
+
+
+@jit
 def full_blocks_error(g, om, group):
     """:func:`resolution_error` of the full form for a state made of bodies (``group`` > 0
     coordinates each, in q and in p alike; a last shorter group is a block too): each body's
@@ -1336,12 +1349,7 @@ def resolution_error(full, y, minv, g, om, h, group):
     # relaxed slab, a particle released from rest in no force) is judged against the mean
     # motion of the bodies, not its own vanishing one, whose ratio to round-off-sized terms
     # means nothing
-    mean = 0.0
-    nbody = 0
-    for j0 in range(0, m, w):
-        mean += body_motion(y, minv, g, h, j0, min(j0 + w, m))
-        nbody += 1
-    mean = mean / nbody if nbody > 0 else 0.0
+    mean = mean_motion(y, minv, g, h, w)
     err = 0.0
     b = 0
     for j0 in range(0, m, w):
@@ -1380,12 +1388,7 @@ def run_error_share(full, y, minv, g, h, err, worst, group, s):
         return min(1.0, err ** (1.0 / (2.0 * s + 1.0)))
     m = minv.shape[0]
     w = group if group > 0 else m
-    mean = 0.0
-    nbody = 0
-    for j0 in range(0, m, w):
-        mean += body_motion(y, minv, g, h, j0, min(j0 + w, m))
-        nbody += 1
-    mean = mean / nbody if nbody > 0 else 0.0
+    mean = mean_motion(y, minv, g, h, w)
     j0 = worst * w
     if j0 >= m:
         return 1.0
