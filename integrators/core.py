@@ -1002,6 +1002,21 @@ def sources_terms(gamma, w, kin_w):
 
 
 @jit
+def particle_terms(gamma, i):
+    """(max |gamma_{s-1}|, max |gamma_0|) over particle i's three coordinates: its highest and
+    its first force coefficient (a test particle's are accelerations)."""
+    s = gamma.shape[0]
+    t = 0.0
+    lo = 0.0
+    for c in range(3 * i, 3 * i + 3):
+        if abs(gamma[s - 1, c]) > t:
+            t = abs(gamma[s - 1, c])
+        if abs(gamma[0, c]) > lo:
+            lo = abs(gamma[0, c])
+    return t, lo
+
+
+@jit
 def test_particle_error(gamma, w, kin_w, floor, factor, source_floor=0.0):
     """A fixed step's check of its test particles, from its own coefficients (no evaluation).
 
@@ -1028,13 +1043,7 @@ def test_particle_error(gamma, w, kin_w, floor, factor, source_floor=0.0):
             if source_floor <= 0.0:
                 continue
             b = source_floor
-        t = 0.0
-        lo = 0.0
-        for c in range(3 * i, 3 * i + 3):
-            if abs(gamma[s - 1, c]) > t:
-                t = abs(gamma[s - 1, c])
-            if abs(gamma[0, c]) > lo:
-                lo = abs(gamma[0, c])
+        t, lo = particle_terms(gamma, i)
         err = t / (cw * lo) if lo > 0.0 else (np.inf if t > 0.0 else 0.0)
         if err > b and err > worst_err:
             worst = i
@@ -1066,13 +1075,7 @@ def test_particle_control(gamma, w, kin_w, err_sources):
     for i in range(u // 3):
         if kin_w[3 * i] != 0.0:
             continue
-        t = 0.0
-        lo = 0.0
-        for c in range(3 * i, 3 * i + 3):
-            if abs(gamma[s - 1, c]) > t:
-                t = abs(gamma[s - 1, c])
-            if abs(gamma[0, c]) > lo:
-                lo = abs(gamma[0, c])
+        t, lo = particle_terms(gamma, i)
         if lo > 0.0:
             e = err_sources * (t / (cw * lo) / r) ** p
             if e > out:
