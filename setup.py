@@ -10,7 +10,7 @@ fused multiply-add where the source has none, so that every build gives the same
 (the explicit ``fma`` of the compensated sums stays); ``-fno-math-errno`` lets ``sqrt`` run
 in the vector lanes.
 """
-import hashlib
+import importlib.util
 import os
 from pathlib import Path
 
@@ -23,14 +23,16 @@ SOURCES = ["integrators/csrc/pymodule.c", "integrators/csrc/hbvm_step.c",
            "integrators/csrc/kernels_nbody.c", "integrators/csrc/kernels_simple.c"]
 
 
-def source_digest(root=".") -> str:
-    """The first 16 hex digits of the SHA-256 of the core's sources (integrators/csrc), built
-    into the extension: integrators.ccore refuses a core older than its sources (an editable
-    install whose C changed and was not rebuilt, or whose rebuild failed)."""
-    h = hashlib.sha256()
-    for f in sorted(Path(root, "integrators", "csrc").glob("*.[ch]")):
-        h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
+def _source_digest() -> str:
+    """The digest of the core's sources built into the extension (integrators/_digest.py, loaded
+    by its path): integrators.ccore refuses a core older than its sources (an editable install
+    whose C changed and was not rebuilt, or whose rebuild failed)."""
+    here = Path(__file__).parent
+    spec = importlib.util.spec_from_file_location("_hbvm_digest",
+                                                  here / "integrators" / "_digest.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.source_digest(here)
 
 
 def _profile() -> list:
@@ -48,7 +50,7 @@ class BuildCore(build_ext):
 
     def build_extension(self, ext):
         flags = (BASE if _portable() else BASE + NATIVE) + _profile()
-        digest = [f'-DHBVM_SOURCE_DIGEST="{source_digest()}"']
+        digest = [f'-DHBVM_SOURCE_DIGEST="{_source_digest()}"']
         ext.extra_compile_args = flags + digest + [f'-DHBVM_BUILD_FLAGS="{" ".join(flags)}"']
         try:
             super().build_extension(ext)

@@ -32,26 +32,13 @@ try:
 except ImportError:            # (installed without a compiler: the numba step serves)
     _core = None
 
-
-def source_digest(root) -> str | None:
-    """setup.py's digest of the core's sources under ``root``, or None when they are not
-    there (an installed, not editable, package)."""
-    import hashlib
-    from pathlib import Path
-    files = sorted(Path(root, "integrators", "csrc").glob("*.[ch]"))
-    if not files:
-        return None
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
-
+from ._digest import source_digest  # noqa: E402
 
 #: why the built core is not used (None: it is)
 STALE = None
 if _core is not None:
-    _digest = source_digest(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    if _digest is not None and _digest != _core.SOURCE_DIGEST:
+    _sources = source_digest(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if _sources is not None and _sources != _core.SOURCE_DIGEST:
         STALE = ("the compiled core (integrators/_core) was built from other sources than "
                  "integrators/csrc holds now (an editable install whose C changed, or whose "
                  "rebuild failed): run `pip install -e .` again; the numba step serves until then")
@@ -125,13 +112,9 @@ class CoreStep:
         # (a pickled Stepper: the work arrays and the numba step are rebuilt where it lands)
         state = self.__dict__.copy()
         state.update(_numba=None, _scratch=np.zeros(0))
-        state.pop("_buffers", None)
+        if "_kern" in state:
+            state["_kern"] = None
         return state
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        if isinstance(self, PythonCoreStep):
-            self._buffers = {}
 
     def numba_step(self):
         if self._numba is None:
@@ -166,19 +149,20 @@ class PythonCoreStep(CoreStep):
     def __init__(self, force, potential, fallback):
         super().__init__(_core.PYTHON, fallback)
         self._force, self._potential = force, potential
-        self._buffers = {}
+        self._kern = None
 
     def _kernel(self, k: int, m: int, params):
-        key = (k, m, id(params))
-        b = self._buffers.get(key)
-        if b is None or b[-1] is not params:
+        """The callbacks and their row buffers for k stages of m coordinates (built again when
+        the method, the size or the parameters' array change)."""
+        kern = self._kern
+        if kern is None or kern[3].shape != (k, m) or kern[-1] is not params:
             Xr, Fr = np.zeros((k, m)), np.zeros((k, m))
             X1, F1, q = np.zeros((1, m)), np.zeros((1, m)), np.zeros(m)
             force, potential = self._force, self._potential
-            b = ((lambda: force(Xr, params, Fr)), (lambda: force(X1, params, F1)),
-                 (lambda: potential(q, params)), Xr, Fr, X1, F1, q, params)
-            self._buffers = {key: b}
-        return b[:8]
+            kern = ((lambda: force(Xr, params, Fr)), (lambda: force(X1, params, F1)),
+                    (lambda: potential(q, params)), Xr, Fr, X1, F1, q, params)
+            self._kern = kern
+        return kern[:8]
 
     def run(self, system, state, h, E, method, newton, opts, wk, samples) -> int:
         if newton.NM.shape[0] > 0:

@@ -349,7 +349,11 @@ class Extrapolation:
     """The initial guess's matrix E(h_new / h_old) (:meth:`HBVM.extrapolation_matrix`) for
     every caller of the step: the arrays the compiled ``core.select_extrapolation`` chooses
     from or fills (E(1) kept, any other ratio computed into a reused buffer, zero for a step
-    far longer than the last; the rule is written there once, also for the REBOUND step)."""
+    far longer than the last).  The rule is ``core.select_extrapolation``'s, for the REBOUND
+    step too; the compiled core has a copy of it (``integrators/csrc/pymodule.c``) until
+    REBOUND's step moves there, chosen once for this object."""
+
+    core = False        # (one pickled before the compiled core took the rule: numba's)
 
     def __init__(self, method):
         self.E1 = np.array(method.E, dtype=float, order="C")   # writable: one array type
@@ -357,10 +361,13 @@ class Extrapolation:
         self.t, self.w = t.copy(), w.copy()                      # writable, like E1
         self.buf = np.empty_like(self.E1)
         self.zero = np.zeros_like(self.E1)
+        # the compiled core's copy of the rule (the same numbers, nothing to compile), chosen
+        # once, not at every step
+        self.core = ccore.available()
 
     def __call__(self, h: float, h_prev: float | None) -> np.ndarray:
         hp = np.nan if h_prev is None else h_prev
-        if ccore.available():       # (the same rule and numbers, nothing to compile)
+        if self.core:
             return ccore._core.select_extrapolation(float(h), float(hp), self.E1, self.t,
                                                     self.w, self.buf, self.zero)
         return entry_point(select_extrapolation)(h, hp, self.E1, self.t, self.w, self.buf,
