@@ -18,3 +18,21 @@ def source_digest(root) -> str | None:
     for f in files:
         h.update(f.name.encode() + b"\0" + f.read_bytes())
     return h.hexdigest()[:16]
+
+
+#: the glue's sources besides its own folder (hbvm_md/rebound/csrc): the layout it is built with
+#: (written into hbvm_layout.h by setup.py) and the core's header
+GLUE_INPUTS = ("hbvm_md/rebound/layout.py", "integrators/csrc/hbvm_core.h")
+
+
+def glue_digest(root) -> str | None:
+    """The same digest of REBOUND's compiled glue's sources: ``root/hbvm_md/rebound/csrc/*.[ch]``
+    and :data:`GLUE_INPUTS`; None when they are not there."""
+    files = sorted(Path(root, "hbvm_md", "rebound", "csrc").glob("*.[ch]"))
+    files += [Path(root, f) for f in GLUE_INPUTS]
+    if not all(f.exists() for f in files) or len(files) == len(GLUE_INPUTS):
+        return None
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]

@@ -80,6 +80,12 @@ def available() -> bool:
     return os.environ.get("HBVM_MD_CORE", "").lower() != "numba"
 
 
+def work_size(k: int, s: int, m: int) -> int:
+    """The doubles of scratch the core's step works in for k stages, s coefficients and m
+    coordinates (handed over zeroed, kept between calls)."""
+    return int(_core.work_size(int(k), int(s), int(m)))
+
+
 def lanes() -> int:
     """The core's vector width in doubles (8 with AVX-512, 4 with AVX, 2 otherwise); 0 when
     there is no core."""

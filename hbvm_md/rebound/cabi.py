@@ -13,19 +13,21 @@ addresses in HBVM's state (slots in :mod:`hbvm_md.rebound.layout`):
 * the host's ``fail`` (a Python callback, ``SL_FAIL``) when the step failed: it records the
   exception and sets REBOUND's status and error message.
 
-Python runs only in those rare events; a normal step is two compiled calls.
+Python runs only in those rare events; a normal step is two compiled calls.  These two serve
+only where REBOUND's compiled glue (:mod:`hbvm_md.rebound.cglue`, the same two functions in C)
+is not built or not usable.
 """
 from __future__ import annotations
 
 import hashlib
 from pathlib import Path
 
-from numba import carray, types
-from numba.extending import intrinsic
+from numba import carray
 
 from integrators.jit import cjit
 from integrators.pointers import address_of, int64_pointer
 from hbvm_md.rebound import layout as _layout
+from hbvm_md.rebound.intrinsics import call_status, call_void
 from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COUNTERS, SL_FAIL,
                                     SL_FREE, SL_GAMMA, SL_PREPARE, SL_STATUS, SL_Y)
 
@@ -36,57 +38,8 @@ from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COU
 #: (measured: ``import hbvm_md`` segfaulted after a layout change).  When layout.py is not the
 #: one named here, the two functions are compiled in memory instead of loaded from the cache;
 #: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with layout.py.
-LAYOUT_DIGEST = "ed2e9e140230c448"
+LAYOUT_DIGEST = "d167672ccaca70e3"
 _CACHE = hashlib.sha256(Path(_layout.__file__).read_bytes()).hexdigest()[:16] == LAYOUT_DIGEST
-
-
-@intrinsic
-def call_status(typingctx, fn, r, p):
-    """``((int (*)(void*, void*)) fn)(r, p)``: a function known by its address at run time."""
-    if not (isinstance(fn, types.Integer) and r == types.voidptr and p == types.voidptr):
-        return None
-
-    def codegen(context, builder, signature, args):
-        from llvmlite import ir
-        i8p = ir.IntType(8).as_pointer()
-        fnty = ir.FunctionType(ir.IntType(32), [i8p, i8p])
-        return builder.call(builder.inttoptr(args[0], fnty.as_pointer()), [args[1], args[2]])
-    return types.int32(fn, r, p), codegen
-
-
-@intrinsic
-def call_void(typingctx, fn, addr):
-    """``((void (*)(void*)) fn)((void*) addr)``: a C function known by its address at run time
-    (the C library's ``free`` here, REBOUND's ``reb_simulation_update_acceleration`` in
-    :mod:`hbvm_md.rebound.forces`)."""
-    if not (isinstance(fn, types.Integer) and isinstance(addr, types.Integer)):
-        return None
-
-    def codegen(context, builder, signature, args):
-        from llvmlite import ir
-        i8p = ir.IntType(8).as_pointer()
-        fnty = ir.FunctionType(ir.VoidType(), [i8p])
-        builder.call(builder.inttoptr(args[0], fnty.as_pointer()), [builder.inttoptr(args[1], i8p)])
-        return context.get_dummy_value()
-    return types.none(fn, addr), codegen
-
-
-@intrinsic
-def call_megno(typingctx, fn, r, dY, dt):
-    """``((void (*)(void*, double, double)) fn)((void*) r, dY, dt)``: REBOUND's
-    ``reb_tools_megno_update(r, dY, dt_done)``, its address known at run time."""
-    if not all(isinstance(a, types.Integer) for a in (fn, r)) or not all(
-            isinstance(a, types.Float) for a in (dY, dt)):
-        return None
-
-    def codegen(context, builder, signature, args):
-        from llvmlite import ir
-        i8p, f64 = ir.IntType(8).as_pointer(), ir.DoubleType()
-        fnty = ir.FunctionType(ir.VoidType(), [i8p, f64, f64])
-        builder.call(builder.inttoptr(args[0], fnty.as_pointer()),
-                     [builder.inttoptr(args[1], i8p), args[2], args[3]])
-        return context.get_dummy_value()
-    return types.none(fn, r, dY, dt), codegen
 
 
 @cjit("void(voidptr, voidptr)", cache=_CACHE)

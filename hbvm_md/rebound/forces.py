@@ -98,7 +98,7 @@ from numba.extending import intrinsic
 from integrators.core import weighted_kinetic
 from integrators.jit import jit
 from integrators.pointers import float64_pointer
-from hbvm_md.rebound.cabi import call_void
+from hbvm_md.rebound.intrinsics import call_void
 
 #: the clock's scale (tau = CLOCK t): a power of two, so tau and t convert exactly
 CLOCK = 2.0 ** -200

@@ -3,7 +3,7 @@
 :mod:`integrators.specialise` appends this file's text to the step's (:mod:`integrators.loop`,
 the N-body kernel bound) and compiles :data:`GLUE_FUNCTIONS` and the C function
 :data:`GLUE_CFUNCS` there: one REBOUND step is one compiled call of :func:`core_step`, which
-:func:`hbvm_md.rebound.cabi.dispatch` calls with REBOUND's simulation and HBVM's state.  It
+:func:`hbvm_md.rebound.cabi.dispatch` (or its C twin, :mod:`hbvm_md.rebound.cglue`) calls with REBOUND's simulation and HBVM's state.  It
 reads the addresses, sizes and REBOUND's offsets from the context block the host built
 (:mod:`hbvm_md.rebound.layout`), checks that G, N_active and the masses are those it wrote
 (else RESYNC: the host reads them afresh) and reads positions and velocities changed since
@@ -29,7 +29,7 @@ from integrators.core import (C_ITER, C_NEWTON, C_NFEV, C_RUN_ERR, C_STEPS, EREF
 from integrators.tangent import TANGENT_FAILED
 from integrators.pointers import address_of, complex128_pointer, float64_pointer, int64_pointer
 from integrators.records import Adaptive, Options, System, Tangents
-from hbvm_md.rebound.cabi import call_megno
+from hbvm_md.rebound.intrinsics import call_megno
 from hbvm_md.rebound.layout import (A_HOST, A_KINW, A_MINV, A_PARAMS, A_WRITTEN, A_V, A_VT, A_DG,
                                     A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX, D_NV, D_TGF, D_TGC,
                                     D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0, D_HOST,
@@ -54,7 +54,7 @@ GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_rep
 #: built without the simplified Newton iteration (integrators.specialise, "Compile time")
 GLUE_NEWTON = False
 GLUE_CFUNCS = {"core_step": "int32(voidptr, voidptr)"}
-GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.cabi",
+GLUE_DEPENDS = ("integrators.pointers", "hbvm_md.rebound.layout", "hbvm_md.rebound.intrinsics",
                 "hbvm_md.rebound.forces", "hbvm_md.rebound.particles")
 
 #: A fixed step (with the energy check on) refuses a test particle whose own error estimate

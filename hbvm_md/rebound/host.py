@@ -13,10 +13,10 @@ import warnings
 
 import numpy as np
 
-from hbvm_md.rebound import layout as L
+from hbvm_md.rebound import cglue, layout as L
 from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
-from integrators import EQUIP, HBVM
+from integrators import EQUIP, HBVM, ccore
 from integrators.core import (C_LASTIT, C_WORST, ERROR_BOUND, N_COUNTERS, NOT_FINITE, NOT_RESOLVED,
                               OK, RUN_ERROR_BOUND, TOO_SMALL, test_particle_error)
 from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
@@ -111,7 +111,12 @@ def register() -> None:
                            "not by hbvm_md; HBVM cannot register")
     from rebound.binarydata_field_descriptor import BinarydataFieldDescriptor, EnumDescriptor
     from rebound.integrator import Integrator
-    from hbvm_md.rebound import cabi
+    from hbvm_md.rebound import cglue
+    if cglue.available():       # (REBOUND's step and free in C: nothing compiled at run time)
+        dispatch, release, _ = cglue.addresses()
+    else:                       # (numba's, compiled once and cached on disk)
+        from hbvm_md.rebound import cabi
+        dispatch, release = cabi.dispatch.address, cabi.release.address
     enums = {}
     for field, names in L.ENUMS.items():
         enums[field] = (EnumDescriptor * (len(names) + 1))()
@@ -141,13 +146,13 @@ def register() -> None:
         b"hbvm_md.HBVMIntegrator(sim, ...).")
     integ = Integrator()
     integ.documentation = ctypes.cast(doc, ctypes.c_char_p)
-    integ.step = cabi.dispatch.address
+    integ.step = dispatch
     integ.create = ctypes.cast(create, ctypes.c_void_p).value
-    integ.free = cabi.release.address
+    integ.free = release
     integ.field_descriptor_list = ctypes.cast(fds, type(integ.field_descriptor_list))
     step_at, state_at = L.state_offset(rebound)
     reg = dict(keep=(enums, fds, docs, create, prepare, fail, python_core, doc, integ),
-               dispatch=cabi.dispatch.address, prepare=ctypes.cast(prepare, ctypes.c_void_p).value,
+               dispatch=dispatch, prepare=ctypes.cast(prepare, ctypes.c_void_p).value,
                fail=ctypes.cast(fail, ctypes.c_void_p).value,
                python_core=ctypes.cast(python_core, ctypes.c_void_p).value,
                free=ctypes.cast(_LIBC.free, ctypes.c_void_p).value,
@@ -862,6 +867,9 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
     """The exception of a failed step, from what the compiled step recorded (``sim``: the
     simulation, as before the step: the particles a message names)."""
     status = int(st[L.SL_STATUS])
+    if status == L.OUT_OF_MEMORY:
+        return MemoryError("HBVM: the compiled step could not allocate its work arrays "
+                           "(nothing was changed)")
     if status == L.BAD_DT:
         return ValueError(f"`sim.dt` must be a nonzero finite step size (got sim.dt="
                           f"{float(sd[L.SL_H_FAIL])!r}); set it to the step you want, e.g. a "
@@ -1094,6 +1102,7 @@ def _prepare(sim, p: int) -> None:
             _probe_velocities(sim, view, ix, ivx, reasons)
         scene = ReboundScene(sim, (stride, ix, ivx, _REG["ax"], offsets[0]), ptr)
         nb = None
+        c_step = False
         # (variational particles are refused on this path: no tangent map is compiled)
         binding = Binding(method, scene, form="separable", fast=None,
                           glue="hbvm_md.rebound.glue", velocities=scene.velocities)
@@ -1103,9 +1112,16 @@ def _prepare(sim, p: int) -> None:
         nb = NBody(view[:, im].copy(), G=sim.G, n_active=None if na < 0 or na >= N else na)
         # the tangent map is compiled only for a simulation with variational particles (a
         # change of N_var moves particles_var: the compiled step asks for a resync, and this
-        # builds it again)
-        binding = Binding(method, nb, form="separable", fast=None, glue="hbvm_md.rebound.glue",
+        # builds it again).  The plain case runs the C step of hbvm_md.rebound.csrc on the
+        # compiled core (cglue.COVERS): its binding is the engine's, nothing compiled
+        c_step = cglue.plain_step(method, nb, False, sim.N_var)
+        binding = Binding(method, nb, form="separable", fast=None,
+                          glue=None if c_step else "hbvm_md.rebound.glue",
                           jvp=nbody_force_jvp if sim.N_var > 0 else None)
+        if c_step and not getattr(binding.step_code, "core", False):
+            c_step = False          # (the core refused the kernel: the numba glue serves)
+            binding = Binding(method, nb, form="separable", fast=None,
+                              glue="hbvm_md.rebound.glue")
         dim = nb.dim
         u, vw = dim, binding.minv
     y, g, c = (doubles(int(st[a]), int(st[n])) for a, n in
@@ -1203,12 +1219,15 @@ def _prepare(sim, p: int) -> None:
                       "by their own error estimates (fixed steps) or the step control (adaptive)",
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
-    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=nb is None)
+    _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=nb is None,
+             work=np.zeros(ccore.work_size(method.k, s, binding.minv.shape[0])) if c_step else None)
     code = binding.step_code
     if code.kind != "compiled" and sim.N_var > 0 and sim._calculate_megno:
         raise ValueError("HBVM hands MEGNO to REBOUND from its compiled step only; unset "
                          "NUMBA_DISABLE_JIT to compute MEGNO with HBVM")
-    if code.kind == "compiled":
+    if c_step:
+        st[L.SL_CORE] = cglue.addresses()[2]
+    elif code.kind == "compiled":
         st[L.SL_CORE] = code.core_step.address
     else:
         _PYTHON_STEPS[p] = _python_step(code, st)
@@ -1390,9 +1409,11 @@ def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
 
 
 def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False,
-             kepler=False) -> None:
+             kepler=False, work=None) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
-    allocated with the C library (the state's ``free`` releases it with the state).  kepler:
+    allocated with the C library (the state's ``free`` releases it with the state).  work: the
+    compiled core's scratch (the C step, :mod:`hbvm_md.rebound.cglue`) in place of the numba
+    step's work array.  kepler:
     the composed step's (:mod:`hbvm_md.rebound.kepler_glue`: the full form, coefficients of
     width 2m)."""
     ex = Extrapolation(method)
@@ -1412,7 +1433,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
               L.A_EREFT: np.zeros(L.N_EREF), L.A_WRITTEN: written, L.A_MINV: binding.minv,
               L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
               L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
-              L.A_WORK: binding.work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
+              L.A_WORK: binding.work if work is None else work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
               L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
     # the tangents of REBOUND's first-order variational particles (checks.check_simulation
     # refused any other kind): one per set, its first row var_config[j].index and its particle
@@ -1445,7 +1466,7 @@ def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=F
         at += sizes[k]
     header[[L.D_S, L.D_K, L.D_NODES, L.D_M, L.D_N, L.D_P, L.D_NF, L.D_NC, L.D_PTR]] = (
         s, method.k, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
-        binding.work.shape[0],
+        arrays[L.A_WORK].shape[0],
         binding.cwork.shape[0], ptr)
     header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
     header[L.D_HOST] = int(host_forces)

@@ -42,6 +42,7 @@ BAD_DT = -3           # sim.dt is zero or not finite
 BAD_SETTINGS = -4     # a setting in sim.integrator is out of its range (host.check_settings)
 TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error estimate is
                       # above its bound (glue.TP_FLOOR, TP_FACTOR): nothing committed
+OUT_OF_MEMORY = -6    # the compiled step could not allocate its work: nothing committed
 
 # ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
 (SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,

@@ -55,6 +55,11 @@ enum { C_STEPS, C_ITER, C_NFEV, C_LAST, C_NEWTON, C_CHANGE, C_LASTIT, C_ERR, C_W
 #define HBVM_EREF_TMAX 6
 #define HBVM_N_EREF 7
 
+/* core.ERROR_BOUND (the step's own error estimate's bound, on with the energy check) and
+ * core.TINY_RATIO (a step this much shorter than the previous one is a sliver) */
+#define HBVM_ERROR_BOUND 1e-3
+#define HBVM_TINY_RATIO 1e-3
+
 typedef int (*hbvm_force_fn)(void *ctx, const double *X, int m, int kp, int n,
                              const double *params, double *F);
 typedef int (*hbvm_potential_fn)(void *ctx, const double *q, const double *params, double *V);
@@ -120,6 +125,46 @@ int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const d
  * (core.extrapolation_matrix); c: scratch of 4 s doubles */
 void hbvm_extrapolation_matrix(double r, const double *t, const double *w, int s, double *E,
                                double *c);
+
+/* the initial guess's extrapolation arrays (integrators.records.Extrapolation): E(1), the
+ * s-point Gauss rule (t, w) on [0, 1], a buffer for another ratio and the zero matrix */
+typedef struct {
+    const double *E1, *t, *w;
+    double *buf;
+    const double *zero;
+} hbvm_extrapolation;
+
+/* the initial guess's matrix for a step h after a step h_prev (nan: none): core.
+ * select_extrapolation's rule (E1 for the same step, the end value for a sliver, zero past
+ * MAX_EXTRAPOLATION, else computed into ext->buf) */
+const double *hbvm_select_extrapolation(double h, double h_prev, const hbvm_extrapolation *ext,
+                                        int s);
+
+/* One step from state into trial (integrators.loop.attempt's contract: the one retry loop of
+ * every host, around the one controller core.adapt_step); the state is not changed.  trial
+ * shares state's clock.  epsilon = 0: a fixed step, its status returned.  epsilon > 0: a step
+ * whose own error estimate exceeds epsilon, or that failed, is tried again smaller, leaving no
+ * trace in the counters; HBVM_TOO_SMALL below min_dt.  res (5,): h taken (or last tried), next
+ * h proposed, rejections (added), the last rejection's estimate, its status. */
+int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *state,
+                 hbvm_state *trial, double h, double h_prev, double t_start,
+                 const hbvm_extrapolation *ext, const hbvm_tableau *tab,
+                 const hbvm_options *opts, double *counters, double epsilon, double min_dt,
+                 double *res, double *scratch, size_t nscratch);
+
+/* the core's functions for the hosts' compiled glue (hbvm_md/rebound/csrc), handed over in
+ * the capsule integrators._core.API: one binary of the step */
+#define HBVM_API_VERSION 1
+typedef struct {
+    int version, lanes, n_counters, n_eref;
+    int (*attempt)(const hbvm_kernel *, const hbvm_system *, hbvm_state *, hbvm_state *,
+                   double, double, double, const hbvm_extrapolation *, const hbvm_tableau *,
+                   const hbvm_options *, double *, double, double, double *, double *, size_t);
+    size_t (*work_size)(int, int, int);
+    hbvm_force_fn nbody_force;
+    hbvm_potential_fn nbody_potential;
+    int (*nbody_check)(int, const double *, long);
+} hbvm_api;
 
 /* the padded stage count for k stages */
 static inline int hbvm_padded(int k) { return (k + HBVM_LANES - 1) / HBVM_LANES * HBVM_LANES; }

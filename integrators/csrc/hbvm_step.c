@@ -885,3 +885,111 @@ void hbvm_extrapolation_matrix(double r, const double *t, const double *w, int s
         for (int j = 0; j < s; ++j)
             E[i * s + j] *= l0v[i] * l0v[j];
 }
+
+/* ---- the one retry loop and its controller (integrators.loop.attempt, core.adapt_step) ---- */
+
+static const double TINY_RATIO = HBVM_TINY_RATIO;
+static const double MAX_EXTRAPOLATION = 4.0;    /* core.MAX_EXTRAPOLATION */
+static const double FAILURE_SHRINK = 0.25;      /* core.FAILURE_SHRINK */
+
+const double *hbvm_select_extrapolation(double h, double h_prev, const hbvm_extrapolation *ext,
+                                        int s)
+{
+    if (isnan(h_prev) || h == h_prev)
+        return ext->E1;
+    double r = h / h_prev;
+    if (fabs(r) > MAX_EXTRAPOLATION)
+        return ext->zero;
+    if (fabs(r) < TINY_RATIO)
+        r = 0.0;
+    double c[4 * 64];
+    double *cc = s <= 64 ? c : malloc(4 * (size_t)s * sizeof(double));
+    if (!cc)
+        return NULL;
+    hbvm_extrapolation_matrix(r, ext->t, ext->w, s, ext->buf, cc);
+    if (cc != c)
+        free(cc);
+    return ext->buf;
+}
+
+/* core.next_step: h (epsilon / err)^(1 / (2s + 1)) x 0.7, within [0.2 h, 2 h] */
+static double next_step(double h, double err, double epsilon, int s)
+{
+    if (!(err > 0.0))
+        return h * 2.0;
+    const double f = 0.7 * pow(epsilon / err, 1.0 / (2.0 * s + 1.0));
+    return h * py_min(2.0, py_max(0.2, f));
+}
+
+/* core.adapt_step: accept?, the next step to try, too small? */
+static int adapt_step(double h, int status, double err, double epsilon, int s, double t,
+                      double min_dt, double *h_new, int *too_small)
+{
+    if (status == HBVM_OK) {
+        *h_new = next_step(h, err, epsilon, s);
+        if (err <= epsilon) {
+            *too_small = 0;
+            return 1;
+        }
+    } else if (status == HBVM_NOT_RESOLVED && err > 0.0 && err < INFINITY) {
+        *h_new = next_step(h, err, epsilon, s);
+    } else {
+        *h_new = FAILURE_SHRINK * h;
+    }
+    *too_small = fabs(*h_new) < min_dt || *h_new == 0.0 || t + *h_new == t;
+    return 0;
+}
+
+int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *state,
+                 hbvm_state *trial, double h, double h_prev, double t_start,
+                 const hbvm_extrapolation *ext, const hbvm_tableau *tab,
+                 const hbvm_options *opts, double *counters, double epsilon, double min_dt,
+                 double *res, double *scratch, size_t nscratch)
+{
+    const int m = sys->m, s = tab->s;
+    double snap[N_COUNTERS];
+    double *clock = state->clock;
+    const double clock0 = clock[0], clock1 = clock[1];
+    hbvm_options op = *opts;
+    if (epsilon > 0.0 && !(op.ebound > 0.0))
+        op.ebound = INFINITY;    /* (the controller reads the estimate: computed, never refused) */
+    hbvm_samples one = {.nsteps = 1, .every = 0, .t = NULL, .y = NULL, .e = NULL};
+    for (;;) {
+        memcpy(trial->y, state->y, 2 * (size_t)m * sizeof(double));
+        memcpy(trial->cy, state->cy, 2 * (size_t)m * sizeof(double));
+        memcpy(trial->gamma, state->gamma, (size_t)s * m * sizeof(double));
+        memcpy(trial->eref, state->eref, HBVM_N_EREF * sizeof(double));
+        clock[0] = clock0;
+        clock[1] = clock1;
+        memcpy(snap, counters, sizeof snap);
+        const double *E = hbvm_select_extrapolation(h, h_prev, ext, s);
+        if (!E)
+            return -1;
+        hbvm_state tr = *trial;
+        tr.clock = clock;
+        const int status = hbvm_run(kernel, sys, &tr, h, E, tab, &op, counters, &one, scratch,
+                                    nscratch);
+        if (status < 0 || status == HBVM_ABORTED)
+            return status;
+        res[0] = h;
+        res[1] = h;
+        if (epsilon <= 0.0 || status == HBVM_DRIFTED)   /* (no shorter step undoes the past) */
+            return status;
+        const double err = (status == HBVM_OK || status == HBVM_NOT_RESOLVED) ? counters[C_ERR]
+                                                                              : NAN;
+        double h_new;
+        int too_small;
+        if (adapt_step(h, status, err, epsilon, s, t_start, min_dt, &h_new, &too_small)) {
+            res[1] = h_new;
+            return HBVM_OK;
+        }
+        if (status == HBVM_OK)
+            memcpy(counters, snap, sizeof snap);         /* a rejected step leaves no trace */
+        res[3] = err;
+        res[4] = status;
+        res[2] += 1.0;
+        if (too_small)
+            return HBVM_TOO_SMALL;
+        h = h_new;
+    }
+}

@@ -542,43 +542,35 @@ static PyObject *py_select_extrapolation(PyObject *self, PyObject *args)
     PyObject *E1, *to, *wo, *bo, *zo;
     if (!PyArg_ParseTuple(args, "ddOOOOO", &h, &hp, &E1, &to, &wo, &bo, &zo))
         return NULL;
-    if (isnan(hp) || h == hp) {
-        Py_INCREF(E1);
-        return E1;
-    }
-    double r = h / hp;
-    if (fabs(r) > 4.0) {            /* core.MAX_EXTRAPOLATION */
-        Py_INCREF(zo);
-        return zo;
-    }
-    if (fabs(r) < 1e-3)             /* core.TINY_RATIO */
-        r = 0.0;
     bufset bs = {.n = 0};
-    Py_ssize_t st[1], sw[1], sb[2];
+    Py_ssize_t st[1], sw[1], sb[2], s1[2], sz[2];
     const double *t = get(&bs, to, "t", 1, 0, st);
     if (!t)
         goto fail;
     const double *w = get(&bs, wo, "w", 1, 0, sw);
     if (!w)
         goto fail;
-    double *E = get(&bs, bo, "buf", 2, 1, sb);
-    if (!E)
+    double *buf = get(&bs, bo, "buf", 2, 1, sb);
+    if (!buf)
+        goto fail;
+    const double *e1 = get(&bs, E1, "E1", 2, 0, s1);
+    if (!e1)
+        goto fail;
+    const double *zero = get(&bs, zo, "zero", 2, 0, sz);
+    if (!zero)
         goto fail;
     const int s = (int)st[0];
-    if (sw[0] != s || sb[0] != s || sb[1] != s)
-        SHAPE_ERR("buf", "(s, s) for the s-point rule (t, w)");
-    double scratch[4 * 64];
-    double *c = s <= 64 ? scratch : malloc(4 * (size_t)s * sizeof(double));
-    if (!c) {
-        release(&bs);
-        return PyErr_NoMemory();
-    }
-    hbvm_extrapolation_matrix(r, t, w, s, E, c);
-    if (c != scratch)
-        free(c);
+    if (sw[0] != s || sb[0] != s || sb[1] != s || s1[0] != s || s1[1] != s || sz[0] != s
+        || sz[1] != s)
+        SHAPE_ERR("E1, buf, zero", "(s, s) for the s-point rule (t, w)");
+    hbvm_extrapolation ext = {.E1 = e1, .t = t, .w = w, .buf = buf, .zero = zero};
+    const double *E = hbvm_select_extrapolation(h, hp, &ext, s);
     release(&bs);
-    Py_INCREF(bo);
-    return bo;
+    if (!E)
+        return PyErr_NoMemory();
+    PyObject *out = E == e1 ? E1 : E == zero ? zo : bo;
+    Py_INCREF(out);
+    return out;
 fail:
     release(&bs);
     return NULL;
@@ -619,6 +611,15 @@ PyMODINIT_FUNC PyInit__core(void)
     if (!mod)
         return NULL;
     PyModule_AddIntConstant(mod, "LANES", HBVM_LANES);
+    static const hbvm_api api = {.version = HBVM_API_VERSION, .lanes = HBVM_LANES,
+                                 .n_counters = N_COUNTERS, .n_eref = HBVM_N_EREF,
+                                 .attempt = hbvm_attempt, .work_size = hbvm_work_size,
+                                 .nbody_force = hbvm_nbody_force_k,
+                                 .nbody_potential = hbvm_nbody_potential_k,
+                                 .nbody_check = hbvm_nbody_check};
+    PyObject *cap = PyCapsule_New((void *)&api, "integrators._core.API", NULL);
+    if (!cap || PyModule_AddObject(mod, "API", cap) != 0)
+        return NULL;
     PyModule_AddIntConstant(mod, "NBODY", KERNEL_NBODY);
     PyModule_AddIntConstant(mod, "PYTHON", KERNEL_PYTHON);
     PyObject *builtins = PyDict_New();
