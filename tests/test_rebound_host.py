@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -479,3 +480,40 @@ def test_the_registered_c_functions_name_the_layout_they_were_compiled_for():
     from hbvm_md.rebound import masses, particles
     for mod in (particles, masses):
         assert mod.LAYOUT_DIGEST == digest, f"set LAYOUT_DIGEST = {digest!r} in {mod.__file__}"
+
+
+def test_a_file_saved_before_the_step_control_changed_keeps_its_accuracy(tmp_path):
+    """A simulation saved by hbvm-md before 2026-12-08 (no ``controller`` field: it loads as
+    0) holds an epsilon of the former step control: its default 1e-3 becomes today's default
+    with a warning (the continued run keeps round-off energy), another value is kept with a
+    warning saying what to set; a file of today's version loads silently."""
+    from hbvm_md.rebound import layout as L
+    from hbvm_md.rebound.host import _slots
+
+    def saved(eps, old):
+        sim = rebound.Simulation()
+        sim.add(m=1.0)
+        sim.add(m=1e-3, a=1.0, e=0.3)
+        sim.move_to_com()
+        sim.integrator = "hbvm"
+        sim.integrate(2.0)
+        st, sd = _slots(sim.integrator.state)
+        sd[L.SL_EPSILON] = eps
+        if old:
+            st[L.SL_CONTROL] = 0
+        path = tmp_path / f"old{eps}{old}.bin"
+        sim.save_to_file(str(path))
+        return path
+
+    for eps, old, want in ((1e-3, True, DEFAULT_EPSILON), (1e-6, True, 1e-6),
+                           (1e-3, False, 1e-3), (DEFAULT_EPSILON, False, DEFAULT_EPSILON)):
+        sim = rebound.Simulation(str(saved(eps, old)))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sim.integrate(4.0)
+        ours = [w for w in caught if "before 2026-12-08" in str(w.message)]
+        assert len(ours) == (1 if old else 0), (eps, old)
+        assert sim.integrator.epsilon == want
+        if old and eps != 1e-3:
+            assert "Set sim.integrator.epsilon again" in str(ours[0].message)
+        assert sim.integrator.controller == 1

@@ -7,7 +7,7 @@ import pytest
 import rebound
 
 from hbvm_md import HBVMIntegrator
-from integrators import ConvergenceError, StepError, UnresolvedStepError
+from integrators import ConvergenceError, NonFiniteError, StepError, UnresolvedStepError
 from systems import outer_solar_system
 from tests.test_adaptive import _comet_scene
 
@@ -189,3 +189,29 @@ def test_energy_tol_auto_is_the_engines_shared_check():
     HBVMIntegrator(sim, k=6, dt=200.0)
     sim.integrate(1e4)                     # the rule runs: k = s = 6 at 200 days is no garbage
     assert sim.t == 1e4
+
+
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_a_force_that_is_not_finite_is_named_not_an_encounter(adaptive):
+    """A Python additional force returning nan: a NonFiniteError naming the force, the particle
+    and its acceleration at the step's start, the requested step and "no step size helps" (not a
+    StepSizeError advising a smaller min_dt about 'the closest encounter'); nothing changed."""
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=1.0, e=0.1)
+
+    def bad_force(simp):
+        simp.contents.particles[1].ax += float("nan")
+    sim.additional_forces = bad_force
+    sim.integrator = "hbvm"
+    if not adaptive:
+        HBVMIntegrator(sim, adaptive=False)
+    sim.dt = 0.01
+    x0 = [(p.x, p.vx) for p in sim.particles]
+    with pytest.raises(NonFiniteError) as err:
+        sim.integrate(1.0)
+    msg = str(err.value)
+    assert "bad_force" in msg and "particle 1" in msg and "no step size helps" in msg
+    assert "closest encounter" not in msg and "min_dt" not in msg
+    assert "h=0.01" in msg
+    assert [(p.x, p.vx) for p in sim.particles] == x0 and sim.t == 0.0

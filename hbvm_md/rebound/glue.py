@@ -49,7 +49,8 @@ from hbvm_md.rebound.particles import (commit_clock, context_current, context_vi
                                        landing_step, restore_particles, settings_ok, step_end,
                                        step_records, var_rows, write_tangents)
 
-GLUE_FUNCTIONS = ("step_arrays", "_step", "odes_release", "odes_read", "odes_replaced")
+GLUE_FUNCTIONS = ("step_arrays", "_step", "moved_anchor", "odes_release", "odes_read",
+                  "odes_replaced")
 #: the REBOUND step iterates to a fixed point only (its Newton record is empty): the step is
 #: built without the simplified Newton iteration (integrators.specialise, "Compile time")
 GLUE_NEWTON = False
@@ -177,6 +178,24 @@ def odes_read(params, y, cy, eref, st):
     return moved
 
 
+def moved_anchor(host_forces, y, kin_w, params, eref, e_old, anchor):
+    """eref after particles were moved between two steps (an operator, a post-timestep
+    callback: :func:`reread_particles`): the energy and EQUIP's warm starts start afresh, and
+    the run's start (the drift check's anchor, core.DRIFT_BOUND) moves by the energy the move
+    changed, H(moved) - H(last commit), so that the check goes on judging the steps' own drift
+    over the run (a dissipating operator's energy is not the step's); T's mean, the run's time
+    and T's largest stay.  Without a known energy and start, or on REBOUND's own accelerations,
+    the run's terms start afresh (as before 2026-12-08 for every move)."""
+    if not host_forces and np.isfinite(e_old) and np.isfinite(anchor):
+        t, v = energy_parts(False, y, kin_w, params)
+        eref[EREF_RUN] = anchor + ((t + v) - e_old)
+        for i in range(EREF_RUN):
+            eref[i] = np.nan
+    else:
+        for i in range(eref.shape[0]):
+            eref[i] = np.nan
+
+
 def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     """:func:`step_arrays` past its first checks."""
     simd, simi, view, ctx, r, pv = rb
@@ -196,10 +215,10 @@ def _step(rb, hb, system, state, trial, method, newton, wk, ext, tan):
     if not particles_match(view, written, ix, ivx, ctx[R_M]):
         # moved between steps (an operator after every step): read in compiled code; the
         # previous coefficients stay the initial guess, the reference energy starts afresh
+        e_old, anchor = eref[0], eref[EREF_RUN]
         if not reread_particles(view, written, ix, ivx, ctx[R_M], y, cy, minv):
             return RESYNC
-        for i in range(eref.shape[0]):
-            eref[i] = np.nan
+        moved_anchor(host_forces, y, kin_w, params, eref, e_old, anchor)
         st[SL_RESYNCS] += 1
     h = simd[ctx[R_DT]]
     if not (abs(h) < np.inf and h != 0.0):
@@ -365,5 +384,5 @@ if TYPE_CHECKING:
     # integrators.specialise compiles this text after the step's (integrators.loop, and
     # integrators.tangent or its stand-in in integrators.absent), where these are the step's
     # own, bound to the N-body kernel (imported here for readers and linters only)
-    from integrators.loop import attempt
+    from integrators.loop import attempt, energy_parts
     from integrators.tangent import tangent_map

@@ -903,6 +903,14 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
             exc = NonFiniteError(h, int(counters[C_LASTIT]), "fixed_point", t, culprit)
             exc.encounter = None
             return exc
+    if nonfinite and sim is not None and ctypes.addressof(sim) in _HOST_PATH:
+        culprit = _force_culprit(sim)
+        if culprit is not None:      # REBOUND's accelerations, not an encounter or the step
+            # (the step asked for: an adaptive run shrank it to nothing before stopping)
+            exc = NonFiniteError(float(sim.dt), int(counters[C_LASTIT]), "fixed_point", t,
+                                 culprit)
+            exc.encounter = None
+            return exc
     enc = _encounter(sim, s=int(st[L.SL_S])) if sim is not None else None
     near = _encounter_text(sim, enc, h)
     which = int(st[L.SL_METHOD])                       # the message names the method run
@@ -981,6 +989,37 @@ def _ode_culprit(sim, odes) -> str | None:
     return None
 
 
+def _force_culprit(sim) -> str | None:
+    """Why REBOUND's own accelerations make the step non-finite, or None: they are computed
+    once at the step's start (sim as before the step; ``reb_simulation_update_acceleration``:
+    gravity, ``sim.additional_forces``, REBOUNDx's forces) and the first particle whose
+    acceleration is not finite is named, with the way out.  The particles' positions and
+    velocities are left as they were (the accelerations are scratch: each stage computes
+    them)."""
+    N = int(sim.N)
+    stride = ctypes.sizeof(_rebound().Particle) // 8
+    ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
+    if not N or not ptr:
+        return None
+    view = doubles(ptr, N * stride).reshape(N, stride)
+    keep = view.copy()
+    ax = _REG["ax"]
+    try:
+        _rebound().clibrebound.reb_simulation_update_acceleration(
+            ctypes.c_void_p(ctypes.addressof(sim)))
+        acc = view[:, ax:ax + 3].copy()
+    finally:
+        view[:] = keep
+    bad = np.flatnonzero(~np.all(np.isfinite(acc), axis=1))
+    if bad.size == 0:
+        return None
+    i = int(bad[0])
+    return (f"REBOUND's accelerations are not finite at the step's start (t={float(sim.t)!r}): "
+            f"{_name(sim, i)} has a = {tuple(float(a) for a in acc[i])!r} "
+            f"({bad.size} of {N} particles), from {_force_name(sim)}: no step size helps; "
+            "check that force there")
+
+
 def _python_core(r: int, p: int) -> int:
     """The step as Python (``NUMBA_DISABLE_JIT``): the glue's :func:`step_arrays` on numpy
     views of the same memory the compiled :func:`core_step` views."""
@@ -1057,6 +1096,10 @@ def _prepare(sim, p: int) -> None:
     afresh from the particles."""
     st, sd = _slots(p)
     _release_odes(ctypes.addressof(sim))     # (hidden by the last step, when a run resyncs)
+    if not st[L.SL_CTX] and st[L.SL_CONTROL] != L.CONTROL:
+        if st[L.SL_NSTEPS] > 0:            # (a file saved before the field existed)
+            _adopt_old_epsilon(st, sd)
+        st[L.SL_CONTROL] = L.CONTROL
     method = check_settings(st, sd)
     check_simulation(sim)
     if st[L.SL_KEPLER]:
@@ -1238,6 +1281,32 @@ def _prepare(sim, p: int) -> None:
     if sim.extras:
         _warn_operators(sim, _operators(sim))
     (_HOST_PATH.add if nb is None else _HOST_PATH.discard)(ctypes.addressof(sim))
+
+
+def _adopt_old_epsilon(st: np.ndarray, sd: np.ndarray) -> None:
+    """A simulation saved by hbvm-md before 2026-12-08 (no ``controller`` field): its epsilon
+    meant the former controller's, whose default 1e-3 kept the energy at round-off; epsilon
+    now bounds each step's own local error estimate relative to its motion, and 1e-3 would take
+    steps some 20 times longer, far from round-off.  The former default becomes today's
+    (DEFAULT_EPSILON: the continued run keeps the accuracy it had), with a warning; another
+    value is kept, with a warning saying what it now means and what to set."""
+    if not (st[L.SL_ADAPTIVE] and sd[L.SL_EPSILON] > 0.0):
+        return
+    eps = float(sd[L.SL_EPSILON])
+    if eps == L.OLD_DEFAULT_EPSILON:
+        sd[L.SL_EPSILON] = DEFAULT_EPSILON
+        msg = (f"HBVM: this simulation was saved by hbvm-md before 2026-12-08 with the default "
+               f"epsilon={eps:g} of the step control of that time; epsilon now bounds each "
+               f"step's own local error estimate (relative to its motion), whose default is "
+               f"{DEFAULT_EPSILON:g}: sim.integrator.epsilon is set to that, so that the "
+               "continued run keeps the accuracy it had")
+    else:
+        msg = (f"HBVM: this simulation was saved by hbvm-md before 2026-12-08 with "
+               f"epsilon={eps:g} for the step control of that time; epsilon now bounds each "
+               f"step's own local error estimate (relative to its motion) and {eps:g} means a "
+               f"far looser run than it did. Set sim.integrator.epsilon again: "
+               f"{DEFAULT_EPSILON:g}, the default, keeps the energy at round-off")
+    warnings.warn(msg, RuntimeWarning, stacklevel=_user_stacklevel())
 
 
 def _model_changed(st: np.ndarray, sim, host: bool) -> bool:

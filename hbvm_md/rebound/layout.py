@@ -79,7 +79,15 @@ SL_EREF_MASSES = SL_T_WRITTEN + 2
 #: not saved: 1 once this simulation's run was warned of its accumulated error
 #: (host._warn_run_error: once a simulation; a copy or a loaded one starts at 0, ``create``'s)
 SL_RUN_WARNED = SL_T_WRITTEN + 3
-N_SLOTS = SL_RUN_WARNED + 1
+#: saved: the meaning of epsilon the state was saved with, CONTROL: each step's own local error
+#: estimate relative to its motion (core.adapt_step, hbvm-md since 2026-12-08).  A file saved
+#: before the field existed loads ``create``'s 0 and holds an epsilon of the former controller
+#: (default 1e-3), which host._adopt_old_epsilon converts or warns about
+SL_CONTROL = SL_RUN_WARNED + 1
+CONTROL = 1
+#: the former controller's default epsilon (before 2026-12-08)
+OLD_DEFAULT_EPSILON = 1e-3
+N_SLOTS = SL_CONTROL + 1
 #: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
 #: starts), the energy at the run's start, T's time mean over the run, the run's time and T's
 #: largest (the anchor and the scale of core.DRIFT_BOUND's rule), in the consecutive slots
@@ -138,6 +146,10 @@ SAVED = (
     ("t_comp", SL_T_COMP, _DOUBLE, None, "Compensation of sim.t's sum of steps (the exact "
      "time is sim.t - t_comp); 0 after the user sets sim.t."),
     ("t_written", SL_T_WRITTEN, _DOUBLE, None, ""),
+    ("controller", SL_CONTROL, _INT64, None, "The meaning of epsilon this state was saved "
+     "with: 1, each step's own local error estimate relative to its motion; 0 in a file "
+     "saved by hbvm-md before 2026-12-08, whose epsilon meant the former controller's (a "
+     "warning then says what it became)."),
     ("nsteps", SL_NSTEPS, _INT64, None, "Steps committed."),
     ("rejected", SL_REJECTED, _INT64, None, "Adaptive trial steps rejected and retried smaller."),
     ("resyncs", SL_RESYNCS, _INT64, None, "Times the state was read afresh from the particles."),

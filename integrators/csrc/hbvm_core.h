@@ -154,13 +154,15 @@ int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *
 
 /* the core's functions for the hosts' compiled glue (hbvm_md/rebound/csrc), handed over in
  * the capsule integrators._core.API: one binary of the step */
-#define HBVM_API_VERSION 1
+#define HBVM_API_VERSION 2
 typedef struct {
     int version, lanes, n_counters, n_eref;
     int (*attempt)(const hbvm_kernel *, const hbvm_system *, hbvm_state *, hbvm_state *,
                    double, double, double, const hbvm_extrapolation *, const hbvm_tableau *,
                    const hbvm_options *, double *, double, double, double *, double *, size_t);
     size_t (*work_size)(int, int, int);
+    int (*energy_parts)(const hbvm_kernel *, const hbvm_system *, const double *, double *,
+                        double *);
     hbvm_force_fn nbody_force;
     hbvm_potential_fn nbody_potential;
     int (*nbody_check)(int, const double *, long);

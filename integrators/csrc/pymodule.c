@@ -614,6 +614,7 @@ PyMODINIT_FUNC PyInit__core(void)
     static const hbvm_api api = {.version = HBVM_API_VERSION, .lanes = HBVM_LANES,
                                  .n_counters = N_COUNTERS, .n_eref = HBVM_N_EREF,
                                  .attempt = hbvm_attempt, .work_size = hbvm_work_size,
+                                 .energy_parts = hbvm_energy_parts,
                                  .nbody_force = hbvm_nbody_force_k,
                                  .nbody_potential = hbvm_nbody_potential_k,
                                  .nbody_check = hbvm_nbody_check};

@@ -179,15 +179,29 @@ static int step(struct reb_simulation *r, void *p)
     double *yt = CTXP(ctx, RB_A_YT), *cyt = CTXP(ctx, RB_A_CYT);
     double *gammat = CTXP(ctx, RB_A_GAMMAT), *ereft = CTXP(ctx, RB_A_EREFT);
     double *clock = CTXP(ctx, RB_A_CLOCK);
+    const double *params = CTXP(ctx, RB_A_PARAMS);
+    hbvm_kernel kern = {.force = core->nbody_force, .potential = core->nbody_potential,
+                        .params = params, .ctx = NULL};
+    hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
     if (!settings_ok(st, sd))
         return RB_BAD_SETTINGS;
     if (!particles_match(r->particles, N, written)) {
         /* moved between steps (an operator after every step): the previous coefficients stay
          * the initial guess, the reference energy starts afresh */
+        const double e_old = eref[0], anchor = eref[HBVM_EREF_RUN];
         if (!reread_particles(r->particles, N, written, y, cy, minv, m))
             return RB_RESYNC;
-        for (int i = 0; i < RB_N_EREF; ++i)
-            eref[i] = NAN;
+        /* glue.moved_anchor: the run's start moves by the energy the move changed */
+        double T, V;
+        if (isfinite(e_old) && isfinite(anchor)
+            && core->energy_parts(&kern, &sys, y, &T, &V) == 0) {
+            eref[HBVM_EREF_RUN] = anchor + ((T + V) - e_old);
+            for (int i = 0; i < HBVM_EREF_RUN; ++i)
+                eref[i] = NAN;
+        } else {
+            for (int i = 0; i < RB_N_EREF; ++i)
+                eref[i] = NAN;
+        }
         st[RB_SL_RESYNCS] += 1;
     }
     double h = r->dt;
@@ -208,10 +222,6 @@ static int step(struct reb_simulation *r, void *p)
     /* the step's own error estimate, on with the energy check (core.ERROR_BOUND) */
     const double ebound = sd[RB_SL_ETOL] != 0.0 ? HBVM_ERROR_BOUND : 0.0;
     res[2] = 0.0;
-    const double *params = CTXP(ctx, RB_A_PARAMS);
-    hbvm_kernel kern = {.force = core->nbody_force, .potential = core->nbody_potential,
-                        .params = params, .ctx = NULL};
-    hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
     hbvm_state state = {.y = y, .cy = cy, .gamma = gamma, .eref = eref, .clock = clock};
     hbvm_state trial = {.y = yt, .cy = cyt, .gamma = gammat, .eref = ereft, .clock = clock};
     /* the method's packed arrays (integrators.engine.method_arrays, HBVM's planes) */
