@@ -8,8 +8,9 @@ Both run the same engine step, :class:`integrators.Stepper` with HBVM(9, 6) (the
 default through REBOUND), on the two-body problem as an N-body system (G = 1, masses 1 and
 1e-3, a = 1), started at pericentre:
 
-* **plain**: ``Stepper.step_adaptive`` at epsilon = 2e-20 (about the steps the earlier
-  controller took at its 1e-5, the setting the recorded results ran; issue 58): the error estimate of
+* **plain**: ``Stepper.step_adaptive`` at epsilon = 2e-20 (chosen in issue 58 as about the
+  steps the earlier controller took at its 1e-5; measured, it takes 1692437 steps over 1e4
+  orbits where the earlier controller at 1e-5 took 468334): the error estimate of
   each step (its last Legendre coefficient) sets the next step; rejected steps are retried;
 * **reversible**: the explicit, time-reversible step-density recursion of Hairer and Soderlind
   (SIAM J. Sci. Comput. 26, 2005): rho_(n+1/2) = rho_(n-1/2) + eps_r G(y_n), h_(n+1/2) =
