@@ -163,10 +163,11 @@ class HBVMIntegrator(Counted):
         has an error of order h^2s (at round-off with s = 6 and planetary steps, visible at
         small s or long steps).  ``"equip"``: EQUIP(k, s) (:class:`integrators.EQUIP`), the
         Gauss method perturbed at each step so that it conserves the energy and stays
-        symplectic: energy and angular momentum both at round-off, for 1.2-1.3 times HBVM's
-        time a step where the steps resolve the orbits well and 2.5 times near the longest
-        steps, where the Gauss step's own energy residual is a fraction of an ulp that alpha
-        corrects at every step.  Its adaptive defaults are therefore its own, s = 8 at
+        symplectic: energy and angular momentum both at round-off, for 1.9-3.8 times HBVM's
+        time a step where the steps resolve the orbits well and 6.7-7.5 times near the
+        longest steps (2026-12-08: HBVM's plain step runs in C, EQUIP's still on numba; it
+        was 1.2-1.3 and 2.5 when both ran on numba), where the Gauss step's own energy
+        residual is a fraction of an ulp that alpha corrects at every step.  Its adaptive defaults are therefore its own, s = 8 at
         epsilon = 1e-17 (EQUIP(9, 8)): on the outer solar system over 1e5 and 1e6 days they
         keep both invariants at IAS15's level in less time than IAS15
         (``benchmarks/bench_equip.py --rebound``).  Saved as ``sim.integrator.method``; set
