@@ -35,17 +35,28 @@ def _load(name: str, path: Path):
 
 
 def _layout_header(out: Path) -> None:
-    """hbvm_layout.h: every slot, header index and status of hbvm_md/rebound/layout.py as
-    ``RB_<name>`` (the one table the Python host, the numba step and the C glue read)."""
+    """hbvm_layout.h: the statuses and sizes of hbvm_md/rebound/layout.py as ``RB_<name>``; and
+    hbvm_layout_check.h: a static assertion, for every member of csrc/hbvm_state.h's two
+    structs, that its offsetof is the slot layout.py read from the header for the Python host
+    and the numba step (so that the compiler checks the reading)."""
     lay = _load("_hbvm_layout", Path(__file__).parent / "hbvm_md" / "rebound" / "layout.py")
+    members = {"SL_" + k.upper() for k in lay.STATE} | {k.upper() for k in lay.CONTEXT}
     lines = ["/* written by setup.py from hbvm_md/rebound/layout.py: do not edit */",
              "#ifndef HBVM_LAYOUT_H", "#define HBVM_LAYOUT_H"]
     for name, value in sorted(vars(lay).items()):
-        if name.isupper() and type(value) is int and not name.startswith("_"):
+        if (name.isupper() and type(value) is int and not name.startswith("_")
+                and name not in members):
             lines.append(f"#define RB_{name} ({value})")
     lines.append("#endif")
     out.mkdir(parents=True, exist_ok=True)
     (out / "hbvm_layout.h").write_text("\n".join(lines) + "\n")
+    check = ["/* written by setup.py: layout.py's reading of hbvm_state.h, checked */",
+             "#include <stddef.h>"]
+    for struct, table in (("hbvm_rb_state", lay.STATE), ("hbvm_rb_context", lay.CONTEXT)):
+        for member, slot in table.items():
+            check.append(f"_Static_assert(offsetof(struct {struct}, {member}) == 8 * {slot}, "
+                         f'"layout.py reads {struct}.{member} at slot {slot}");')
+    (out / "hbvm_layout_check.h").write_text("\n".join(check) + "\n")
 
 
 def _rebound_include() -> tuple[str, str]:
@@ -122,6 +133,7 @@ setup(ext_modules=[Extension("integrators._core", sources=SOURCES,
                    # REBOUND's header; without it REBOUND's step is numba's (hbvm_md.rebound.cglue)
                    Extension("hbvm_md.rebound._glue", sources=GLUE_SOURCES,
                              depends=["integrators/csrc/hbvm_core.h",
+                                      "hbvm_md/rebound/csrc/hbvm_state.h",
                                       "hbvm_md/rebound/layout.py"],
                              optional=True)],
       cmdclass={"build_ext": BuildCore})

@@ -138,8 +138,12 @@ def _glue(glue):
     if glue is None:
         return None
     module = importlib.import_module(glue)
-    depends = tuple(Path(importlib.import_module(d).__file__)
-                    for d in getattr(module, "GLUE_DEPENDS", ()))
+    depends = []
+    for d in getattr(module, "GLUE_DEPENDS", ()):
+        dep = importlib.import_module(d)
+        # (and the files a module reads its numbers from: a C header, for the layout)
+        depends += [Path(dep.__file__), *map(Path, getattr(dep, "SOURCE_FILES", ()))]
+    depends = tuple(depends)
     return (Path(module.__file__), tuple(module.GLUE_FUNCTIONS),
             dict(getattr(module, "GLUE_CFUNCS", {})), depends,
             bool(getattr(module, "GLUE_NEWTON", True)))

@@ -19,9 +19,6 @@ is not built or not usable.
 """
 from __future__ import annotations
 
-import hashlib
-from pathlib import Path
-
 from numba import carray
 
 from integrators.jit import cjit
@@ -31,15 +28,16 @@ from hbvm_md.rebound.intrinsics import call_status, call_void
 from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COUNTERS, SL_FAIL,
                                     SL_FREE, SL_GAMMA, SL_PREPARE, SL_STATUS, SL_Y)
 
-#: The first 16 hex digits of the SHA-256 of ``layout.py`` these functions were written for.
-#: numba's disk cache compiles the slot numbers in and is invalidated only when *this* file
-#: changes, so a ``layout.py`` edited alone (a ``git pull`` over an editable install) would
-#: load code that indexes the state with the old slots: a crash at the first ``free``
-#: (measured: ``import hbvm_md`` segfaulted after a layout change).  When layout.py is not the
-#: one named here, the two functions are compiled in memory instead of loaded from the cache;
-#: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with layout.py.
-LAYOUT_DIGEST = "664101c720c8dc54"
-_CACHE = hashlib.sha256(Path(_layout.__file__).read_bytes()).hexdigest()[:16] == LAYOUT_DIGEST
+#: layout.DIGEST (the first 16 hex digits of the SHA-256 of ``layout.py`` and of the C header
+#: ``csrc/hbvm_state.h`` it reads the slots from) these functions were written for.  numba's disk
+#: cache compiles the slot numbers in and is invalidated only when *this* file changes, so a
+#: layout edited alone (a ``git pull`` over an editable install) would load code that indexes
+#: the state with the old slots: a crash at the first ``free`` (measured: ``import hbvm_md``
+#: segfaulted after a layout change).  When the layout is not the one named here, the two
+#: functions are compiled in memory instead of loaded from the cache;
+#: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with the layout.
+LAYOUT_DIGEST = "f55750f390e7ec69"
+_CACHE = _layout.DIGEST == LAYOUT_DIGEST
 
 
 @cjit("void(voidptr, voidptr)", cache=_CACHE)

@@ -4,15 +4,19 @@ the step's context block, and REBOUND's own offsets (read from its ctypes struct
 HBVM's state
 ------------
 ``struct reb_integrator``'s ``create`` returns the state REBOUND keeps per simulation
-(``r->integrator.state``) and passes to the step.  Here it is an array of ``N_SLOTS`` 8-byte
-slots (int64 or float64 by slot), so that the compiled code and the field descriptors share
-one table of slot numbers and no struct offset is written twice.  The slots in
-:data:`SAVED` are described to REBOUND by field descriptors (``integrator.hbvm.<name>`` in its
-binary format): settings (the method among them: HBVM or EQUIP), the proposed next step lives
+(``r->integrator.state``) and passes to the step: ``struct hbvm_rb_state`` of
+``csrc/hbvm_state.h``, whose members the C glue reads by name.  This module reads that header
+(:func:`read_struct`) and names each member's 8-byte slot ``SL_<MEMBER>`` for the Python host
+and the numba step (and the context block's words, ``struct hbvm_rb_context``, by their
+members' names upper-cased: ``A_YT``, ``D_S``, ``R_T`` ...), so that one table, the header,
+places every field for C, numba and Python; :mod:`hbvm_md.rebound.cglue` checks at import that
+the glue's ``offsetof`` of every member is the slot read here.  The members in :data:`SAVED`
+are described to REBOUND by field descriptors (``integrator.hbvm.<name>`` in its binary format)
+at those offsets: settings (the method among them: HBVM or EQUIP), the proposed next step lives
 in ``sim.dt``, the previous step size, the reference energy (and EQUIP's alpha and slope, its
 warm starts), the counts, and three arrays REBOUND allocates, saves and restores itself
 (the double-double state, the last step's coefficients gamma, the core's counters).  The other
-slots hold this process's function addresses, the context block and a failed step's record;
+members hold this process's function addresses, the context block and a failed step's record;
 REBOUND neither saves nor copies them (a loaded or copied state starts with them zero, and the
 step rebuilds them).
 
@@ -30,6 +34,9 @@ written and tested for.
 from __future__ import annotations
 
 import ctypes
+import hashlib
+import re
+from pathlib import Path
 
 #: REBOUND versions with the plug-in interface (``reb_integrator_register``, the step called
 #: with the integrator's state) that this host was written for and tested with
@@ -44,50 +51,67 @@ TEST_PARTICLE = -5    # a fixed step converged, but a test particle's own error 
                       # above its bound (glue.TP_FLOOR, TP_FACTOR): nothing committed
 OUT_OF_MEMORY = -6    # the compiled step could not allocate its work: nothing committed
 
-# ---- HBVM's state in REBOUND (slots of 8 bytes) ----------------------------------------------
-(SL_S, SL_K, SL_NODES, SL_MAX_ITER, SL_ADAPTIVE, SL_EPSILON, SL_MIN_DT, SL_TOL, SL_ETOL,
- SL_H_PREV, SL_EREF, SL_ALPHA, SL_SLOPE, SL_EREF_RUN, SL_TMEAN_RUN, SL_TIME_RUN, SL_TMAX_RUN,
- SL_METHOD, SL_NSTEPS, SL_REJECTED, SL_RESYNCS, SL_Y, SL_NY, SL_GAMMA, SL_NGAMMA, SL_COUNTERS,
- SL_NCOUNTERS,
- # not saved: this process's addresses, and what a failed step recorded
- SL_CORE, SL_CTX, SL_PREPARE, SL_FAIL, SL_FREE, SL_ECHECK,
- SL_STATUS, SL_H_FAIL, SL_T_FAIL, SL_CAUSE_ERR, SL_CAUSE_STATUS, SL_RES) = range(39)
+# ---- the two structs of csrc/hbvm_state.h, read from that file --------------------------------
+#: the C header that defines HBVM's state in REBOUND and the step's context block
+STATE_HEADER = Path(__file__).resolve().parent / "csrc" / "hbvm_state.h"
+_MEMBER = re.compile(r"^\s*(int64_t|double|double\s*\*|void\s*\*|hbvm_rb_fn)\s*(\w+)(?:\[(\d+)\])?;\s*$")
+
+
+def read_struct(text: str, name: str) -> dict[str, int]:
+    """The members of ``struct name`` in the header's text, by name, at their positions in
+    8-byte words (the header's rule: one member a line, every member 8 bytes; an array
+    ``TYPE name[N];`` spans N words); the struct's size under the key "".  A line inside the
+    struct that is neither a member, a comment nor blank is an error (the rule would then
+    misplace what follows it)."""
+    start = text.index("struct " + name + " {")
+    end = text.index("\n};", start)
+    slots, at, comment = {}, 0, False
+    for line in text[text.index("\n", start) + 1:end].splitlines():
+        code = line
+        if comment:
+            if "*/" not in code:
+                continue
+            code, comment = code.split("*/", 1)[1], False
+        code = re.sub(r"/\*.*?\*/", "", code)
+        if "/*" in code:
+            code, comment = code.split("/*", 1)[0], True
+        if not code.strip():
+            continue
+        m = _MEMBER.match(code)
+        if m is None:
+            raise RuntimeError(f"{STATE_HEADER.name}: cannot read the member line {line!r} of "
+                               f"struct {name} (one member of 8 bytes a line)")
+        slots[m.group(2)] = at
+        at += int(m.group(3) or 1)
+    slots[""] = at
+    return slots
+
+
+#: the files besides this one that the numbers here come from (integrators.specialise hashes
+#: them with this module into the name of a compiled step that uses them)
+SOURCE_FILES = (STATE_HEADER,)
+_TEXT = STATE_HEADER.read_text()
+#: HBVM's state (struct hbvm_rb_state): member -> its slot
+STATE = read_struct(_TEXT, "hbvm_rb_state")
+#: the context block's header (struct hbvm_rb_context): member -> its word
+CONTEXT = read_struct(_TEXT, "hbvm_rb_context")
+#: the first 16 hex digits of the SHA-256 of this file and the header: what the numba modules
+#: that compile these numbers in are keyed on (cabi.LAYOUT_DIGEST)
+DIGEST = hashlib.sha256(Path(__file__).read_bytes() + _TEXT.encode()).hexdigest()[:16]
+N_SLOTS = STATE.pop("")
+N_HEADER = CONTEXT.pop("")
+globals().update({"SL_" + k.upper(): v for k, v in STATE.items()})
+globals().update({k.upper(): v for k, v in CONTEXT.items()})
 N_RES = 5             # loop.attempt's res: h taken, next h, rejections, cause, its status
-#: saved: the largest adaptive step (0: no bound), after the unsaved slots so that no slot
-#: number above moved when it was added
-SL_MAX_DT = SL_RES + N_RES
-#: saved: 1 runs HBVM composed with the Keplerian flows (:mod:`systems.flow_composed`,
-#: :mod:`hbvm_md.rebound.kepler_glue`), 0 plain HBVM; after SL_MAX_DT for the same reason.  A
-#: file saved before it existed loads it as 0 (REBOUND leaves a field it does not find at the
-#: value ``create`` gave it)
-SL_KEPLER = SL_MAX_DT + 1
-#: saved: REBOUND's clock kept compensated (integrators.core.tick's compensation: the exact time
-#: is sim.t - t_comp), and the sim.t the last step wrote.  A double sum t + dt loses up to half
-#: an ulp of t a step (fixed steps of 0.1 for 1e6 steps: sim.t off n dt by 1e-7); the step
-#: adds dt with this compensation.  A step that finds sim.t other than it wrote (the user set
-#: it, or a file saved before these slots existed: t_written loads as ``create``'s nan) takes
-#: sim.t as exact (t_comp 0).  After SL_KEPLER for the same reason as it
-SL_T_COMP = SL_KEPLER + 1
-SL_T_WRITTEN = SL_KEPLER + 2
-#: saved: the run's accumulated error estimate (integrators.core.C_RUN_ERR, copied here after
-#: each committed step so that REBOUND shows it as ``sim.integrator.error_estimate``)
-SL_RUN_ERR = SL_T_WRITTEN + 1
-#: saved: a digest of the gravitating masses the run's start (SL_EREF_RUN) was taken with
-#: (host.masses_digest), so that a loaded or copied run continues its drift check when the
-#: masses are the same and starts it afresh when they changed
-SL_EREF_MASSES = SL_T_WRITTEN + 2
-#: not saved: 1 once this simulation's run was warned of its accumulated error
-#: (host._warn_run_error: once a simulation; a copy or a loaded one starts at 0, ``create``'s)
-SL_RUN_WARNED = SL_T_WRITTEN + 3
-#: saved: the meaning of epsilon the state was saved with, CONTROL: each step's own local error
-#: estimate relative to its motion (core.adapt_step, hbvm-md since 2026-12-08).  A file saved
-#: before the field existed loads ``create``'s 0 and holds an epsilon of the former controller
-#: (default 1e-3), which host._adopt_old_epsilon converts or warns about
-SL_CONTROL = SL_RUN_WARNED + 1
+assert SL_MAX_DT - SL_RES == N_RES   # noqa: F821  (defined from the header above)
+#: 1 runs HBVM composed with the Keplerian flows (kepler); CONTROL: epsilon's meaning
+#: (SL_CONTROL, "controller": each step's own local error estimate relative to its motion,
+#: core.adapt_step, hbvm-md since 2026-12-08; a file saved before the field existed loads
+#: ``create``'s 0 and holds an epsilon of the former step control, default 1e-3, which
+#: host._adopt_old_epsilon converts or warns about)
 CONTROL = 1
 #: the former controller's default epsilon (before 2026-12-08)
 OLD_DEFAULT_EPSILON = 1e-3
-N_SLOTS = SL_CONTROL + 1
 #: the step's eref (integrators.core.N_EREF): the energy, EQUIP's alpha and dE/dalpha (its warm
 #: starts), the energy at the run's start, T's time mean over the run, the run's time and T's
 #: largest (the anchor and the scale of core.DRIFT_BOUND's rule), in the consecutive slots
@@ -161,51 +185,13 @@ INT_SLOTS = frozenset(slot for _, slot, dtype, _, _ in SAVED if dtype == _INT64)
 #: the saved fields REBOUND shows by name (its enum descriptors): field -> names by value
 ENUMS = {"method": METHODS, "nodes": NODES}
 
-# ---- the context block: int64 header (addresses, sizes, REBOUND's offsets), then the arrays --
-(A_YT, A_CYT, A_GAMMAT, A_EREFT, A_WRITTEN, A_MINV, A_KINW, A_PARAMS, A_TN, A_TS, A_WP, A_CP,
- A_NV, A_NVINV, A_NM, A_WORK, A_CWORK, A_CLOCK, A_E1, A_ET, A_EW, A_EBUF, A_EZERO, A_HOST,
- D_S, D_K, D_NODES, D_M, D_N, D_P, D_NF, D_NC, D_PTR, D_METHOD,
- # the shapes of the method's packed arrays (integrators.engine.method_arrays: HBVM's and
- # EQUIP's differ): tn (2, D_TNC), ts (D_TSR, s), Wp (D_WPP, s, D_KK), Cp (D_CPP, D_KK, s)
- D_TNC, D_TSR, D_WPP, D_CPP, D_KK,
- # REBOUND's offsets in doubles: reb_simulation's fields, then reb_particle's size and fields
- R_T, R_G, R_DT, R_DTL, R_N, R_PARTICLES, R_NACTIVE, R_HEAD, R_STRIDE, R_X, R_VX, R_M,
- ) = range(51)
 #: settings HBVM checks (host.check_simulation): the 8-byte words of reb_simulation holding
-#: them, and their values when the step was prepared, follow; a changed word makes the step
-#: answer RESYNC, and the host checks the settings again (a neighbour's change costs only that)
+#: them (context C_WORDS), and their values when the step was prepared (C_VALUES); a changed
+#: word makes the step answer RESYNC, and the host checks the settings again
 CONFIG_FIELDS = ("softening", "N_var", "testparticle_type", "_gravity", "_boundary",
                  "_N_odes", "_additional_forces", "force_is_velocity_dependent")
 N_CFG = len(CONFIG_FIELDS)
-C_WORDS = R_M + 1
-C_VALUES = C_WORDS + N_CFG
-#: the variational part of the header (REBOUND's first-order variational particles, carried by
-#: the tangent map of the step, :mod:`integrators.tangent`): the arrays (tangents V (nv, 2u)
-#: and their trial copy, the tangents' coefficients d gamma (nv, s, u), their trial copy and a
-#: scratch copy for a sliver of a step, the tangent map's work buffers and counts, each set's
-#: first row in ``particles_var``), their count and sizes, the address of REBOUND's
-#: ``reb_tools_megno_update``, and REBOUND's offsets of ``_particles_var`` (doubles),
-#: ``_calculate_megno`` (bytes: an int) and ``_megno_initial_t`` (doubles)
-(A_V, A_VT, A_DG, A_DGT, A_DGS, A_TW, A_TCW, A_TCOUNT, A_VIDX,
- D_NV, D_TGF, D_TGC, D_PVAR, D_MEGNO_FN, R_PVAR, R_MEGNO_ON, R_MEGNO_T0
- ) = range(C_VALUES + N_CFG, C_VALUES + N_CFG + 17)
-#: 1 when the step runs on REBOUND's own accelerations (:mod:`hbvm_md.rebound.forces`: the
-#: state (q, clock, v, CLOCK), whose clock the glue sets to ``sim.t`` and whose stages it
-#: restores the particles from), 0 for the compiled N-body kernel; both separable (width D_M)
-D_HOST = R_MEGNO_T0 + 1
-#: each variational set's params of the force's derivative (nv, 4 D_N + 3): the kernel's, then
-#: the set's variation of the masses (:func:`hbvm_md.rebound.particles.read_tangents`)
-A_TP = D_HOST + 1
-#: each variational set's order and, for a second-order set, its two first-order sets (nv, 3)
-A_TO = A_TP + 1
-#: the step's kind: 1 the composed step (:mod:`hbvm_md.rebound.kepler_glue`, whose state is
-#: systems.flow_composed's), 0 the plain one; a step finding ``sim.integrator.kepler`` changed
-#: answers RESYNC
-D_KEPLER = A_TO + 1
-#: REBOUND's ``status`` (a C int; its offset in bytes): REB_STATUS_LAST_STEP marks the step
-#: that ``exact_finish_time`` shortened to end at the run's tmax (particles.landing_step)
-R_STATUS = D_KEPLER + 1
-N_HEADER = R_STATUS + 1
+assert C_VALUES - C_WORDS == N_CFG and A_V - C_VALUES == N_CFG   # noqa: F821  (the header's)
 N_HOST = 2            # the block's float64 host array: G and N_active the step was built for
 #: the simulation fields the step reads or writes (R_T ...), and the particle's
 SIM_FIELDS = ("t", "G", "dt", "dt_last_done", "N", "_particles", "N_active")

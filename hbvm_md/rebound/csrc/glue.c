@@ -14,9 +14,11 @@
  *                   step) with the N-body kernel.  Every other case keeps the numba step of
  *                   hbvm_md.rebound.glue, which dispatch calls the same way.
  *
- * REBOUND's simulation is read by name (struct reb_simulation, struct reb_particle); HBVM's
- * state and its context block by the slot numbers of hbvm_md/rebound/layout.py, which setup.py
- * writes into hbvm_layout.h when it builds this file (one table for Python, numba and C).  The
+ * REBOUND's simulation is read by name (struct reb_simulation, struct reb_particle), and so
+ * are HBVM's state and its context block (struct hbvm_rb_state, struct hbvm_rb_context of
+ * hbvm_state.h, which hbvm_md/rebound/layout.py reads for the Python host and the numba step;
+ * setup.py writes the statuses into hbvm_layout.h and a static assertion of every member's
+ * offset as layout.py read it into hbvm_layout_check.h).  The
  * module checks at import that the rebound.h it was built with is the running REBOUND's
  * layout (hbvm_md.rebound.cglue compares the offsets exported here with REBOUND's ctypes
  * structures). */
@@ -31,30 +33,37 @@
 #include "rebound.h"
 #include "hbvm_core.h"
 #include "hbvm_layout.h"
+#include "hbvm_state.h"
+#include "hbvm_layout_check.h"
 
 static const hbvm_api *core;
 
-typedef int (*status_fn)(struct reb_simulation *, void *);
+typedef struct hbvm_rb_state state_t;
+typedef struct hbvm_rb_context context_t;
 
-#define ST(p) ((int64_t *)(p))
-#define SD(p) ((double *)(p))
-#define CTXP(ctx, a) ((double *)(intptr_t)(ctx)[a])
+/* a context block's array at the address of member a */
+#define ARR(ctx, a) ((double *)(intptr_t)(ctx)->a)
+
+_Static_assert(sizeof(state_t) == 8 * RB_N_SLOTS, "hbvm_state.h: every member 8 bytes");
+_Static_assert(sizeof(context_t) == 8 * RB_N_HEADER, "hbvm_state.h: every member 8 bytes");
+_Static_assert(offsetof(state_t, tmax_run) == offsetof(state_t, eref) + 8 * (HBVM_N_EREF - 1),
+               "hbvm_state.h: eref .. tmax_run are the step's eref, consecutive");
 
 /* REBOUND's step */
 static void dispatch(struct reb_simulation *r, void *p)
 {
-    int64_t *st = ST(p);
+    state_t *st = p;
     int status = RB_RESYNC;
-    if (st[RB_SL_CORE] != 0)
-        status = ((status_fn)(intptr_t)st[RB_SL_CORE])(r, p);
+    if (st->core)
+        status = st->core(r, p);
     if (status == RB_RESYNC) {
-        status = ((status_fn)(intptr_t)st[RB_SL_PREPARE])(r, p);
+        status = st->prepare(r, p);
         if (status == RB_OK)
-            status = ((status_fn)(intptr_t)st[RB_SL_CORE])(r, p);
+            status = st->core(r, p);
     }
     if (status != RB_OK) {
-        st[RB_SL_STATUS] = status;
-        ((status_fn)(intptr_t)st[RB_SL_FAIL])(r, p);
+        st->status = status;
+        st->fail(r, p);
     }
 }
 
@@ -62,41 +71,41 @@ static void dispatch(struct reb_simulation *r, void *p)
  * then the state */
 static void release(void *p)
 {
-    int64_t *st = ST(p);
-    const int slots[] = {RB_SL_Y, RB_SL_GAMMA, RB_SL_COUNTERS, RB_SL_CTX};
-    for (int i = 0; i < 4; ++i)
-        if (st[slots[i]] != 0)
-            free((void *)(intptr_t)st[slots[i]]);
+    state_t *st = p;
+    free(st->y);
+    free(st->gamma);
+    free(st->counters);
+    free((void *)(intptr_t)st->ctx);
     free(p);
 }
 
 /* particles.context_current: is the context block still the simulation's? */
-static int context_current(const struct reb_simulation *r, const int64_t *st, const int64_t *ctx)
+static int context_current(const struct reb_simulation *r, const state_t *st,
+                           const context_t *ctx)
 {
-    if ((int64_t)(intptr_t)r->particles != ctx[RB_D_PTR] || (int64_t)r->N != ctx[RB_D_N])
+    if ((int64_t)(intptr_t)r->particles != ctx->d_ptr || (int64_t)r->N != ctx->d_n)
         return 0;
-    if (st[RB_SL_S] != ctx[RB_D_S] || st[RB_SL_K] != ctx[RB_D_K]
-        || st[RB_SL_NODES] != ctx[RB_D_NODES] || st[RB_SL_METHOD] != ctx[RB_D_METHOD]
-        || st[RB_SL_KEPLER] != ctx[RB_D_KEPLER])
+    if (st->s != ctx->d_s || st->k != ctx->d_k || st->nodes != ctx->d_nodes
+        || st->method != ctx->d_method || st->kepler != ctx->d_kepler)
         return 0;
     const int64_t *simi = (const int64_t *)r;
     for (int i = 0; i < RB_N_CFG; ++i)
-        if (simi[ctx[RB_C_WORDS + i]] != ctx[RB_C_VALUES + i])
+        if (simi[ctx->c_words[i]] != ctx->c_values[i])
             return 0;
-    return (int64_t)(intptr_t)r->particles_var == ctx[RB_D_PVAR];
+    return (int64_t)(intptr_t)r->particles_var == ctx->d_pvar;
 }
 
 /* particles.settings_ok */
-static int settings_ok(const int64_t *st, const double *sd)
+static int settings_ok(const state_t *st)
 {
-    if (st[RB_SL_MAX_ITER] < 1 || !(0.0 <= sd[RB_SL_TOL] && sd[RB_SL_TOL] < 1.0)
-        || !(-1.0 < sd[RB_SL_ETOL] && sd[RB_SL_ETOL] < INFINITY))
+    if (st->max_iter < 1 || !(0.0 <= st->tol && st->tol < 1.0)
+        || !(-1.0 < st->etol && st->etol < INFINITY))
         return 0;
-    if (!(0.0 <= sd[RB_SL_MAX_DT] && sd[RB_SL_MAX_DT] < INFINITY))
+    if (!(0.0 <= st->max_dt && st->max_dt < INFINITY))
         return 0;
-    return st[RB_SL_ADAPTIVE] == 0 || sd[RB_SL_EPSILON] == 0.0
-           || (0.0 < sd[RB_SL_EPSILON] && sd[RB_SL_EPSILON] < 1.0 && 0.0 <= sd[RB_SL_MIN_DT]
-               && sd[RB_SL_MIN_DT] < INFINITY);
+    return st->adaptive == 0 || st->epsilon == 0.0
+           || (0.0 < st->epsilon && st->epsilon < 1.0 && 0.0 <= st->min_dt
+               && st->min_dt < INFINITY);
 }
 
 /* particles.particles_match: the particles as the last commit wrote them (x, v, m)? */
@@ -142,56 +151,53 @@ static int reread_particles(const struct reb_particle *ps, size_t N, double *wri
 }
 
 /* particles.clock_comp */
-static double clock_comp(const double *sd, double t_start)
+static double clock_comp(const state_t *st, double t_start)
 {
-    return t_start == sd[RB_SL_T_WRITTEN] ? sd[RB_SL_T_COMP] : 0.0;
+    return t_start == st->t_written ? st->t_comp : 0.0;
 }
 
 /* particles.landing_step: exact_finish_time's last step ends at tmax on the compensated clock */
-static double landing_step(const struct reb_simulation *r, const double *sd, double t_start,
+static double landing_step(const struct reb_simulation *r, const state_t *st, double t_start,
                            double h)
 {
     if (r->status != REB_STATUS_LAST_STEP)
         return h;
-    return h + clock_comp(sd, t_start);
+    return h + clock_comp(st, t_start);
 }
 
 /* the plain N-body step (the module's docstring) */
 static int step(struct reb_simulation *r, void *p)
 {
-    int64_t *st = ST(p);
-    double *sd = SD(p);
-    const int64_t *ctx = (const int64_t *)(intptr_t)st[RB_SL_CTX];
+    state_t *st = p;
+    const context_t *ctx = (const context_t *)(intptr_t)st->ctx;
     if (!ctx || !context_current(r, st, ctx))
         return RB_RESYNC;
-    const double *host = CTXP(ctx, RB_A_HOST);
+    const double *host = ARR(ctx, a_host);
     if (r->G != host[0] || (double)(int64_t)r->N_active != host[1])
         return RB_RESYNC;
-    const int s = (int)ctx[RB_D_S], m = (int)ctx[RB_D_M], k = (int)ctx[RB_D_K];
+    const int s = (int)ctx->d_s, m = (int)ctx->d_m, k = (int)ctx->d_k;
     const size_t N = r->N;
-    const double *minv = CTXP(ctx, RB_A_MINV), *kin_w = CTXP(ctx, RB_A_KINW);
-    double *written = CTXP(ctx, RB_A_WRITTEN);
-    double *y = (double *)(intptr_t)st[RB_SL_Y], *cy = y + 2 * m;
-    double *gamma = (double *)(intptr_t)st[RB_SL_GAMMA];
-    double *eref = sd + RB_SL_EREF;
-    double *counters = (double *)(intptr_t)st[RB_SL_COUNTERS];
-    double *res = sd + RB_SL_RES;
-    double *yt = CTXP(ctx, RB_A_YT), *cyt = CTXP(ctx, RB_A_CYT);
-    double *gammat = CTXP(ctx, RB_A_GAMMAT), *ereft = CTXP(ctx, RB_A_EREFT);
-    double *clock = CTXP(ctx, RB_A_CLOCK);
-    const double *params = CTXP(ctx, RB_A_PARAMS);
+    const double *minv = ARR(ctx, a_minv), *kin_w = ARR(ctx, a_kinw);
+    double *written = ARR(ctx, a_written);
+    double *y = st->y, *cy = y + 2 * m, *gamma = st->gamma, *counters = st->counters;
+    double *eref = &st->eref;             /* (eref .. tmax_run: consecutive, HBVM_N_EREF) */
+    double *res = st->res;
+    double *yt = ARR(ctx, a_yt), *cyt = ARR(ctx, a_cyt);
+    double *gammat = ARR(ctx, a_gammat), *ereft = ARR(ctx, a_ereft);
+    double *clock = ARR(ctx, a_clock);
+    const double *params = ARR(ctx, a_params);
     hbvm_kernel kern = {.force = core->nbody_force, .potential = core->nbody_potential,
                         .params = params, .ctx = NULL};
     hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
-    if (!settings_ok(st, sd))
+    if (!settings_ok(st))
         return RB_BAD_SETTINGS;
     if (!particles_match(r->particles, N, written)) {
         /* moved between steps (an operator after every step): the previous coefficients stay
-         * the initial guess, the reference energy starts afresh */
+         * the initial guess; the energy starts afresh, and the run's start moves by the energy
+         * the move changed (glue.moved_anchor) */
         const double e_old = eref[0], anchor = eref[HBVM_EREF_RUN];
         if (!reread_particles(r->particles, N, written, y, cy, minv, m))
             return RB_RESYNC;
-        /* glue.moved_anchor: the run's start moves by the energy the move changed */
         double T, V;
         if (isfinite(e_old) && isfinite(anchor)
             && core->energy_parts(&kern, &sys, y, &T, &V) == 0) {
@@ -199,57 +205,56 @@ static int step(struct reb_simulation *r, void *p)
             for (int i = 0; i < HBVM_EREF_RUN; ++i)
                 eref[i] = NAN;
         } else {
-            for (int i = 0; i < RB_N_EREF; ++i)
+            for (int i = 0; i < HBVM_N_EREF; ++i)
                 eref[i] = NAN;
         }
-        st[RB_SL_RESYNCS] += 1;
+        st->resyncs += 1;
     }
     double h = r->dt;
     if (!(fabs(h) < INFINITY && h != 0.0)) {
-        sd[RB_SL_H_FAIL] = h;
+        st->h_fail = h;
         return RB_BAD_DT;
     }
     const double t_start = r->t;
     /* epsilon = 0: fixed steps of sim.dt, as IAS15 takes them (REBOUND's idiom) */
-    const int adaptive = st[RB_SL_ADAPTIVE] != 0 && sd[RB_SL_EPSILON] != 0.0;
-    const double epsilon = adaptive ? sd[RB_SL_EPSILON] : 0.0;
-    const double max_dt = adaptive ? sd[RB_SL_MAX_DT] : 0.0;
+    const int adaptive = st->adaptive != 0 && st->epsilon != 0.0;
+    const double epsilon = adaptive ? st->epsilon : 0.0;
+    const double max_dt = adaptive ? st->max_dt : 0.0;
     if (max_dt > 0.0 && fabs(h) > max_dt)
         h = h > 0.0 ? max_dt : -max_dt;
     else
-        h = landing_step(r, sd, t_start, h);
-    const double etol = st[RB_SL_ECHECK] > 0 ? sd[RB_SL_ETOL] : 0.0;
+        h = landing_step(r, st, t_start, h);
+    const double etol = st->echeck > 0 ? st->etol : 0.0;
     /* the step's own error estimate, on with the energy check (core.ERROR_BOUND) */
-    const double ebound = sd[RB_SL_ETOL] != 0.0 ? HBVM_ERROR_BOUND : 0.0;
+    const double ebound = st->etol != 0.0 ? HBVM_ERROR_BOUND : 0.0;
     res[2] = 0.0;
     hbvm_state state = {.y = y, .cy = cy, .gamma = gamma, .eref = eref, .clock = clock};
     hbvm_state trial = {.y = yt, .cy = cyt, .gamma = gammat, .eref = ereft, .clock = clock};
     /* the method's packed arrays (integrators.engine.method_arrays, HBVM's planes) */
-    const double *tn = CTXP(ctx, RB_A_TN), *ts = CTXP(ctx, RB_A_TS);
-    const double *Wp = CTXP(ctx, RB_A_WP), *Cp = CTXP(ctx, RB_A_CP);
+    const double *tn = ARR(ctx, a_tn), *ts = ARR(ctx, a_ts);
+    const double *Wp = ARR(ctx, a_wp), *Cp = ARR(ctx, a_cp);
     hbvm_tableau tab = {.k = k, .s = s, .tau = tn, .tau_lo = tn + k, .X0 = ts, .X0_lo = ts + s,
                         .W = Wp, .W_lo = Wp + s * k, .C2 = Cp, .C2_lo = Cp + k * s,
                         .I = Cp + 2 * k * s, .I_lo = Cp + 3 * k * s};
-    hbvm_extrapolation ext = {.E1 = CTXP(ctx, RB_A_E1), .t = CTXP(ctx, RB_A_ET),
-                              .w = CTXP(ctx, RB_A_EW), .buf = CTXP(ctx, RB_A_EBUF),
-                              .zero = CTXP(ctx, RB_A_EZERO)};
-    hbvm_options op = {.max_iter = (int)st[RB_SL_MAX_ITER], .tol = sd[RB_SL_TOL], .etol = etol,
+    hbvm_extrapolation ext = {.E1 = ARR(ctx, a_e1), .t = ARR(ctx, a_et), .w = ARR(ctx, a_ew),
+                              .buf = ARR(ctx, a_ebuf), .zero = ARR(ctx, a_ezero)};
+    hbvm_options op = {.max_iter = (int)st->max_iter, .tol = st->tol, .etol = etol,
                        .ebound = ebound, .group = 3};
-    int status = core->attempt(&kern, &sys, &state, &trial, h, sd[RB_SL_H_PREV], t_start, &ext,
-                               &tab, &op, counters, epsilon, sd[RB_SL_MIN_DT], res,
-                               CTXP(ctx, RB_A_WORK), (size_t)ctx[RB_D_NF]);
-    st[RB_SL_REJECTED] += (int64_t)res[2];
+    int status = core->attempt(&kern, &sys, &state, &trial, h, st->h_prev, t_start, &ext, &tab,
+                               &op, counters, epsilon, st->min_dt, res, ARR(ctx, a_work),
+                               (size_t)ctx->d_nf);
+    st->rejected += (int64_t)res[2];
     if (status < 0)
         status = RB_OUT_OF_MEMORY;
     if (status != RB_OK) {
         /* particles.record_failure */
-        sd[RB_SL_H_FAIL] = res[0];
-        sd[RB_SL_T_FAIL] = t_start;
-        sd[RB_SL_CAUSE_ERR] = res[3];
-        sd[RB_SL_CAUSE_STATUS] = res[4];
+        st->h_fail = res[0];
+        st->t_fail = t_start;
+        st->cause_err = res[3];
+        st->cause_status = res[4];
         return status;
     }
-    const double h_done = res[0], hp = sd[RB_SL_H_PREV];
+    const double h_done = res[0], hp = st->h_prev;
     /* exact_finish_time's sliver of a step (1e-16): the next step extrapolates from the last
      * regular one, whose gamma is kept (core.TINY_RATIO) */
     const int sliver = !isnan(hp) && fabs(h_done) < HBVM_TINY_RATIO * fabs(hp);
@@ -257,15 +262,15 @@ static int step(struct reb_simulation *r, void *p)
     memcpy(cy, cyt, 2 * (size_t)m * sizeof(double));
     if (!sliver) {
         memcpy(gamma, gammat, (size_t)s * m * sizeof(double));
-        sd[RB_SL_H_PREV] = h_done;
+        st->h_prev = h_done;
     }
     eref[0] = ereft[0];
     if (!sliver)
         for (int i = 1; i < HBVM_EREF_RUN; ++i)
             eref[i] = ereft[i];
-    for (int i = HBVM_EREF_RUN; i < RB_N_EREF; ++i)
+    for (int i = HBVM_EREF_RUN; i < HBVM_N_EREF; ++i)
         eref[i] = ereft[i];
-    sd[RB_SL_RUN_ERR] = counters[C_RUN_ERR];
+    st->run_err = counters[C_RUN_ERR];
     for (size_t i = 0; i < N; ++i) {
         struct reb_particle *q = r->particles + i;
         double *w = written + 7 * i;
@@ -279,11 +284,11 @@ static int step(struct reb_simulation *r, void *p)
         w[0] = q->x, w[1] = q->y, w[2] = q->z, w[3] = q->vx, w[4] = q->vy, w[5] = q->vz;
     }
     /* REBOUND's time, compensated (core.tick), so that sim.t stays n dt to an ulp */
-    const double ct0 = clock_comp(sd, t_start);
+    const double ct0 = clock_comp(st, t_start);
     const double yk = h_done - ct0, t_end = t_start + yk, ct = (t_end - t_start) - yk;
     r->t = t_end;
-    sd[RB_SL_T_COMP] = ct;
-    sd[RB_SL_T_WRITTEN] = t_end;
+    st->t_comp = ct;
+    st->t_written = t_end;
     r->dt_last_done = h_done;
     if (adaptive) {
         double h_next = res[1];
@@ -291,7 +296,7 @@ static int step(struct reb_simulation *r, void *p)
             h_next = h_next > 0.0 ? max_dt : -max_dt;
         r->dt = h_next;
     }
-    st[RB_SL_NSTEPS] += 1;
+    st->nsteps += 1;
     return RB_OK;
 }
 
