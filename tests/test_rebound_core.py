@@ -184,3 +184,17 @@ def test_a_new_user_s_first_rebound_run_compiles_nothing(tmp_path):
     sim.dt = 0.01
     sim.integrate(20.0)
     assert out.stdout.split() == [repr(sim.particles[1].x), str(sim.steps_done)]
+
+
+def test_the_layout_is_read_from_the_c_header_and_refuses_what_it_cannot_read():
+    """layout.py's slots are the members of csrc/hbvm_state.h at 8 bytes each (the build checks
+    each against offsetof); a member line the rule cannot place is an error, not a silent
+    shift of every slot after it."""
+    assert L.SL_EPSILON == L.STATE["epsilon"] and L.SL_RES + L.N_RES == L.SL_MAX_DT
+    assert L.C_WORDS + L.N_CFG == L.C_VALUES and L.N_HEADER == len(L.CONTEXT) + 2 * (L.N_CFG - 1)
+    text = "struct t {\n    int64_t a;\n    double b[3]; /* three */\n    /* a\n comment */\n    double *c;\n};\n"
+    assert L.read_struct(text, "t") == {"a": 0, "b": 1, "c": 4, "": 5}
+    with pytest.raises(RuntimeError, match="cannot read the member line"):
+        L.read_struct("struct t {\n    int32_t a;\n};\n", "t")
+    with pytest.raises(RuntimeError, match="cannot read the member line"):
+        L.read_struct("struct t {\n    double a, b;\n};\n", "t")
