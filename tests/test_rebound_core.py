@@ -198,3 +198,26 @@ def test_the_layout_is_read_from_the_c_header_and_refuses_what_it_cannot_read():
         L.read_struct("struct t {\n    int32_t a;\n};\n", "t")
     with pytest.raises(RuntimeError, match="cannot read the member line"):
         L.read_struct("struct t {\n    double a, b;\n};\n", "t")
+
+
+def test_the_host_s_record_of_a_simulation_lives_as_long_as_its_state():
+    """One record per HBVM state, made by REBOUND's create and dropped by its free (a
+    simulation collected, or one whose integrator is changed): nothing outlives a simulation
+    or is inherited by the next one at a reused address."""
+    import gc
+
+    from hbvm_md.rebound import host
+
+    sim = _eccentric()
+    sim.integrator = "hbvm"
+    sim.integrate(0.1)
+    p = int(sim.integrator.state)
+    assert p in host._RECORDS and host._RECORDS[p].forces == ()
+    copy = sim.copy()
+    q = int(copy.integrator.state)
+    assert q != p and q in host._RECORDS and host._RECORDS[q].forces is None
+    copy.integrator = "ias15"                 # (REBOUND frees the HBVM state)
+    assert q not in host._RECORDS
+    del sim
+    gc.collect()
+    assert p not in host._RECORDS

@@ -26,7 +26,7 @@ from integrators.pointers import address_of, int64_pointer
 from hbvm_md.rebound import layout as _layout
 from hbvm_md.rebound.intrinsics import call_status, call_void
 from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COUNTERS, SL_FAIL,
-                                    SL_FREE, SL_GAMMA, SL_PREPARE, SL_STATUS, SL_Y)
+                                    SL_FORGET, SL_FREE, SL_GAMMA, SL_PREPARE, SL_STATUS, SL_Y)
 
 #: layout.DIGEST (the first 16 hex digits of the SHA-256 of ``layout.py`` and of the C header
 #: ``csrc/hbvm_state.h`` it reads the slots from) these functions were written for.  numba's disk
@@ -36,7 +36,7 @@ from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COU
 #: segfaulted after a layout change).  When the layout is not the one named here, the two
 #: functions are compiled in memory instead of loaded from the cache;
 #: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with the layout.
-LAYOUT_DIGEST = "f55750f390e7ec69"
+LAYOUT_DIGEST = "4b78f0591b554ae0"
 _CACHE = _layout.DIGEST == LAYOUT_DIGEST
 
 
@@ -60,6 +60,8 @@ def dispatch(r, p):
 def release(p):
     """REBOUND's ``free``: the arrays REBOUND or the host allocated, then the state."""
     st = carray(int64_pointer(address_of(p)), N_SLOTS)
+    if st[SL_FORGET] != 0:                  # (the host's record of this state)
+        call_status(st[SL_FORGET], p, p)
     free = st[SL_FREE]
     for slot in (SL_Y, SL_GAMMA, SL_COUNTERS, SL_CTX):
         if st[slot] != 0:

@@ -33,11 +33,11 @@ def warn_short_step(sim, h: float, fix: str, stacklevel: int | None = None,
                     state: int | None = None) -> None:
     """The composed method's warning for a step far shorter than it is for (1/25 to 1/50 of
     the shortest orbital period), naming ``fix`` ("pass dt=", "set sim.dt"); not for the step
-    HBVMIntegrator attached HBVM's ``state`` with (host.KEPLER_SEEN_DT)."""
+    HBVMIntegrator attached HBVM's ``state`` with (its record's kepler_seen_dt)."""
     import warnings
     from hbvm_md.rebound import host as H
     from hbvm_md.rebound.checks import shortest_period
-    if state is not None and H.KEPLER_SEEN_DT.get(state) == h:
+    if state is not None and H.record_of_state(state).kepler_seen_dt == h:
         return
     period = shortest_period(sim)
     if not (math.isfinite(period) and abs(h) < period / KEPLER_FEW_STEPS):
@@ -308,10 +308,10 @@ def prepare_composed(sim, p: int, method) -> None:
     st[L.SL_ECHECK] = 1
     H._context(st, binding, method, None, view, ptr, sim, ix, ivx, im, kepler=True)
     st[L.SL_CORE] = binding.step_code.core_step.address
-    addr = ctypes.addressof(sim)
-    H._FORCES[addr] = tuple(reboundx_forces(sim) or ())
+    rec = H.record_of_state(p)
+    rec.forces = tuple(reboundx_forces(sim) or ())
     # (their parameters are read into the model: a change between runs prepares the step again,
     # host._recheck_forces)
-    H._KEPLER_TERMS[addr] = terms
-    H._ODES[addr] = ode_signature(sim)
-    H._HOST_PATH.discard(addr)
+    rec.kepler_terms = terms
+    rec.odes = ode_signature(sim)
+    rec.host_path = False

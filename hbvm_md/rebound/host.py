@@ -55,6 +55,49 @@ _DRIFTED_HINT = ("leave k unset (HBVMIntegrator(sim, s=...) then chooses k so th
 _REB_GENERIC_ERROR = 1            # enum REB_STATUS
 _PENDING: dict = {}               # simulation address -> the exception of its failed step
 _REG = None                       # what registration keeps alive (see register)
+
+
+class _Record:
+    """What the host keeps for one HBVM state (one simulation's ``r->integrator.state``),
+    beside the state itself: made by ``create`` (a new, copied or loaded simulation), dropped
+    by REBOUND's ``free`` of the state (its ``forget`` callback), so that nothing outlives the
+    simulation nor is inherited by another at a reused address.
+
+    forces: the REBOUNDx forces (name, address) the step was last prepared with (None: not
+    prepared; :func:`_recheck_forces`); kepler_terms: the REBOUNDx force terms the composed step
+    (kepler = 1) was last prepared with (:func:`hbvm_md.rebound.composed.force_terms`); odes:
+    the attached ODEs (:func:`hbvm_md.rebound.forces.ode_signature`) likewise; host_path: the
+    step was last prepared on REBOUND's own accelerations; python_step: the glue's step as
+    Python (``NUMBA_DISABLE_JIT``); kepler_seen_dt: the step HBVMIntegrator attached the
+    composed method with (its short-step warning is not given again for it)."""
+
+    __slots__ = ("forces", "kepler_terms", "odes", "host_path", "python_step",
+                 "kepler_seen_dt")
+
+    def __init__(self):
+        self.forces = self.kepler_terms = self.odes = self.python_step = None
+        self.kepler_seen_dt = None
+        self.host_path = False
+
+
+#: state address -> its record (:class:`_Record`)
+_RECORDS: dict[int, _Record] = {}
+_NO_RECORD = _Record()     # (what a simulation without a record reads: all unset; never written)
+
+
+def record_of_state(p: int) -> _Record:
+    """The record of the live HBVM state at address p (made if it has none: a state created
+    before this module registered, which cannot happen but costs nothing to survive)."""
+    rec = _RECORDS.get(p)
+    if rec is None:
+        rec = _RECORDS[p] = _Record()
+    return rec
+
+
+def _record(addr: int) -> _Record:
+    """The record of the simulation at address addr's HBVM state."""
+    return _RECORDS.get(ctypes.c_void_p.from_address(addr + _REG["state_at"]).value,
+                        _NO_RECORD)
 _LIBC = ctypes.CDLL(None)
 _LIBC.malloc.restype = _LIBC.calloc.restype = _LIBC.realloc.restype = ctypes.c_void_p
 _LIBC.calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
@@ -137,6 +180,7 @@ def register() -> None:
     prepare = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_prepare_cb)
     fail = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_fail_cb)
     python_core = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_python_core)
+    forget = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_void_p, ctypes.c_void_p)(_forget_cb)
     doc = ctypes.create_string_buffer(
         b"HBVM(k, s) (Brugnano, Iavernaro, Trigiante: Hamiltonian Boundary Value Methods), "
         b"registered by the hbvm_md package: energy-conserving implicit Runge-Kutta steps of "
@@ -151,7 +195,8 @@ def register() -> None:
     integ.free = release
     integ.field_descriptor_list = ctypes.cast(fds, type(integ.field_descriptor_list))
     step_at, state_at = L.state_offset(rebound)
-    reg = dict(keep=(enums, fds, docs, create, prepare, fail, python_core, doc, integ),
+    reg = dict(keep=(enums, fds, docs, create, prepare, fail, python_core, forget, doc, integ),
+               forget=ctypes.cast(forget, ctypes.c_void_p).value,
                dispatch=dispatch, prepare=ctypes.cast(prepare, ctypes.c_void_p).value,
                fail=ctypes.cast(fail, ctypes.c_void_p).value,
                python_core=ctypes.cast(python_core, ctypes.c_void_p).value,
@@ -163,6 +208,8 @@ def register() -> None:
                megno_update=ctypes.cast(lib.reb_tools_megno_update, ctypes.c_void_p).value)
     lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
     _REG = reg                    # (create reads it)
+    import atexit
+    atexit.register(_finishing)
     lib.reb_integrator_register(integ, NAME.encode())
     rebound.clibrebound._hbvm_md_registration = reg
     _install_runs(rebound)
@@ -191,11 +238,6 @@ def _self_check(rebound) -> None:
                            f"own layout says; HBVM's REBOUND host supports {L.SUPPORTED}")
 
 
-#: HBVM's state (its address) -> the step HBVMIntegrator(sim, kepler=True, ...) attached it with
-#: (given as dt=..., or warned about there): the composed step's preparation does not warn about
-#: that step again (hbvm_md.rebound.composed.warn_short_step).  A new state at the address
-#: (:func:`_create`) forgets it: it is another run
-KEPLER_SEEN_DT: dict[int, float] = {}
 
 
 def _create() -> int:
@@ -204,7 +246,7 @@ def _create() -> int:
     p = _LIBC.calloc(L.N_SLOTS, 8)
     if not p:
         return 0
-    KEPLER_SEEN_DT.pop(p, None)
+    _RECORDS[p] = _Record()
     st, sd = _slots(p)
     d = DEFAULTS
     st[[L.SL_METHOD, L.SL_S, L.SL_K, L.SL_NODES, L.SL_MAX_ITER, L.SL_ADAPTIVE]] = (
@@ -215,8 +257,23 @@ def _create() -> int:
     sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan      # energy, alpha, slope, run's start: unknown
     sd[L.SL_T_WRITTEN] = np.nan                        # (sim.t is then taken as it is)
     sd[L.SL_EREF_MASSES] = np.nan                      # (no masses yet: see masses_digest)
-    st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE]] = _REG["prepare"], _REG["fail"], _REG["free"]
+    st[[L.SL_PREPARE, L.SL_FAIL, L.SL_FREE, L.SL_FORGET]] = (
+        _REG["prepare"], _REG["fail"], _REG["free"], _REG["forget"])
     return p
+
+
+def _forget_cb(r: int, p: int) -> int:
+    """REBOUND frees the state at p (its ``free``, before the memory goes): its record goes."""
+    _RECORDS.pop(p, None)
+    return 0
+
+
+def _finishing() -> None:
+    """At the interpreter's exit (atexit, before modules go): no state calls Python any more
+    when REBOUND frees it later (a simulation collected at shutdown)."""
+    for p in list(_RECORDS):
+        int64s(p, L.N_SLOTS)[L.SL_FORGET] = 0
+    _RECORDS.clear()
 
 
 # -- the integrate and steps of rebound.Simulation ------------------------------------------------
@@ -260,7 +317,7 @@ def _install_runs(rebound) -> None:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
                 _warn_step_archive(addr)
-            if addr in _HOST_PATH:
+            if _record(addr).host_path:
                 _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr, self)
@@ -281,7 +338,7 @@ def _install_runs(rebound) -> None:
             _PENDING.pop(addr, None)
             if c_uint64.from_address(addr + auto_step_at).value:
                 _warn_step_archive(addr)
-            if addr in _HOST_PATH:
+            if _record(addr).host_path:
                 _probe_run(self)
             _recheck_forces(self, addr)
             _forget_host_energy(addr, self)
@@ -473,13 +530,6 @@ def _unraisable(previous):
     return hook
 
 
-#: simulation address -> the REBOUNDx forces (name, address) its step was last prepared with
-_FORCES: dict[int, tuple] = {}
-#: addresses of the simulations whose step was last prepared on REBOUND's own accelerations
-#: (a set lookup before each run, instead of reading the context header: 2 us a call)
-_HOST_PATH: set[int] = set()
-
-
 def _recheck_forces(sim, addr: int) -> None:
     """A REBOUNDx force added or removed between runs changes no word of ``reb_simulation``
     that the compiled step checks (REBOUNDx keeps one ``additional_forces`` function for all its
@@ -488,23 +538,18 @@ def _recheck_forces(sim, addr: int) -> None:
     those the step was prepared with, and on a difference mark the step's context stale (its
     copy of the ``additional_forces`` word is changed): the step answers RESYNC and the host
     prepares it again, as for any setting it checks."""
-    seen = _FORCES.get(addr)
+    rec = _record(addr)
+    seen = rec.forces
     if seen is None or (not seen and not sim.extras):
         return
     if tuple(reboundx_forces(sim) or ()) == seen and (
-            addr not in _KEPLER_TERMS or _kepler_terms_unchanged(sim, _KEPLER_TERMS[addr])):
+            rec.kepler_terms is None or _kepler_terms_unchanged(sim, rec.kepler_terms)):
         return
     prepared = _prepared(addr)
     if prepared is not None:
         prepared[2][L.C_VALUES + L.CONFIG_FIELDS.index("_additional_forces")] ^= 1
-    _FORCES.pop(addr, None)
+    rec.forces = None
 
-
-#: simulation address -> the REBOUNDx force terms (composed.force_terms: gr_potential's c, the
-#: star's harmonics, its central force) its composed step (kepler = 1) was last prepared with:
-#: FlowComposed holds them in its parameters, so one changed between runs must prepare the step
-#: again (the plain step reads them at every stage)
-_KEPLER_TERMS: dict[int, tuple] = {}
 
 
 def _kepler_terms_unchanged(sim, terms) -> bool:
@@ -514,9 +559,6 @@ def _kepler_terms_unchanged(sim, terms) -> bool:
     except ValueError:
         return False            # (the preparation names what is wrong)
 
-
-#: simulation address -> the attached ODEs (forces.ode_signature) its step was last prepared with
-_ODES: dict[int, tuple] = {}
 
 
 def _host_params(addr: int):
@@ -535,9 +577,10 @@ def _release_odes(addr: int) -> None:
     integrator (:func:`hbvm_md.rebound.glue.step_arrays`); the next step puts them back
     itself, and the end of a run (or the step's preparation) here."""
     # Only a step on REBOUND's own accelerations hides ODEs, and every preparation releases
-    # them first (_prepare) and then sets _HOST_PATH: an address outside it holds none, and
+    # them first (_prepare) and then sets the record's host_path: a state without it holds
+    # none, and
     # the set lookup spares the kernel's runs the context's views (2 us of a 6 us call)
-    if addr not in _HOST_PATH:
+    if not _record(addr).host_path:
         return
     params = _host_params(addr)
     if params is None or params[P_NODES] == 0 or params[P_ODES_HELD] == 0.0:
@@ -551,7 +594,8 @@ def _recheck_odes(sim, addr: int) -> None:
     """An ODE attached or removed between runs (or its functions replaced) changes no word of
     ``reb_simulation`` that the compiled step checks, as a REBOUNDx force does not
     (:func:`_recheck_forces`): the step's context is then marked stale, and prepared again."""
-    seen = _ODES.get(addr)
+    rec = _record(addr)
+    seen = rec.odes
     if not seen and not sim._N_odes:
         # none attached now, and none (or never prepared) then: their signatures would be
         # equal, () == (); one test instead of building it on every call
@@ -565,7 +609,7 @@ def _recheck_odes(sim, addr: int) -> None:
         sim_words = int64s(addr, int(prepared[2][L.R_HEAD]))
         j = L.CONFIG_FIELDS.index("_N_odes")
         prepared[2][L.C_VALUES + j] = sim_words[prepared[2][L.C_WORDS + j]] ^ 1
-    _ODES.pop(addr, None)
+    rec.odes = None
 
 
 def _forget_host_energy(addr: int, sim) -> None:
@@ -577,7 +621,7 @@ def _forget_host_energy(addr: int, sim) -> None:
     steps shrank to a StepSizeError blaming an encounter).  So each run on this path starts its
     reference afresh from its first step's start: the same number as the one carried when
     nothing changed (the same state through the same function)."""
-    if addr not in _HOST_PATH:
+    if not _record(addr).host_path:
         return
     prepared = _prepared(addr)
     if prepared is not None and prepared[2][L.D_HOST]:
@@ -896,14 +940,14 @@ def _step_failure(st: np.ndarray, sd: np.ndarray, sim=None):
                                          and int(sd[L.SL_CAUSE_STATUS]) == NOT_FINITE)
     # (the step hides its ODEs from REBOUND, sim.N_odes = 0, until the run ends: the ones it
     # was prepared with)
-    odes = _ODES.get(ctypes.addressof(sim)) if sim is not None else None
+    odes = _record(ctypes.addressof(sim)).odes if sim is not None else None
     if nonfinite and odes:
         culprit = _ode_culprit(sim, odes)
         if culprit is not None:        # the attached ODE, not an encounter or the step size
             exc = NonFiniteError(h, int(counters[C_LASTIT]), "fixed_point", t, culprit)
             exc.encounter = None
             return exc
-    if nonfinite and sim is not None and ctypes.addressof(sim) in _HOST_PATH:
+    if nonfinite and sim is not None and _record(ctypes.addressof(sim)).host_path:
         culprit = _force_culprit(sim)
         if culprit is not None:      # REBOUND's accelerations, not an encounter or the step
             # (the step asked for: an adaptive run shrank it to nothing before stopping)
@@ -1024,13 +1068,11 @@ def _python_core(r: int, p: int) -> int:
     """The step as Python (``NUMBA_DISABLE_JIT``): the glue's :func:`step_arrays` on numpy
     views of the same memory the compiled :func:`core_step` views."""
     try:
-        return _PYTHON_STEPS[p](r, p)
+        return record_of_state(p).python_step(r, p)
     except BaseException as exc:  # noqa: BLE001
         _PENDING[r] = exc
         return L.PREPARE_FAILED
 
-
-_PYTHON_STEPS: dict = {}
 
 
 # -- prepare: the model, the compiled step and the context block from the particles ----------------
@@ -1273,14 +1315,15 @@ def _prepare(sim, p: int) -> None:
     elif code.kind == "compiled":
         st[L.SL_CORE] = code.core_step.address
     else:
-        _PYTHON_STEPS[p] = _python_step(code, st)
+        record_of_state(p).python_step = _python_step(code, st)
         st[L.SL_CORE] = _REG["python_core"]
-    _FORCES[ctypes.addressof(sim)] = tuple(reboundx_forces(sim) or ())
-    _KEPLER_TERMS.pop(ctypes.addressof(sim), None)
-    _ODES[ctypes.addressof(sim)] = ode_signature(sim)
+    rec = record_of_state(p)
+    rec.forces = tuple(reboundx_forces(sim) or ())
+    rec.kepler_terms = None
+    rec.odes = ode_signature(sim)
     if sim.extras:
         _warn_operators(sim, _operators(sim))
-    (_HOST_PATH.add if nb is None else _HOST_PATH.discard)(ctypes.addressof(sim))
+    rec.host_path = nb is None
 
 
 def _adopt_old_epsilon(st: np.ndarray, sd: np.ndarray) -> None:

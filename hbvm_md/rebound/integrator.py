@@ -11,7 +11,7 @@ from hbvm_md.rebound.memory import doubles
 from hbvm_md.rebound.checks import (_real, _step_size, check_particles, check_simulation,
                                     shortest_period)
 from hbvm_md.rebound.composed import KEPLER_FEW_STEPS  # noqa: F401  (its home is composed)
-from hbvm_md.rebound.host import KEPLER_SEEN_DT, NAME, _rebound, _slots, method_of, register
+from hbvm_md.rebound.host import NAME, _rebound, _slots, method_of, record_of_state, register
 from integrators import EQUIP, HBVM
 from integrators.equip import DEFAULT_EPSILON as EQUIP_DEFAULT_EPSILON, DEFAULT_S as EQUIP_DEFAULT_S
 from integrators.core import N_COUNTERS
@@ -363,7 +363,7 @@ class HBVMIntegrator(Counted):
             # a step given (dt=...) is chosen, a short sim.dt warned about above: the composed
             # step's preparation does not warn about it again (it warns for
             # sim.integrator.kepler = 1 with a short sim.dt)
-            KEPLER_SEEN_DT[int(sim.integrator.state)] = h
+            record_of_state(int(sim.integrator.state)).kepler_seen_dt = h
 
     @classmethod
     def of(cls, sim) -> "HBVMIntegrator | None":

@@ -72,6 +72,8 @@ static void dispatch(struct reb_simulation *r, void *p)
 static void release(void *p)
 {
     state_t *st = p;
+    if (st->forget)
+        st->forget(NULL, p);
     free(st->y);
     free(st->gamma);
     free(st->counters);

@@ -75,6 +75,8 @@ struct hbvm_rb_state {
     double eref_masses;
     int64_t run_warned;           /* not saved */
     int64_t control;              /* saved as controller */
+    hbvm_rb_fn forget;            /* not saved: the host drops its record of this state
+                                   * (release calls it first; 0 once Python is finishing) */
 };
 
 /* the step's context block: this header (addresses of the arrays that follow it, their sizes,
