@@ -16,6 +16,13 @@ error of Gauss s = 8 ranges from 1e-11 to 4e-10); fixed-point iterations per ste
 per step (wall time of the integration loop; the compiled driver is warmed up first).  Written
 to ``benchmarks/results/kepler.md`` and printed.
 
+The point of the table is each row's error at HLW's step, so the rows in ``WARNING_OFF`` run
+with :class:`integrators.AccumulatedErrorWarning` switched off explicitly (and only that
+warning; every step check stays on): Gauss(2) = HBVM(2, 2) at P/100 ends 0.35 off its orbit
+after 1000 periods (its energy error moves its period); the run's accumulated error estimate
+(0.21, above 1e-2) says so, and so does the row's solution error, which is what the table
+shows.  A warning of any other row is not switched off.
+
 Run:  python benchmarks/bench_kepler.py [--periods 1000] [--slow-periods 10] [--starts 9]
 """
 from __future__ import annotations
@@ -25,16 +32,20 @@ import os
 import platform
 import sys
 import time
+import warnings
 
 import numpy as np
 
 from hbvm_md.reports.machine import machine as machine_name
-from integrators import HBVM, integrate
+from integrators import HBVM, AccumulatedErrorWarning, integrate
 from systems import Kepler
 
 ROUNDOFF = 1e-14     # "at round-off": max relative energy error over 10 periods (about 45 eps)
 STEPS_PER_PERIOD = 100
 REPEAT = 3           # compiled timings: best of this many runs
+# (k, s) of the rows that end off their orbit at h = P/100 over 1000 periods and are tabulated
+# for that error: run with the run's AccumulatedErrorWarning switched off (the docstring)
+WARNING_OFF = {(2, 2)}
 
 
 def roundoff_k(kep, y0, s: int, h: float, k_max: int) -> int:
@@ -69,29 +80,37 @@ def run(periods: int, slow_periods: int, s_values, starts: int = 9) -> tuple[lis
         if kr != s:
             ks.append(kr)
         for k in ks:
-            m = HBVM(k, s)
-            steps = periods * STEPS_PER_PERIOD
-            fast = integrate(m, kep, y0, h, steps, sample_every=10, fast=True)
-            t_end = np.longdouble(steps) * np.longdouble(h)    # n steps of h, exactly
-            errs, sols = [], []
-            for i, ys in enumerate(y0s):
-                r = fast if i == 0 else integrate(m, kep, ys, h, steps, sample_every=10, fast=True)
-                errs.append(r.max_energy_error)
-                sols.append(float(np.max(np.abs(r.y[-1] - kep.exact_solution(ys, t_end)))))
-            # the machine is shared: time the compiled run as the best of REPEAT identical runs
-            wall = min([fast.wall_time] + [integrate(m, kep, y0, h, steps, sample_every=10, fast=True).wall_time
-                                           for _ in range(REPEAT - 1)])
-            slow_steps = slow_periods * STEPS_PER_PERIOD
-            slow = integrate(m, kep, y0, h, slow_steps, sample_every=10, fast=False)
-            rows.append(dict(
-                s=s, k=k, kind="Gauss" if k == s else "round-off k",
-                err=float(np.median(errs)), sol=float(np.median(sols)), sol_lo=min(sols),
-                sol_hi=max(sols),
-                it=fast.iterations_per_step, us_fast=1e6 * wall / fast.steps,
-                us_slow=1e6 * slow.wall_time / slow.steps, it_slow=slow.iterations_per_step,
-                err_slow=slow.max_energy_error, path=fast.path))
+            with warnings.catch_warnings():
+                if (k, s) in WARNING_OFF:
+                    warnings.simplefilter("ignore", AccumulatedErrorWarning)
+                rows.append(_row(kep, y0, y0s, k, s, h, periods, slow_periods))
     cmd = "python benchmarks/bench_kepler.py " + " ".join(sys.argv[1:])
     return rows, cmd.strip()
+
+
+def _row(kep, y0, y0s, k: int, s: int, h: float, periods: int, slow_periods: int) -> dict:
+    """One row of the table: HBVM(k, s) over ``periods`` periods from each start."""
+    m = HBVM(k, s)
+    steps = periods * STEPS_PER_PERIOD
+    fast = integrate(m, kep, y0, h, steps, sample_every=10, fast=True)
+    t_end = np.longdouble(steps) * np.longdouble(h)    # n steps of h, exactly
+    errs, sols = [], []
+    for i, ys in enumerate(y0s):
+        r = fast if i == 0 else integrate(m, kep, ys, h, steps, sample_every=10, fast=True)
+        errs.append(r.max_energy_error)
+        sols.append(float(np.max(np.abs(r.y[-1] - kep.exact_solution(ys, t_end)))))
+    # the machine is shared: time the compiled run as the best of REPEAT identical runs
+    wall = min([fast.wall_time] + [integrate(m, kep, y0, h, steps, sample_every=10, fast=True).wall_time
+                                   for _ in range(REPEAT - 1)])
+    slow_steps = slow_periods * STEPS_PER_PERIOD
+    slow = integrate(m, kep, y0, h, slow_steps, sample_every=10, fast=False)
+    return dict(
+        s=s, k=k, kind="Gauss" if k == s else "round-off k",
+        err=float(np.median(errs)), sol=float(np.median(sols)), sol_lo=min(sols),
+        sol_hi=max(sols),
+        it=fast.iterations_per_step, us_fast=1e6 * wall / fast.steps,
+        us_slow=1e6 * slow.wall_time / slow.steps, it_slow=slow.iterations_per_step,
+        err_slow=slow.max_energy_error, path=fast.path)
 
 
 def to_markdown(rows, cmd: str, periods: int, slow_periods: int, starts: int = 9) -> str:
