@@ -7,20 +7,25 @@ integrator, with HBVM's defaults (adaptive steps, s = 6, the default epsilon of
 :mod:`integrators.engine` and k for it), and :class:`HBVMIntegrator` ``(sim, s=..., k=...,
 dt=..., method="hbvm" | "equip", ...)`` selects it with checked settings.  REBOUND owns the run
 (time, callbacks, collisions, SIGINT, archives, ``save_to_file``, ``copy``, pickling); this
-package holds the glue only, and the step is :mod:`integrators.loop`.  ``method="equip"`` takes
-EQUIP's own adaptive defaults, s = 8 at epsilon 1e-4 (``sim.integrator.method = "equip"`` on an
+package holds the glue only, and the step is the compiled core's (``integrators/csrc``)
+or :mod:`integrators.loop`'s.  ``method="equip"`` takes
+EQUIP's own adaptive defaults, s = 8 at epsilon 1e-17 (``sim.integrator.method = "equip"`` on an
 existing integrator keeps the s and epsilon set).  ``kepler=True`` (the saved field
 ``sim.integrator.kepler = 1``) composes HBVM with the Keplerian flows about particle 0
 (:class:`systems.flow_composed.FlowComposed`, fixed steps only; not the default: not faster).
 
-Modules: :mod:`~hbvm_md.rebound.layout` (every memory layout), :mod:`~hbvm_md.rebound.cabi`
-(the step REBOUND calls and the state's ``free``), :mod:`~hbvm_md.rebound.glue` (compiled with
-the step: one REBOUND step), :mod:`~hbvm_md.rebound.host` (registration, the callbacks, the
-run's exceptions), :mod:`~hbvm_md.rebound.forces` (REBOUND's own accelerations at the stages,
-for scenes beyond point masses), :mod:`~hbvm_md.rebound.checks` (what is refused) and
+Modules: ``csrc/hbvm_state.h`` and :mod:`~hbvm_md.rebound.layout` (HBVM's state and the
+step's context as named C structs, and every other memory layout),
+:mod:`~hbvm_md.rebound.state` (the host's record of each state, the state's views, arrays and
+context block), ``csrc/glue.c`` and :mod:`~hbvm_md.rebound.cglue` (REBOUND's step, ``free``
+and the plain N-body step in C, on the compiled core), :mod:`~hbvm_md.rebound.cabi` and
+:mod:`~hbvm_md.rebound.glue` (their numba twins, and the numba step of every other case),
+:mod:`~hbvm_md.rebound.host` (registration, the callbacks, preparing a step, the run's
+exceptions), :mod:`~hbvm_md.rebound.forces` (REBOUND's own accelerations at the stages, for
+scenes beyond point masses), :mod:`~hbvm_md.rebound.checks` (what is refused) and
 :mod:`~hbvm_md.rebound.integrator` (:class:`HBVMIntegrator`, the options and their checks),
 :mod:`~hbvm_md.rebound.kepler_glue` and :mod:`~hbvm_md.rebound.composed` (the composed step's
-glue and preparation).
+glue and preparation, which builds on :mod:`~hbvm_md.rebound.state`, not on the host).
 
 How the design answers REBOUND's questions (where the state lives, how a loaded or copied
 simulation gets its compiled step, how a failed step surfaces, what a process without

@@ -35,15 +35,15 @@ def warn_short_step(sim, h: float, fix: str, stacklevel: int | None = None,
     the shortest orbital period), naming ``fix`` ("pass dt=", "set sim.dt"); not for the step
     HBVMIntegrator attached HBVM's ``state`` with (its record's kepler_seen_dt)."""
     import warnings
-    from hbvm_md.rebound import host as H
     from hbvm_md.rebound.checks import shortest_period
-    if state is not None and H.record_of_state(state).kepler_seen_dt == h:
+    from hbvm_md.rebound.state import record_of_state
+    if state is not None and record_of_state(state).kepler_seen_dt == h:
         return
     period = shortest_period(sim)
     if not (math.isfinite(period) and abs(h) < period / KEPLER_FEW_STEPS):
         return
     if stacklevel is None:
-        from hbvm_md.rebound.host import _user_stacklevel
+        from hbvm_md.rebound.state import user_stacklevel as _user_stacklevel
         stacklevel = _user_stacklevel()
     warnings.warn(
         f"{'kepler=True' if fix.startswith('pass') else 'sim.integrator.kepler = 1'} steps "
@@ -248,8 +248,9 @@ def prepare_composed(sim, p: int, method) -> None:
     engine's :class:`FlowComposed` bound with the step and the kepler glue, the state (the
     saved one when its bodies are the particles bit for bit, else afresh from the particles:
     ``FlowComposed.extend``, the barycentre kept in ``com``) and the context block."""
-    from hbvm_md.rebound import host as H
-    st, sd = H._slots(p)
+    from hbvm_md.rebound import state as H
+    from hbvm_md.rebound.checks import _step_size
+    st, sd = H.slots(p)
     check_composed(sim)
     import numba
     if numba.config.DISABLE_JIT:
@@ -257,9 +258,9 @@ def prepare_composed(sim, p: int, method) -> None:
                          f"NUMBA_DISABLE_JIT, or {WAY_OUT}")
     h = sim.dt
     if not (math.isfinite(h) and h != 0.0):
-        H._step_size("sim.dt", h)
+        _step_size("sim.dt", h)
     N = sim.N
-    offsets = H._REG["offsets"]
+    offsets = H.REG["offsets"]
     stride = offsets[L.R_STRIDE - L.R_T]
     ix, ivx, im = (offsets[i - L.R_T] for i in (L.R_X, L.R_VX, L.R_M))
     ptr = ctypes.cast(sim._particles, ctypes.c_void_p).value
@@ -274,7 +275,7 @@ def prepare_composed(sim, p: int, method) -> None:
     y, g, c = (doubles(int(st[a]), int(st[n])) for a, n in
                ((L.SL_Y, L.SL_NY), (L.SL_GAMMA, L.SL_NGAMMA), (L.SL_COUNTERS, L.SL_NCOUNTERS)))
     keep = False
-    if (not H._model_changed(st, sim, False) and y.size == size and g.size == s * 2 * m
+    if (not H.model_changed(st, sim, False) and y.size == size and g.size == s * 2 * m
             and np.isfinite(sd[L.SL_H_PREV])):
         # a copied or loaded run, or one resynced: its state is the particles' when the bodies
         # it gives are the particles bit for bit (the last step wrote them from it)
@@ -292,21 +293,21 @@ def prepare_composed(sim, p: int, method) -> None:
         warn_short_step(sim, h, "set sim.dt", state=p)
         y0 = nb.initial_state()
         check_particles(y0, nb)
-        y = H._array(st, L.SL_Y, L.SL_NY, size)
+        y = H.array(st, L.SL_Y, L.SL_NY, size)
         y[:] = 0.0
         y[:2 * m] = fc.extend(y0)
         xcm, vcm = fc._com
         y[4 * m:4 * m + 3], y[4 * m + 3:4 * m + 6] = xcm, vcm
         y[4 * m + 6] = y[4 * m + 7] = sim.t
         y[4 * m + 8:] = record
-        H._array(st, L.SL_GAMMA, L.SL_NGAMMA, s * 2 * m)[:] = 0.0
+        H.array(st, L.SL_GAMMA, L.SL_NGAMMA, s * 2 * m)[:] = 0.0
         sd[L.SL_H_PREV] = np.nan
         sd[L.SL_EREF:L.SL_EREF + L.N_EREF] = np.nan
         st[L.SL_RESYNCS] += 1
     if c.size != N_COUNTERS:
-        H._array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
+        H.array(st, L.SL_COUNTERS, L.SL_NCOUNTERS, N_COUNTERS)[:] = 0.0
     st[L.SL_ECHECK] = 1
-    H._context(st, binding, method, None, view, ptr, sim, ix, ivx, im, kepler=True)
+    H.context(st, binding, method, None, view, ptr, sim, ix, ivx, im, kepler=True)
     st[L.SL_CORE] = binding.step_code.core_step.address
     rec = H.record_of_state(p)
     rec.forces = tuple(reboundx_forces(sim) or ())

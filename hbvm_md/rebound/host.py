@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import math
 import os
 import sys
@@ -14,22 +13,28 @@ import warnings
 import numpy as np
 
 from hbvm_md.rebound import cglue, layout as L
+from hbvm_md.rebound import state as _state
+from hbvm_md.rebound.state import (LIBC as _LIBC, RECORDS as _RECORDS, Record as _Record,
+                                   array as _array, context as _context, masses_changed as
+                                   _masses_changed, masses_digest, model_changed as
+                                   _model_changed, record as _record, record_of_state,
+                                   slots as _slots, user_stacklevel as _user_stacklevel)
 from hbvm_md.rebound.memory import doubles, int64s
 from hbvm_md.rebound.checks import _step_size, check_particles, check_simulation
 from integrators import EQUIP, HBVM, ccore
 from integrators.core import (C_LASTIT, C_WORST, ERROR_BOUND, N_COUNTERS, NOT_FINITE, NOT_RESOLVED,
                               OK, RUN_ERROR_BOUND, TOO_SMALL, test_particle_error)
-from integrators.engine import (DEFAULT_EPSILON, Binding, Extrapolation, check_adaptive,
+from integrators.engine import (DEFAULT_EPSILON, Binding, check_adaptive,
                                 energy_check)
 from integrators.errors import (AccumulatedErrorWarning, ConvergenceError, NonFiniteError,
                                 StepSizeError, UnresolvedStepError, step_error)
 from integrators.kchoice import adaptive_k
-from integrators.tangent import TANGENT_FAILED, tangent_sizes
+from integrators.tangent import TANGENT_FAILED
 from systems.nbody import NBody, nbody_force_jvp
 from hbvm_md.rebound.forces import (P_NODES, P_ODES_HELD, ReboundScene, host_reasons,
                                     ode_signature, reboundx_forces)
 from hbvm_md.rebound.glue import Host, Rebound
-from hbvm_md.rebound.masses import masses_only, same_model
+from hbvm_md.rebound.masses import masses_only
 from integrators import records as R
 
 NAME = "hbvm"
@@ -57,74 +62,11 @@ _PENDING: dict = {}               # simulation address -> the exception of its f
 _REG = None                       # what registration keeps alive (see register)
 
 
-class _Record:
-    """What the host keeps for one HBVM state (one simulation's ``r->integrator.state``),
-    beside the state itself: made by ``create`` (a new, copied or loaded simulation), dropped
-    by REBOUND's ``free`` of the state (its ``forget`` callback), so that nothing outlives the
-    simulation nor is inherited by another at a reused address.
-
-    forces: the REBOUNDx forces (name, address) the step was last prepared with (None: not
-    prepared; :func:`_recheck_forces`); kepler_terms: the REBOUNDx force terms the composed step
-    (kepler = 1) was last prepared with (:func:`hbvm_md.rebound.composed.force_terms`); odes:
-    the attached ODEs (:func:`hbvm_md.rebound.forces.ode_signature`) likewise; host_path: the
-    step was last prepared on REBOUND's own accelerations; python_step: the glue's step as
-    Python (``NUMBA_DISABLE_JIT``); kepler_seen_dt: the step HBVMIntegrator attached the
-    composed method with (its short-step warning is not given again for it)."""
-
-    __slots__ = ("forces", "kepler_terms", "odes", "host_path", "python_step",
-                 "kepler_seen_dt")
-
-    def __init__(self):
-        self.forces = self.kepler_terms = self.odes = self.python_step = None
-        self.kepler_seen_dt = None
-        self.host_path = False
-
-
-#: state address -> its record (:class:`_Record`)
-_RECORDS: dict[int, _Record] = {}
-_NO_RECORD = _Record()     # (what a simulation without a record reads: all unset; never written)
-
-
-def record_of_state(p: int) -> _Record:
-    """The record of the live HBVM state at address p (made if it has none: a state created
-    before this module registered, which cannot happen but costs nothing to survive)."""
-    rec = _RECORDS.get(p)
-    if rec is None:
-        rec = _RECORDS[p] = _Record()
-    return rec
-
-
-def _record(addr: int) -> _Record:
-    """The record of the simulation at address addr's HBVM state."""
-    return _RECORDS.get(ctypes.c_void_p.from_address(addr + _REG["state_at"]).value,
-                        _NO_RECORD)
-_LIBC = ctypes.CDLL(None)
-_LIBC.malloc.restype = _LIBC.calloc.restype = _LIBC.realloc.restype = ctypes.c_void_p
-_LIBC.calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
-_LIBC.realloc.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
-_LIBC.free.argtypes = [ctypes.c_void_p]
-_HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def _rebound():
     import rebound
     return rebound
-
-
-def _slots(p: int) -> tuple[np.ndarray, np.ndarray]:
-    """HBVM's state at address p as int64 and float64 arrays (the same memory)."""
-    buf = (ctypes.c_int64 * L.N_SLOTS).from_address(p)
-    return np.frombuffer(buf, np.int64), np.frombuffer(buf, np.float64)
-
-
-
-def _user_stacklevel() -> int:
-    """The stacklevel of the first frame outside this package (the user's line)."""
-    import sys
-    frame, level = sys._getframe(1), 1
-    while frame is not None and os.path.dirname(os.path.abspath(frame.f_code.co_filename)) == _HERE:
-        frame, level = frame.f_back, level + 1
-    return level
 
 
 # -- registration ------------------------------------------------------------------------------
@@ -138,7 +80,8 @@ def register() -> None:
         return
     mark = getattr(rebound.clibrebound, "_hbvm_md_registration", None)
     if mark is not None:           # hbvm_md imported again (a reload): keep the first one
-        _REG = mark
+        _state.REG.update(mark)
+        _REG = _state.REG
         return
     L.check_version(rebound)
     lib = rebound.clibrebound
@@ -207,7 +150,8 @@ def register() -> None:
                variational=L.variational_offsets(rebound),
                megno_update=ctypes.cast(lib.reb_tools_megno_update, ctypes.c_void_p).value)
     lib.reb_integrator_register.argtypes = [Integrator, ctypes.c_char_p]
-    _REG = reg                    # (create reads it)
+    _state.REG.update(reg)
+    _REG = _state.REG             # (create reads it)
     import atexit
     atexit.register(_finishing)
     lib.reb_integrator_register(integ, NAME.encode())
@@ -1352,48 +1296,6 @@ def _adopt_old_epsilon(st: np.ndarray, sd: np.ndarray) -> None:
     warnings.warn(msg, RuntimeWarning, stacklevel=_user_stacklevel())
 
 
-def _model_changed(st: np.ndarray, sim, host: bool) -> bool:
-    """Has the model changed since the step was last prepared for this state (G, N_active, a
-    setting HBVM checks, the choice of REBOUND's own accelerations, or on them a mass)?  Then the previous
-    coefficients and the reference energy belong to another system: a continued run starts
-    them afresh from the particles, as IAS15 continues after ``sim.G`` was changed.  A state
-    without a context (new, loaded, copied) keeps what it carries."""
-    if not st[L.SL_CTX]:
-        return False
-    ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
-    if not same_model(ctx, int64s(ctypes.addressof(sim), int(ctx[L.R_HEAD]))):
-        return True
-    if bool(ctx[L.D_HOST]) != host:
-        return True
-    # (a state of velocities does not see a mass changed)
-    return host and _masses_changed(st, sim)
-
-
-def masses_digest(sim) -> float:
-    """The particles' masses (and their number) as one double, saved with the run's start
-    (layout.SL_EREF_MASSES): 52 bits of their SHA-256, so that a loaded or copied run tells
-    whether its drift check's anchor was taken with the masses it now has."""
-    m = np.zeros(sim.N)
-    sim.serialize_particle_data(m=m)
-    d = hashlib.sha256(np.ascontiguousarray(m, dtype=float).tobytes()).digest()
-    return float(int.from_bytes(d[:8], "little") >> 12)
-
-
-def _masses_changed(st: np.ndarray, sim) -> bool:
-    """Are the simulation's masses other than those the last step wrote (its context's copy of
-    the particles)?  False without a context or with another N."""
-    if not st[L.SL_CTX]:
-        return False
-    ctx = int64s(int(st[L.SL_CTX]), L.N_HEADER)
-    N = int(ctx[L.D_N])
-    if N != sim.N:
-        return False
-    written = doubles(int(ctx[L.A_WRITTEN]), 7 * N).reshape(N, 7)
-    m = np.zeros(N)
-    sim.serialize_particle_data(m=m)
-    return not np.array_equal(written[:, 6], m)
-
-
 def _force_name(sim, reasons=None) -> str:
     """The added forces by name: REBOUNDx's, or the user's Python function (held by the user's
     Simulation object of the run in progress, :class:`_Run`)."""
@@ -1507,113 +1409,6 @@ def _clear_gravity_ignore(sim) -> None:
     f = type(sim).gravity_ignore
     (ctypes.c_int if f.size == 4 else ctypes.c_int64).from_address(
         ctypes.addressof(sim) + f.offset).value = 0
-
-
-def _array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
-    """The state's array at ``slot`` with n doubles (reallocated with the C library, as REBOUND
-    allocates it when it loads a simulation, so that either may free it)."""
-    if int(st[slot_n]) != n or not st[slot]:
-        addr = _LIBC.realloc(ctypes.c_void_p(int(st[slot]) or None), 8 * max(n, 1))
-        if not addr:
-            raise MemoryError("HBVM: could not allocate its state")
-        st[slot], st[slot_n] = addr, n
-    return doubles(int(st[slot]), n)
-
-
-def _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False,
-             kepler=False, work=None) -> None:
-    """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
-    allocated with the C library (the state's ``free`` releases it with the state).  work: the
-    compiled core's scratch (the C step, :mod:`hbvm_md.rebound.cglue`) in place of the numba
-    step's work array.  kepler:
-    the composed step's (:mod:`hbvm_md.rebound.kepler_glue`: the full form, coefficients of
-    width 2m)."""
-    ex = Extrapolation(method)
-    (tn, ts), (Wp, Cp) = binding.c1, binding.c2
-    NV, NVinv, NM = binding.no_newton
-    s, N = method.s, view.shape[0]
-    if binding.full:
-        m = int(binding.system.dim)
-        u = 2 * m                             # the coefficients' width (full form: 2m)
-    else:
-        u = m = binding.minv.shape[0]         # the coefficients' width (separable: m)
-    written = np.empty((N, 7))
-    written[:, :3], written[:, 3:6] = view[:, ix:ix + 3], view[:, ivx:ivx + 3]
-    written[:, 6] = view[:, im]
-    host = np.array([sim.G, float(np.uint64(sim.N_active).astype(np.int64))])  # as the step reads
-    arrays = {L.A_YT: np.zeros(2 * m), L.A_CYT: np.zeros(2 * m), L.A_GAMMAT: np.zeros((s, u)),
-              L.A_EREFT: np.zeros(L.N_EREF), L.A_WRITTEN: written, L.A_MINV: binding.minv,
-              L.A_KINW: binding.kin_w, L.A_PARAMS: binding.params, L.A_HOST: host, L.A_TN: tn,
-              L.A_TS: ts, L.A_WP: Wp, L.A_CP: Cp, L.A_NV: NV, L.A_NVINV: NVinv, L.A_NM: NM,
-              L.A_WORK: binding.work if work is None else work, L.A_CWORK: binding.cwork, L.A_CLOCK: np.zeros(2),
-              L.A_E1: ex.E1, L.A_ET: ex.t, L.A_EW: ex.w, L.A_EBUF: ex.buf, L.A_EZERO: ex.zero}
-    # the tangents of REBOUND's first-order variational particles (checks.check_simulation
-    # refused any other kind): one per set, its first row var_config[j].index and its particle
-    # (testparticle: -1 for the whole system's N rows, i for one row of particle i's variation)
-    nv = int(sim.N_var_config) if sim.N_var > 0 else 0
-    vidx = np.array([[float(sim.var_config[j].index), float(sim.var_config[j].testparticle)]
-                     for j in range(nv)]).reshape(nv, 2)
-    nf, nc = tangent_sizes(method.n_stages, s, m, m, 2 * m) if nv else (0, 0)
-    arrays.update({L.A_V: np.zeros((nv, 2 * m)), L.A_VT: np.zeros((nv, 2 * m)),
-                   L.A_DG: np.zeros((nv, s, m)), L.A_DGT: np.zeros((nv, s, m)),
-                   L.A_DGS: np.zeros((nv, s, m)), L.A_TW: np.zeros(nf),
-                   L.A_TCW: np.zeros(nc, complex), L.A_TCOUNT: np.zeros(3), L.A_VIDX: vidx,
-                   L.A_TP: np.zeros((nv, 6 * N + 3)), L.A_TO: _orders(sim, nv)})
-    sizes = {k: (a.nbytes + 15) // 16 * 16 for k, a in arrays.items()}
-    head = 8 * L.N_HEADER
-    total = head + sum(sizes.values())
-    if st[L.SL_CTX]:
-        _LIBC.free(ctypes.c_void_p(int(st[L.SL_CTX])))
-        st[L.SL_CTX] = st[L.SL_CORE] = 0
-    base = _LIBC.malloc(total + 16)
-    if not base:
-        raise MemoryError("HBVM: could not allocate its step's context")
-    header = int64s(base, L.N_HEADER)
-    at = base + head
-    for k, a in arrays.items():
-        header[k] = at
-        if a.nbytes:
-            dst = np.frombuffer((ctypes.c_char * a.nbytes).from_address(at), a.dtype)
-            dst[:] = np.ascontiguousarray(a).reshape(-1)
-        at += sizes[k]
-    header[[L.D_S, L.D_K, L.D_NODES, L.D_M, L.D_N, L.D_P, L.D_NF, L.D_NC, L.D_PTR]] = (
-        s, method.k, L.NODES.index(method.nodes), m, N, binding.params.shape[0],
-        arrays[L.A_WORK].shape[0],
-        binding.cwork.shape[0], ptr)
-    header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
-    header[L.D_HOST] = int(host_forces)
-    header[L.D_KEPLER] = int(kepler)
-    # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
-    header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
-        tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])
-    header[L.R_T:L.R_M + 1] = _REG["offsets"]
-    pvar_at, megno_at, t0_at = _REG["variational"]
-    pvar = ctypes.c_void_p.from_address(ctypes.addressof(sim) + 8 * pvar_at).value or 0
-    header[[L.D_NV, L.D_TGF, L.D_TGC, L.D_PVAR, L.D_MEGNO_FN, L.R_PVAR, L.R_MEGNO_ON,
-            L.R_MEGNO_T0]] = (nv, nf, nc, pvar, _REG["megno_update"], pvar_at,
-                              megno_at, t0_at)
-    header[L.R_STATUS] = _REG["status_at"]
-    header[L.R_HEAD] = max(int(header[L.R_HEAD]), pvar_at + 1, megno_at // 8 + 1, t0_at + 1,
-                           type(sim)._N_odes.offset // 8 + 1,   # (the step hides the ODEs)
-                           _REG["status_at"] // 8 + 1)
-    words = _REG["config_words"]
-    header[L.C_WORDS:L.C_VALUES] = words
-    sim_words = int64s(ctypes.addressof(sim), max(words) + 1)
-    header[L.C_VALUES:L.C_VALUES + L.N_CFG] = sim_words[words]
-    st[L.SL_CTX] = base
-
-
-def _orders(sim, nv: int) -> np.ndarray:
-    """Each variational set's order and, for a second-order set, the sets of its two first-order
-    variations (REBOUND names their first rows in ``particles_var``: index_1st_order_a/b)."""
-    first = {int(sim.var_config[j].index): j for j in range(nv)}
-    out = np.zeros((nv, 3))
-    for j in range(nv):
-        vc = sim.var_config[j]
-        out[j] = (vc.order, -1, -1)
-        if vc.order == 2:
-            out[j, 1:] = first[int(vc.index_1st_order_a)], first[int(vc.index_1st_order_b)]
-    return out
 
 
 def _python_step(code, st):

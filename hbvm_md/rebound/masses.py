@@ -48,7 +48,7 @@ def same_model(ctx: np.ndarray, simi: np.ndarray) -> bool:
     """Does the simulation (simi: its first ctx[R_HEAD] words as int64) have the G, N_active
     and the settings HBVM checks that the context block (ctx: its int64 header) was built
     with?  The compiled step's RESYNC test of them (:func:`hbvm_md.rebound.glue.core_step`),
-    for the host's Python side (here, and ``host._model_changed``)."""
+    for the host's Python side (here, and ``state.model_changed``)."""
     host = doubles(int(ctx[L.A_HOST]), L.N_HOST)
     return (simi.view(np.float64)[ctx[L.R_G]] == host[0]
             and float(simi[ctx[L.R_NACTIVE]]) == host[1]

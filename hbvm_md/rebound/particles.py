@@ -251,7 +251,7 @@ def read_tangents(pv, vidx, N, ix, ivx, im, minv, V, DG, na, params, TP, TO):
     particles' m (column im), of the gravitating particles (index below na, or all when
     na < 0) as REBOUND's variational equations count them
     (:func:`systems.nbody.nbody_force_jvp`), then for a second-order set (TO (nv, 3): order,
-    first-order sets a and b, :func:`hbvm_md.rebound.host._orders`) a's and b's variations of
+    first-order sets a and b, :func:`hbvm_md.rebound.state.orders`) a's and b's variations of
     the masses (its forcing's, :func:`systems.nbody._second_jvp`; zeros for a first-order set).
     A second-order set's own m is the second variation of the masses.  With the momenta's variation
     taken as m dv (fixed m), a mass varied enters the linearised step through the force only.
