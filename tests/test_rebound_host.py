@@ -514,3 +514,27 @@ def test_a_file_saved_before_the_step_control_changed_keeps_its_accuracy(tmp_pat
         if old and eps != 1e-3:
             assert "Set sim.integrator.epsilon again" in str(ours[0].message)
         assert sim.integrator.controller == 1
+
+
+def test_rebound_is_changed_only_at_the_first_hbvm_simulation():
+    """Importing hbvm_md and REBOUND registers "hbvm" and changes nothing else: REBOUND's
+    Simulation.integrate stays its own and REBOUNDx is not imported until a simulation selects
+    HBVM (its state's create), and then failed steps raise HBVM's own exceptions."""
+    code = textwrap.dedent("""
+        import sys, rebound, hbvm_md
+        before = (getattr(rebound.Simulation.integrate, "_hbvm_md", False),
+                  "reboundx" in sys.modules)
+        sim = rebound.Simulation(); sim.add(m=1.0); sim.add(m=1e-3, a=1.0)
+        sim.integrator = "hbvm"
+        after = getattr(rebound.Simulation.integrate, "_hbvm_md", False)
+        sim.dt = 0.0
+        try:
+            sim.integrate(1.0)
+        except ValueError as err:
+            raised = "sim.dt" in str(err)
+        print(before, after, raised)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env=dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1])))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["(False,", "False)", "True", "True"]

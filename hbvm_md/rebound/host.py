@@ -156,16 +156,39 @@ def register() -> None:
     atexit.register(_finishing)
     lib.reb_integrator_register(integ, NAME.encode())
     rebound.clibrebound._hbvm_md_registration = reg
+    _self_check(rebound)
+
+
+#: False until the first HBVM simulation of the process (its state's ``create``): only then are
+#: REBOUND's ``Simulation.integrate``, ``steps`` and ``__repr__`` of the integrator, and
+#: REBOUNDx's ``Extras.add_operator``, replaced (a process that imports hbvm_md and REBOUND
+#: without using HBVM keeps them as they are, and does not import REBOUNDx)
+_INSTALLED = False
+_CHECKING = []            # (register's self-check creates a state: it installs nothing)
+
+
+def _install() -> None:
+    """What an HBVM simulation needs of its host's Python, once per process."""
+    global _INSTALLED
+    _INSTALLED = True
+    rebound = _rebound()
     _install_runs(rebound)
     _install_repr(rebound)
     _install_operators()
-    _self_check(rebound)
 
 
 def _self_check(rebound) -> None:
     """REBOUND steps, saves and reads HBVM's state where this host put it (the ctypes layouts
     of ``struct reb_integrator`` and its field descriptors are REBOUND's Python's; this checks
     them against the C library once)."""
+    _CHECKING.append(True)
+    try:
+        _self_check_states(rebound)
+    finally:
+        _CHECKING.pop()
+
+
+def _self_check_states(rebound) -> None:
     sim = rebound.Simulation()
     sim.integrator = NAME
     p = ctypes.c_void_p.from_address(ctypes.addressof(sim) + _REG["state_at"]).value
@@ -187,6 +210,12 @@ def _self_check(rebound) -> None:
 def _create() -> int:
     """REBOUND's ``create``: a new state with HBVM's defaults (REBOUND then reads saved fields
     into it when it loads or copies a simulation)."""
+    if not _INSTALLED and not _CHECKING:
+        try:
+            _install()
+        except BaseException as exc:  # noqa: BLE001 - a callback must not raise into REBOUND
+            warnings.warn(f"hbvm-md: could not install its REBOUND hooks ({exc!r}); failed "
+                          "steps then raise REBOUND's generic RuntimeError", RuntimeWarning)
     p = _LIBC.calloc(L.N_SLOTS, 8)
     if not p:
         return 0

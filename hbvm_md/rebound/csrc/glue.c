@@ -36,6 +36,14 @@
 #include "hbvm_state.h"
 #include "hbvm_layout_check.h"
 
+/* (setup.py defines both: the digest of the sources built, the REBOUND whose header they saw) */
+#ifndef HBVM_SOURCE_DIGEST
+#define HBVM_SOURCE_DIGEST ""
+#endif
+#ifndef HBVM_REBOUND_VERSION
+#define HBVM_REBOUND_VERSION ""
+#endif
+
 static const hbvm_api *core;
 
 typedef struct hbvm_rb_state state_t;
@@ -352,15 +360,7 @@ PyMODINIT_FUNC PyInit__glue(void)
     PyModule_AddObject(mod, "RELEASE", PyLong_FromVoidPtr((void *)(intptr_t)&release));
     PyModule_AddObject(mod, "STEP", PyLong_FromVoidPtr((void *)(intptr_t)&step));
     PyModule_AddObject(mod, "LAYOUT", layout());
-#ifdef HBVM_SOURCE_DIGEST
     PyModule_AddStringConstant(mod, "SOURCE_DIGEST", HBVM_SOURCE_DIGEST);
-#else
-    PyModule_AddStringConstant(mod, "SOURCE_DIGEST", "");
-#endif
-#ifdef HBVM_REBOUND_VERSION
     PyModule_AddStringConstant(mod, "REBOUND_VERSION", HBVM_REBOUND_VERSION);
-#else
-    PyModule_AddStringConstant(mod, "REBOUND_VERSION", "");
-#endif
     return mod;
 }
