@@ -26,24 +26,16 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ase import units                                                   # noqa: E402
-from ase.calculators.emt import EMT                                     # noqa: E402
-from ase.cluster import Icosahedron                                     # noqa: E402
-from ase.md.velocitydistribution import (Stationary, ZeroRotation,     # noqa: E402
-                                         thermalize_momenta)
 from ase.md.verlet import VelocityVerlet                                # noqa: E402
 
 from hbvm_md import HBVMDynamics                                        # noqa: E402
+from systems import hot_copper_cluster                                  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "ase_adaptive.md"
 
 
 def cluster():
-    atoms = Icosahedron("Cu", noshells=3)
-    atoms.calc = EMT()
-    thermalize_momenta(atoms, temperature_K=2400, rng=np.random.default_rng(3))
-    Stationary(atoms)
-    ZeroRotation(atoms)
-    return atoms
+    return hot_copper_cluster(3, 2400.0, seed=3)
 
 
 def run(make_dyn, t_end, outer):

@@ -17,6 +17,7 @@ _LAZY = {
     "NBody": "systems.nbody",
     "outer_solar_system": "systems.solar",
     "solar_system": "systems.solar",
+    "hot_copper_cluster": "systems.clusters",
 }
 
 __all__ = ["HamiltonianSystem", "SeparableSystem",

@@ -141,15 +141,8 @@ def test_adaptive_runs_resolve_the_pericentre_that_fixed_steps_fly_past():
 
 
 def _copper(seed=1, temperature=2000.0):
-    from ase.calculators.emt import EMT
-    from ase.cluster import Icosahedron
-    from ase.md.velocitydistribution import Stationary, ZeroRotation, thermalize_momenta
-    atoms = Icosahedron("Cu", noshells=2)
-    atoms.calc = EMT()
-    thermalize_momenta(atoms, temperature_K=temperature, rng=np.random.default_rng(seed))
-    Stationary(atoms)
-    ZeroRotation(atoms)
-    return atoms
+    from systems import hot_copper_cluster
+    return hot_copper_cluster(2, temperature, seed)
 
 
 def test_ase_adaptive_steps_advance_exactly_the_timestep_with_inner_steps_counted():
@@ -234,19 +227,13 @@ def test_ase_adaptive_defaults_cost_what_fixed_steps_of_their_energy_error_cost(
     finish 25 timesteps in 8 minutes at its default s = 2).  And the issue's Cu13 at 300 K: one
     8 fs timestep took 183 inner steps at the former defaults."""
     from ase import units
-    from ase.cluster import Icosahedron
-    from ase.md.velocitydistribution import Stationary, ZeroRotation, thermalize_momenta
 
     from hbvm_md import HBVMDynamics
+    from systems import hot_copper_cluster
     Counted = _counted_emt()
 
     def hot(shells=3, T=2400):
-        atoms = Icosahedron("Cu", noshells=shells)
-        atoms.calc = Counted()
-        thermalize_momenta(atoms, temperature_K=T, rng=np.random.default_rng(3))
-        Stationary(atoms)
-        ZeroRotation(atoms)
-        return atoms
+        return hot_copper_cluster(shells, T, calc=Counted())
 
     def run(**kw):
         atoms = hot()
