@@ -175,6 +175,59 @@ static double landing_step(const struct reb_simulation *r, const state_t *st, do
     return h + clock_comp(st, t_start);
 }
 
+/* glue.TP_FLOOR, glue.TP_FACTOR: a fixed step refuses a test particle whose own estimate
+ * exceeds max(TP_FLOOR, TP_FACTOR x the sources') */
+static const double TP_FLOOR = 1e-2, TP_FACTOR = 10.0;
+
+/* core.monomial_weight */
+static double monomial_weight(int j)
+{
+    double c = 1.0;
+    for (int i = 1; i <= j; ++i)
+        c *= (double)(i * i) / ((2.0 * i) * (2.0 * i + 1.0));
+    return c * sqrt(2.0 * j + 1.0);
+}
+
+/* core.test_particle_error with source_floor 0: a fixed step's check of its test particles
+ * (kin_w 0) from its own coefficients gamma (s, u) row-major, weights w; the worst offending
+ * particle's index or -1, its estimate in *worst_err */
+static int test_particle_error(const double *gamma, int s, int u, const double *w,
+                               const double *kin_w, double floor, double factor,
+                               double *worst_err)
+{
+    const double cw = monomial_weight(s - 1);
+    double top = 0.0, low = 0.0;
+    for (int j = 0; j < u; ++j)
+        if (kin_w[j] != 0.0) {
+            if (fabs(w[j] * gamma[(s - 1) * u + j]) > top)
+                top = fabs(w[j] * gamma[(s - 1) * u + j]);
+            if (fabs(w[j] * gamma[j]) > low)
+                low = fabs(w[j] * gamma[j]);
+        }
+    double bound = floor;
+    if (low > 0.0 && factor * top / (cw * low) > bound)
+        bound = factor * top / (cw * low);
+    int worst = -1;
+    *worst_err = 0.0;
+    for (int i = 0; i < u / 3; ++i) {
+        if (kin_w[3 * i] != 0.0)
+            continue;
+        double t = 0.0, lo = 0.0;
+        for (int c = 3 * i; c < 3 * i + 3; ++c) {
+            if (fabs(gamma[(s - 1) * u + c]) > t)
+                t = fabs(gamma[(s - 1) * u + c]);
+            if (fabs(gamma[c]) > lo)
+                lo = fabs(gamma[c]);
+        }
+        const double err = lo > 0.0 ? t / (cw * lo) : (t > 0.0 ? INFINITY : 0.0);
+        if (err > bound && err > *worst_err) {
+            worst = i;
+            *worst_err = err;
+        }
+    }
+    return worst;
+}
+
 /* the plain N-body step (the module's docstring) */
 static int step(struct reb_simulation *r, void *p)
 {
@@ -250,12 +303,33 @@ static int step(struct reb_simulation *r, void *p)
                               .buf = ARR(ctx, a_ebuf), .zero = ARR(ctx, a_ezero)};
     hbvm_options op = {.max_iter = (int)st->max_iter, .tol = st->tol, .etol = etol,
                        .ebound = ebound, .group = 3};
+    /* a fixed step's test-particle check may refuse a converged step: its work then comes out
+     * of the counters and the clock, as the core takes a failed step's out */
+    const double c_iter = counters[C_ITER], c_nfev = counters[C_NFEV];
+    const double c_newton = counters[C_NEWTON], clock0 = clock[0], clock1 = clock[1];
     int status = core->attempt(&kern, &sys, &state, &trial, h, st->h_prev, t_start, &ext, &tab,
                                &op, counters, epsilon, st->min_dt, res, ARR(ctx, a_work),
                                (size_t)ctx->d_nf);
     st->rejected += (int64_t)res[2];
     if (status < 0)
         status = RB_OUT_OF_MEMORY;
+    if (status == RB_OK && !adaptive && st->etol != 0.0) {
+        /* the test particles against the bodies they move among (glue.step_arrays) */
+        double err;
+        const int worst = test_particle_error(gammat, s, m, minv, kin_w, TP_FLOOR, TP_FACTOR,
+                                              &err);
+        if (worst >= 0) {
+            counters[C_ITER] = c_iter;
+            counters[C_NFEV] = c_nfev;
+            counters[C_NEWTON] = c_newton;
+            counters[C_STEPS] -= 1;
+            clock[0] = clock0;
+            clock[1] = clock1;
+            res[3] = err;
+            res[4] = worst;
+            status = RB_TEST_PARTICLE;
+        }
+    }
     if (status != RB_OK) {
         /* particles.record_failure */
         st->h_fail = res[0];
