@@ -2,18 +2,26 @@
 the separable HBVM step in C, the stages in the vector lanes.
 
 :func:`core_step` returns, for the kernels and the variant the core covers, an object with the
-interface of :func:`integrators.specialise.specialise`'s (``run``, ``energy_parts``,
-``kind``): the engine's :class:`~integrators.engine.Stepper` (and so ``HBVMDynamics``) then
-runs :func:`integrators.loop.run`'s contract in C, with nothing compiled at run time and the
-same numbers bit for bit (the same operations in the same order).  What it covers so far:
+interface of :func:`integrators.specialise.specialise`'s (``run``, ``attempt``,
+``energy_parts``, ``kind``): the engine's :class:`~integrators.engine.Stepper` (and so
+``HBVMDynamics``) then runs :func:`integrators.loop.run`'s contract in C, with nothing
+compiled at run time and the same numbers bit for bit (the same operations in the same order).
+What it covers so far:
 
 * the kernels: the N-body kernel of :mod:`systems.nbody` and the small systems' (Kepler,
   Henon-Heiles, FPU, the pendulum, Morse: :data:`KERNELS`) in C, and any kernel written in
   Python (a user's system, an ASE calculator), which the core calls back at each evaluation
   through buffers of the loop's row layout;
 * the variant: HBVM (not EQUIP), the separable form, the fixed-point iteration (a step handed
-  Newton matrices runs the numba step, built then), no followers (test particles), no stage
-  velocities, no tangents, no recentring, no host glue.
+  Newton matrices runs the numba step, built then), no stage velocities, no tangents, no
+  recentring, no host glue;
+* the followers (test particles: an :class:`systems.nbody.NBody` with ``n_active`` < N or
+  massless bodies, :data:`FOLLOWERS`) with the N-body kernel: the sources' stage equations
+  solved as if alone, then each test particle's in their field with its own stop rule, in
+  groups of ``core.FOLLOWER_GROUP`` (:mod:`integrators.followers`), each follower's stage
+  values contiguous in the lanes as the sources' are; ``attempt`` (:func:`integrators.loop.
+  attempt` in C, ``hbvm_attempt``) adds their term to the adaptive control
+  (``core.test_particle_control``, whose C copy the engine's adaptive steps call on the core).
 
 Every other variant runs the numba step of :mod:`integrators.loop`, as before.
 ``HBVM_MD_CORE=numba`` in the environment turns the compiled core off (every step then runs on
@@ -61,6 +69,21 @@ if _core is not None:
         KERNELS[((_module, _force), (_module, _potential))] = _core.BUILTINS[_name]
 
 
+#: the followers hooks the core has in C (``follow`` of :func:`core_step`: the (module, name) of
+#: the numba hooks it replaces), and the kernels they go with
+FOLLOWERS = {}
+if _core is not None:
+    FOLLOWERS[(("systems.nbody", "nbody_followers"), ("systems.nbody", "nbody_field"))] = \
+        (_core.NBODY,)
+
+
+def _ref(fn):
+    """(module, name) of a compiled function (its ``py_func``'s), or None."""
+    f = getattr(fn, "py_func", None)
+    mod, name = getattr(f, "__module__", None), getattr(f, "__qualname__", None)
+    return None if mod is None or name is None else (mod, name)
+
+
 def available() -> bool:
     """True when the compiled core was built and is not turned off (``HBVM_MD_CORE=numba``,
     or ``NUMBA_DISABLE_JIT=1``: every step then runs as the Python of integrators.loop, for
@@ -98,18 +121,26 @@ class CoreStep:
 
     kind = "compiled"
     core = True
+    follow = False      # (one pickled before the core took the followers: none)
 
-    def __init__(self, kernel: int, fallback):
+    def __init__(self, kernel: int, fallback, follow: bool = False):
         self.kernel = kernel
         self._fallback = fallback
         self._numba = None
         self._scratch = np.zeros(0)
+        self.follow = bool(follow)
 
-    def scratch(self, method, m: int) -> np.ndarray:
-        """The core's work arrays for this method and m coordinates, kept between calls (a
-        call that allocated and zeroed its own paid for it at every step of a host that calls
-        one step at a time: 10 MB for 4096 atoms)."""
-        n = _core.work_size(method.tn.shape[1], method.ts.shape[1], m)
+    def scratch(self, method, m: int, params=None) -> np.ndarray:
+        """The core's work arrays for this method and m coordinates (and the followers of the
+        kernel's params, with followers), kept between calls (a call that allocated and zeroed
+        its own paid for it at every step of a host that calls one step at a time: 10 MB for
+        4096 atoms)."""
+        k, s = method.tn.shape[1], method.ts.shape[1]
+        at = m + 3              # (systems.nbody.nbody_followers: after [G, N, w, g, f])
+        if self.follow and params is not None and params.shape[0] > at + 3:
+            n = _core.work_size(k, s, m, int(params[at + 2]), int(params[at]))
+        else:
+            n = _core.work_size(k, s, m)
         if self._scratch.shape[0] != n:
             self._scratch = np.zeros(n)
         return self._scratch
@@ -132,7 +163,20 @@ class CoreStep:
             return self.numba_step().run(system, state, h, E, method, newton, opts, wk,
                                          samples)
         return _core.run(self.kernel, system, state, float(h), E, method, newton, opts, wk,
-                         samples, None, self.scratch(method, system.minv.shape[0]))
+                         samples, None, self.scratch(method, system.minv.shape[0],
+                                                     system.params), self.follow)
+
+    def attempt(self, system, state, trial, h, h_prev, t_start, ext, method, newton, opts, wk,
+                adaptive) -> int:
+        """:func:`integrators.loop.attempt` on the core (``hbvm_attempt``: the one retry loop
+        and controller, with the test particles' term of the adaptive control)."""
+        if newton.NM.shape[0] > 0:
+            return self.numba_step().attempt(system, state, trial, h, h_prev, t_start, ext,
+                                             method, newton, opts, wk, adaptive)
+        return _core.attempt(self.kernel, system, state, trial, float(h), float(h_prev),
+                             float(t_start), ext, method, newton, opts, wk, adaptive,
+                             self.scratch(method, system.minv.shape[0], system.params),
+                             self.follow)
 
     def energy_parts(self, full, y, kin_w, params):
         if full:
@@ -178,6 +222,10 @@ class PythonCoreStep(CoreStep):
         return _core.run(_core.PYTHON, system, state, float(h), E, method, newton, opts, wk,
                          samples, kern, self.scratch(method, system.minv.shape[0]))
 
+    def attempt(self, *args) -> int:
+        """(the Python step's: the core's attempt takes compiled kernels)"""
+        return self.numba_step().attempt(*args)
+
     def energy_parts(self, full, y, kin_w, params):
         if full:
             raise ValueError("internal error: the compiled core has the separable form only")
@@ -189,15 +237,20 @@ def core_step(force, potential, refs, *, full, equip, velocities, glue, jvp, fol
               fallback):
     """The compiled core's step for these kernels in this variant, or None when the core does
     not cover it.  ``refs``: the (module, name) of compiled kernels (None for Python ones);
+    ``follow``: the followers hooks (:data:`FOLLOWERS`: the N-body kernel's; None: none);
     ``fallback()``: the numba step of the same binding (built only if a step needs Newton)."""
     if (full is not False or equip is not False or velocities or glue is not None
-            or jvp is not None or follow is not None or recentre is not None):
+            or jvp is not None or recentre is not None):
         return None
     if not available():
         return None
     if refs is None:
-        return PythonCoreStep(force, potential, fallback)
+        return None if follow is not None else PythonCoreStep(force, potential, fallback)
     kernel = KERNELS.get(tuple(refs))
     if kernel is None:
         return None
-    return CoreStep(kernel, fallback)
+    if follow is not None:
+        hooks = tuple(_ref(f) for f in follow)
+        if kernel not in FOLLOWERS.get(hooks, ()):
+            return None
+    return CoreStep(kernel, fallback, follow=follow is not None)

@@ -1148,9 +1148,11 @@ class Stepper(Counted):
                     status, err_est = OK, float(self.counters[C_ERR])
                     b = self.binding
                     if b.follow is not None and b.kin_w.shape[0] == self._gamma.shape[1]:
-                        # the test particles, solved apart (core.test_particle_control)
-                        err_est = float(test_particle_control(self._gamma, b.minv, b.kin_w,
-                                                              err_est))
+                        # the test particles, solved apart (core.test_particle_control; the
+                        # compiled core's copy on its step: the same numbers, nothing compiled)
+                        tpc = (ccore._core.test_particle_control
+                               if getattr(b.step_code, "core", False) else test_particle_control)
+                        err_est = float(tpc(self._gamma, b.minv, b.kin_w, err_est))
                     cause = f"error estimate {err_est:.3e} > epsilon={epsilon:.3e}"
                 # the one controller (core.adapt_step, as loop.attempt calls it)
                 accept, h_new, too_small = adapt_step(h, status, err_est, epsilon, s, self.t,

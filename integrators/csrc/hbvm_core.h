@@ -82,10 +82,24 @@ typedef struct {
     const double *I, *I_lo;             /* (k, s) I_s */
 } hbvm_tableau;
 
-/* the separable system: m positions, 1 / m per coordinate and the kinetic energy's weights */
+/* the followers' field kernel: F (3 nt, kp) <- the accelerations of nt test particles at
+ * their stages Xt (3 nt, kp) from the sources at theirs, Xs (us, kp), both stage-fastest, with
+ * the sources' own parameters (systems.nbody.nbody_field's operations on each stage; lanes
+ * n .. kp - 1 repeat stage n - 1); returns 0 */
+typedef int (*hbvm_field_fn)(const double *Xt, int nt, const double *Xs, int kp, int n,
+                             const double *params, double *F);
+
+/* the separable system: m positions, 1 / m per coordinate and the kinetic energy's weights;
+ * with followers (test particles solved after the sources: integrators/followers.py), `follow`
+ * points at the followers block of the kernel's parameters (systems.nbody.followers_block:
+ * [P, 3, us, np, the sources' columns (us), each follower's first column (P), the sources' own
+ * kernel parameters (np)]) and `field` is their field kernel; follow NULL: none (the fields
+ * a host leaves out of its initialiser are zero) */
 typedef struct {
     int m;
     const double *minv, *kin_w;
+    const double *follow;
+    hbvm_field_fn field;
 } hbvm_system;
 
 /* the state a step reads and commits: the double-double pair (y, cy) (2m,), the previous step's
@@ -116,6 +130,18 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
 /* the scratch hbvm_run works in (doubles) for k stages, s coefficients, m coordinates: handed
  * over zeroed and kept between calls (scratch NULL: the run allocates its own) */
 size_t hbvm_work_size(int k, int s, int m);
+
+/* ... and for a system with P followers besides sources of us coordinates */
+size_t hbvm_work_size_followers(int k, int s, int m, int us, int P);
+
+/* the followers block at `follow` (hbvm_system) checked against m coordinates and the block's
+ * length nblock: 0 when usable, else -1 */
+int hbvm_followers_check(int m, const double *follow, long nblock);
+
+/* the adaptive control's estimate with the test particles (core.test_particle_control):
+ * gamma (s, m) row-major, the weights w = 1 / m and kin_w (0 for a test particle) */
+double hbvm_test_particle_control(const double *gamma, int s, int m, const double *w,
+                                  const double *kin_w, double err_sources);
 
 /* the kinetic and potential energies at y (2m,) */
 int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
@@ -154,7 +180,7 @@ int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *
 
 /* the core's functions for the hosts' compiled glue (hbvm_md/rebound/csrc), handed over in
  * the capsule integrators._core.API: one binary of the step */
-#define HBVM_API_VERSION 2
+#define HBVM_API_VERSION 3
 typedef struct {
     int version, lanes, n_counters, n_eref;
     int (*attempt)(const hbvm_kernel *, const hbvm_system *, hbvm_state *, hbvm_state *,
@@ -189,5 +215,8 @@ int hbvm_nbody_force_k(void *ctx, const double *X, int m, int kp, int n, const d
 int hbvm_nbody_potential_k(void *ctx, const double *q, const double *params, double *V);
 /* the parameters' consistency with m coordinates: 0 when usable, else -1 */
 int hbvm_nbody_check(int m, const double *params, long nparams);
+/* the followers' field of the N-body kernel (hbvm_field_fn; systems.nbody.nbody_field) */
+int hbvm_nbody_field(const double *Xt, int nt, const double *Xs, int kp, int n,
+                     const double *params, double *F);
 
 #endif

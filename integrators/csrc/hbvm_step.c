@@ -1,12 +1,14 @@
 /* One HBVM(k, s) step of the separable form, stage-fastest (hbvm_core.h), and many of them.
  *
- * The step of integrators/loop.py (its HBVM, separable, fixed-point branch: no followers, no
- * stage velocities, no Newton matrices) with its pieces from integrators/core.py, operation
- * for operation: the extrapolated start, the fixed point gamma <- P_s^T Omega f(stages), the
- * stop rule (stop_action), the compensated polish and commit, the step's own error estimate
- * (resolution_error), the energy check and the run's drift, the counters and the compensated
- * clock. The docstrings of those Python functions say why each piece is as it is; the comments
- * here say only where this code differs (the layout). */
+ * The step of integrators/loop.py (its HBVM, separable, fixed-point branch: no stage
+ * velocities, no Newton matrices; with or without followers) with its pieces from
+ * integrators/core.py and integrators/followers.py, operation for operation: the extrapolated
+ * start, the fixed point gamma <- P_s^T Omega f(stages), the stop rule (stop_action), the
+ * compensated polish and commit, the followers (test particles) solved after the sources each
+ * with its own stop rule, the step's own error estimate (resolution_error), the energy check
+ * and the run's drift, the counters and the compensated clock. The docstrings of those Python
+ * functions say why each piece is as it is; the comments here say only where this code
+ * differs (the layout). */
 #include <math.h>
 #include <stdlib.h>
 #include <stdint.h>
@@ -121,13 +123,15 @@ typedef struct {
 } work_t;
 
 /* the work arrays' lengths (doubles) for k stages, s coefficients and m coordinates; each a
- * multiple of L long, so that each starts aligned */
+ * multiple of L long, so that each starts aligned.  lean: the whole state's arrays of a step
+ * with followers, whose iteration runs on the sources' block (no stages, no a) */
 #define N_WORK 23
-static size_t work_sizes(int k, int s, int m, size_t *sizes)
+static size_t work_sizes(int k, int s, int m, int lean, size_t *sizes)
 {
     const size_t kp = hbvm_padded(k), sp = hbvm_padded(s), mp = (m + JB - 1) / JB * JB;
-    const size_t sz[N_WORK] = {kp, kp, s * kp, s * kp, k * sp, k * sp, mp * sp, mp * sp,
-                               m * kp, mp * kp, m * kp, m * kp, m * kp, m * kp, m * L, m * L,
+    const size_t mk = lean ? 0 : m * kp, mpk = lean ? 0 : mp * kp, mps = lean ? 0 : mp * sp;
+    const size_t sz[N_WORK] = {kp, kp, s * kp, s * kp, k * sp, k * sp, mps, mp * sp,
+                               mk, mpk, mk, mk, mk, mk, m * L, m * L,
                                s * sp, k, 2 * (size_t)m, 2 * (size_t)m, m, m, m};
     size_t total = 0;
     for (int i = 0; i < N_WORK; ++i) {
@@ -140,34 +144,24 @@ static size_t work_sizes(int k, int s, int m, size_t *sizes)
 size_t hbvm_work_size(int k, int s, int m)
 {
     size_t sizes[N_WORK];
-    return work_sizes(k, s, m, sizes) + L;        /* (+ L: room to align the start) */
+    return work_sizes(k, s, m, 0, sizes) + L;     /* (+ L: room to align the start) */
 }
 
-/* the work arrays in `scratch` (hbvm_work_size(k, s, m) doubles, zero when first handed over:
- * the padded rows and lanes must stay zero, and nothing writes them), or in a block of their
- * own when scratch is NULL */
-static int work_alloc(work_t *w, const hbvm_tableau *tab, int m, double *scratch, size_t nscratch)
+/* the work arrays of w from p on (aligned; work_sizes(k, s, m, lean) doubles, zero when first
+ * handed over: the padded rows and lanes must stay zero, and nothing writes them), and the
+ * method's arrays in the lanes' layout; returns the end */
+static double *work_carve(work_t *w, const hbvm_tableau *tab, int m, int lean, double *p)
 {
     const int k = tab->k, s = tab->s;
     const int kp = hbvm_padded(k), sp = hbvm_padded(s);
     const int mp = (m + JB - 1) / JB * JB;
     w->k = k, w->kp = kp, w->s = s, w->sp = sp, w->m = m, w->mp = mp;
     size_t sizes[N_WORK];
-    const size_t total = work_sizes(k, s, m, sizes);
+    work_sizes(k, s, m, lean, sizes);
     double **ptrs[N_WORK] = {&w->ht, &w->ht_lo, &w->C2T, &w->C2T_lo, &w->WT, &w->WT_lo, &w->a,
                              &w->g, &w->X, &w->F, &w->Xp, &w->Fp, &w->P, &w->Q, &w->X1, &w->F1,
                              &w->ET, &w->pw, &w->yt, &w->cyt, &w->dq, &w->dq_lo, &w->om};
-    double *p;
     w->block = NULL;
-    if (scratch != NULL && nscratch >= total + L) {
-        p = (double *)(((uintptr_t)scratch + 8 * L - 1) / (8 * L) * (8 * L));
-    } else {
-        w->block = aligned_alloc(8 * L, (total > 0 ? total : L) * sizeof(double));
-        if (!w->block)
-            return -1;
-        memset(w->block, 0, total * sizeof(double));
-        p = w->block;
-    }
     for (int i = 0; i < N_WORK; ++i) {
         *ptrs[i] = p;
         p += sizes[i];
@@ -185,6 +179,131 @@ static int work_alloc(work_t *w, const hbvm_tableau *tab, int m, double *scratch
         }
     for (int i = 0; i < k; ++i)
         w->pw[i] = tab->W[i] * legendre_at(s, tab->tau[i]);
+    return p;
+}
+
+/* the followers of a step (integrators/followers.py): the block's layout (hbvm_system.follow)
+ * and their work arrays, the stage index fastest as in the step (a follower's three
+ * coordinates are three rows of kp stage values, contiguous) */
+#define FOLLOWER_GROUP 128              /* core.FOLLOWER_GROUP */
+typedef struct {
+    int P, us, nown, nmax;              /* followers, the sources' columns, their own params'
+                                         * length, the followers of a group */
+    const double *cols, *first, *own;   /* (us) the sources' columns, (P) each follower's first
+                                         * column, the sources' own kernel parameters */
+    double *yb, *cyb, *mb;              /* (2us, 2us, us) the sources' state and 1 / m */
+    double *P0, *Q0;                    /* (3 nmax, kp) a group's stage_base */
+    double *X, *F, *Xp, *Fp;            /* (3 nmax, kp) its stages, fields, the probe's copies */
+    double *g, *a;                      /* (3 nmax, sp) its coefficients, (3, sp) g / m */
+    double *mv;                         /* (3 nmax) 1 / m */
+    double *hist;                       /* (nmax, 5) each follower's stop rule's history */
+    double *lip, *xmax, *ymax, *active; /* (nmax) its Lipschitz estimate, max |X|, max |y|; the
+                                         * followers still iterating, in their order */
+    double *smask;                      /* (sp) all ones in the lanes l < s, zero past them */
+} follow_t;
+
+#define N_FOLLOW 17
+static size_t follow_sizes(int k, int s, int us, int P, size_t *sizes)
+{
+    const size_t kp = hbvm_padded(k), sp = hbvm_padded(s);
+    const size_t nmax = P < FOLLOWER_GROUP ? P : FOLLOWER_GROUP, r = 3 * nmax;
+    const size_t sz[N_FOLLOW] = {2 * (size_t)us, 2 * (size_t)us, us, r * kp, r * kp, r * kp,
+                                 r * kp, r * kp, r * kp, r * sp, 3 * sp, r, 5 * nmax, nmax,
+                                 nmax, nmax, nmax};
+    size_t total = 0;
+    for (int i = 0; i < N_FOLLOW; ++i) {
+        sizes[i] = (sz[i] + L - 1) / L * L;
+        total += sizes[i];
+    }
+    return total + (sp + L - 1) / L * L;
+}
+
+/* the whole state's lean arrays, the sources' block and the followers' arrays */
+static size_t followers_total(int k, int s, int m, int us, int P)
+{
+    size_t sw[N_WORK], sf[N_FOLLOW];
+    return work_sizes(k, s, m, 1, sw) + work_sizes(k, s, us, 0, sw) + follow_sizes(k, s, us, P, sf);
+}
+
+size_t hbvm_work_size_followers(int k, int s, int m, int us, int P)
+{
+    return followers_total(k, s, m, us, P) + L;
+}
+
+int hbvm_followers_check(int m, const double *f, long nblock)
+{
+    if (nblock < 4)
+        return -1;
+    for (int i = 0; i < 4; ++i)
+        if (!(f[i] >= 0.0 && f[i] <= 1e9) || f[i] != (double)(long)f[i])
+            return -1;
+    const long P = (long)f[0], w = (long)f[1], us = (long)f[2], np = (long)f[3];
+    if (P < 1 || w != 3 || us < 3 || us % 3 != 0 || nblock < 4 + us + P + np)
+        return -1;
+    for (long i = 0; i < us + P; ++i) {
+        const double c = f[4 + i];
+        if (!(c >= 0.0 && c < m) || c != (double)(long)c || (i >= us && c + 3 > m))
+            return -1;
+    }
+    return hbvm_nbody_check((int)us, f + 4 + us + P, np);
+}
+
+/* the followers' arrays from p on (follow_sizes) */
+static double *follow_carve(follow_t *f, const double *blk, int k, int s, double *p)
+{
+    f->P = (int)blk[0];
+    f->us = (int)blk[2];
+    f->nown = (int)blk[3];
+    f->nmax = f->P < FOLLOWER_GROUP ? f->P : FOLLOWER_GROUP;
+    f->cols = blk + 4;
+    f->first = blk + 4 + f->us;
+    f->own = blk + 4 + f->us + f->P;
+    size_t sizes[N_FOLLOW];
+    follow_sizes(k, s, f->us, f->P, sizes);
+    double **ptrs[N_FOLLOW] = {&f->yb, &f->cyb, &f->mb, &f->P0, &f->Q0, &f->X, &f->F, &f->Xp,
+                               &f->Fp, &f->g, &f->a, &f->mv, &f->hist, &f->lip, &f->xmax,
+                               &f->ymax, &f->active};
+    for (int i = 0; i < N_FOLLOW; ++i) {
+        *ptrs[i] = p;
+        p += sizes[i];
+    }
+    const int sp = hbvm_padded(s);
+    f->smask = p;
+    for (int l = 0; l < sp; ++l) {
+        const uint64_t bits = l < s ? ~(uint64_t)0 : 0;
+        memcpy(f->smask + l, &bits, sizeof bits);
+    }
+    return p + (sp + L - 1) / L * L;
+}
+
+/* the step's work arrays in `scratch` (hbvm_work_size or hbvm_work_size_followers doubles,
+ * zeroed when first handed over), or in a block of their own when scratch is NULL or short:
+ * w the whole state's; with followers (blk not NULL) w lean, wb the sources' block and f the
+ * followers' */
+static int work_alloc(work_t *w, work_t *wb, follow_t *f, const hbvm_tableau *tab, int m,
+                      const double *blk, double *scratch, size_t nscratch)
+{
+    size_t sizes[N_WORK];
+    const int us = blk ? (int)blk[2] : 0, P = blk ? (int)blk[0] : 0;
+    const size_t total = blk ? followers_total(tab->k, tab->s, m, us, P)
+                             : work_sizes(tab->k, tab->s, m, 0, sizes);
+    double *p;
+    void *block = NULL;
+    if (scratch != NULL && nscratch >= total + L) {
+        p = (double *)(((uintptr_t)scratch + 8 * L - 1) / (8 * L) * (8 * L));
+    } else {
+        block = aligned_alloc(8 * L, (total > 0 ? total : L) * sizeof(double));
+        if (!block)
+            return -1;
+        memset(block, 0, total * sizeof(double));
+        p = block;
+    }
+    p = work_carve(w, tab, m, blk != NULL, p);
+    w->block = block;
+    if (blk) {
+        p = work_carve(wb, tab, us, 0, p);
+        follow_carve(f, blk, tab->k, tab->s, p);
+    }
     return 0;
 }
 
@@ -380,20 +499,22 @@ PIECE double lipschitz_probe(work_t *w, double lip, double *xmax_out)
     return lip;
 }
 
-/* max |F| over the stages, nan when an entry is nan (core.max_abs2) */
-PIECE double max_abs_forces(const work_t *w)
+/* max |F| over the n stage values at F (a multiple of L), nan when an entry is nan
+ * (core.max_abs2) */
+PIECE double max_abs_forces(const double *F, int n)
 {
     vd v = vsplat(0.0);
-    for (int a = 0; a < w->m * w->kp; a += L)
-        v = vmax_nan(v, vabs(vload(w->F + a)));
+    for (int a = 0; a < n; a += L)
+        v = vmax_nan(v, vabs(vload(F + a)));
     return hmax_nan(0.0, v);
 }
 
-/* the stopping rule (core.stop_action); returns ITERATE, POLISH or -status */
-PIECE int stop_action(work_t *w, double delta, double scale, double floor, double hstate,
-                       double hmove, double ymax, int it, double tol)
+/* the stopping rule (core.stop_action) with its history hist (5) and the stage forces F (nF
+ * values: the block's, or one follower's); returns ITERATE, POLISH or -status */
+PIECE int stop_action(double *hist, const double *F, int nF, double delta, double scale,
+                       double floor, double hstate, double hmove, double ymax, int it,
+                       double tol)
 {
-    double *hist = w->hist;
     if (!isfinite(delta))
         return -HBVM_NOT_FINITE;
     if (it == 1)
@@ -408,8 +529,8 @@ PIECE int stop_action(work_t *w, double delta, double scale, double floor, doubl
             return POLISH;
     }
     if (delta >= hist[0]) {
-        if (delta <= ROUNDOFF_ULPS * EPS * py_max(scale, max_abs_forces(w)) || delta <= floor
-            || hstate <= STATE_ULPS)
+        if (delta <= ROUNDOFF_ULPS * EPS * py_max(scale, max_abs_forces(F, nF))
+            || delta <= floor || hstate <= STATE_ULPS)
             return POLISH;
         hist[1] += 1.0;
         if (hist[1] >= 2.0)
@@ -419,7 +540,7 @@ PIECE int stop_action(work_t *w, double delta, double scale, double floor, doubl
         if (theta <= STRONG_CONTRACTION
             && theta * theta * hist[0] <= EXTRAPOLATED_ULPS * EPS * scale
             && (delta <= floor || hstate <= STATE_ULPS
-                || delta <= ROUNDOFF_ULPS * EPS * py_max(scale, max_abs_forces(w))))
+                || delta <= ROUNDOFF_ULPS * EPS * py_max(scale, max_abs_forces(F, nF))))
             return POLISH;
     }
     hist[3] = hist[2];
@@ -669,6 +790,248 @@ static int sample(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_sample
     return 0;
 }
 
+/* ---- the followers (integrators/followers.py): each follower's three coordinates are three
+ * rows of the group's arrays, their kp stage values contiguous; a follower that has converged
+ * stays where it is (its coefficients final) and leaves the list of those still iterating,
+ * which keeps their order: the same numbers as the numba step's compaction, which moves the
+ * others up (no follower's numbers depend on another's) ---- */
+
+/* follower j's stage_base (the parts of its stages fixed for the step), from its state at
+ * columns c0 .. c0 + 2 of the whole state */
+PIECE void follower_base(const work_t *B, follow_t *f, int j, int c0, const double *y,
+                          const double *cy, const double *minv, int m)
+{
+    const int kp = B->kp;
+    for (int c = 0; c < 3; ++c) {
+        const int col = c0 + c, r = 3 * j + c;
+        const double yj = y[col], vj = y[m + col] * minv[col], cyj = cy[col];
+        const double cpj = cy[m + col], mj = minv[col];
+        for (int b = 0; b < kp; b += L) {
+            const vd ht = vload(B->ht + b), ht_lo = vload(B->ht_lo + b);
+            vstore(f->P0 + r * kp + b, yj + ht * vj);
+            vstore(f->Q0 + r * kp + b, (ht_lo * vj - cyj) - ht * cpj * mj);
+        }
+    }
+}
+
+/* follower j's stage positions from its coefficients (stage_positions' operations, its three
+ * coordinates' sums in registers); exact: with C2's low parts (the polish) */
+PIECE void follower_stages(const work_t *B, follow_t *f, int j, double h2, double h2_lo,
+                           int exact)
+{
+    const int s = B->s, kp = B->kp, sp = B->sp;
+    double *a0 = f->a, *a1 = a0 + sp, *a2 = a1 + sp;
+    for (int c = 0; c < 3; ++c) {
+        const int r = 3 * j + c;
+        for (int l = 0; l < s; ++l)
+            f->a[c * sp + l] = f->g[r * sp + l] * f->mv[r];
+    }
+    const vd zero = vsplat(0.0);
+    for (int b = 0; b < kp; b += L) {
+        vd c0 = zero, c1 = zero, c2 = zero, d0 = zero, d1 = zero, d2 = zero;
+        if (exact) {
+            for (int l = 0; l < s; ++l) {
+                const vd c = vload(B->C2T + l * kp + b), cl = vload(B->C2T_lo + l * kp + b);
+                c0 += c * a0[l];
+                c1 += c * a1[l];
+                c2 += c * a2[l];
+                d0 += cl * a0[l];
+                d1 += cl * a1[l];
+                d2 += cl * a2[l];
+            }
+        } else {
+            for (int l = 0; l < s; ++l) {
+                const vd c = vload(B->C2T + l * kp + b);
+                c0 += c * a0[l];
+                c1 += c * a1[l];
+                c2 += c * a2[l];
+            }
+        }
+        const vd cs[3] = {c0, c1, c2}, ds[3] = {d0, d1, d2};
+        for (int c = 0; c < 3; ++c) {
+            const int o = (3 * j + c) * kp + b;
+            vstore(f->X + o, vload(f->P0 + o) + ((vload(f->Q0 + o) + h2 * (cs[c] + ds[c]))
+                                                 + h2_lo * cs[c]));
+        }
+    }
+}
+
+/* core.lipschitz_slots for follower j: its estimate and max |X| updated, (X, F) kept */
+PIECE void follower_lipschitz(follow_t *f, int j, int kp)
+{
+    const vd zero = vsplat(0.0);
+    vd dx = zero, df = zero, xm = zero;
+    for (int a = 3 * j * kp; a < 3 * (j + 1) * kp; a += L) {
+        const vd x = vload(f->X + a), fv = vload(f->F + a);
+        dx = vmax(dx, vabs(x - vload(f->Xp + a)));
+        df = vmax(df, vabs(fv - vload(f->Fp + a)));
+        xm = vmax(xm, vabs(x));
+        vstore(f->Xp + a, x);
+        vstore(f->Fp + a, fv);
+    }
+    const double ddx = hmax(0.0, dx), ddf = hmax(0.0, df), xmax = hmax(0.0, xm);
+    if (ddx > 1024.0 * EPS * xmax && ddf / ddx > f->lip[j])
+        f->lip[j] = ddf / ddx;
+    f->xmax[j] = xmax;
+}
+
+/* follower j's g <- W F (core.project_each's sums; its three coordinates' chains of additions
+ * together); its largest increment (nan first) and coefficient over the lanes l < s */
+PIECE void follower_project(const work_t *B, follow_t *f, int j, double *delta_out,
+                            double *scale_out)
+{
+    const int k = B->k, kp = B->kp, sp = B->sp;
+    const vd zero = vsplat(0.0);
+    vd dmax = zero, smax = zero;
+    const double *f0 = f->F + 3 * j * kp, *f1 = f0 + kp, *f2 = f1 + kp;
+    double *g0 = f->g + 3 * j * sp;
+    for (int b = 0; b < sp; b += L) {
+        vd a0 = zero, a1 = zero, a2 = zero;
+        for (int i = 0; i < k; ++i) {
+            const vd wt = vload(B->WT + i * sp + b);
+            a0 += wt * f0[i];
+            a1 += wt * f1[i];
+            a2 += wt * f2[i];
+        }
+        const vl mask = (vl)vload(f->smask + b);
+        const vd as[3] = {a0, a1, a2};
+        for (int c = 0; c < 3; ++c) {
+            double *old = g0 + c * sp + b;
+            dmax = vmax_nan(dmax, (vd)((vl)vabs(as[c] - vload(old)) & mask));
+            smax = vmax(smax, (vd)((vl)vabs(as[c]) & mask));
+            vstore(old, as[c]);
+        }
+    }
+    *delta_out = hmax_nan(0.0, dmax);
+    *scale_out = hmax(0.0, smax);
+}
+
+/* follower j's g <- W F compensated (core.project_compensated's sums) */
+PIECE void follower_project_compensated(const work_t *B, follow_t *f, int j)
+{
+    const int k = B->k, kp = B->kp, sp = B->sp;
+    const vd zero = vsplat(0.0);
+    const double *f0 = f->F + 3 * j * kp, *f1 = f0 + kp, *f2 = f1 + kp;
+    double *g0 = f->g + 3 * j * sp;
+    for (int b = 0; b < sp; b += L) {
+        vd a0 = zero, a1 = zero, a2 = zero, l0 = zero, l1 = zero, l2 = zero;
+        for (int i = 0; i < k; ++i) {
+            const vd wt = vload(B->WT + i * sp + b), wt_lo = vload(B->WT_lo + i * sp + b);
+            dot2_step(&a0, &l0, wt, wt_lo, f0[i]);
+            dot2_step(&a1, &l1, wt, wt_lo, f1[i]);
+            dot2_step(&a2, &l2, wt, wt_lo, f2[i]);
+        }
+        vstore(g0 + b, a0 + l0);
+        vstore(g0 + sp + b, a1 + l1);
+        vstore(g0 + 2 * sp + b, a2 + l2);
+    }
+}
+
+/* The followers' stage equations after the sources' (integrators.followers.follow): in groups
+ * of FOLLOWER_GROUP, each follower iterated in the sources' field at their stage values B->X
+ * with its own stop rule until it converges, then the group's compensated polish; gw (m, sp):
+ * the whole state's coefficients (the followers' rows hold their initial guess, overwritten
+ * with the result).  Returns the status; *it_out the iterations of the slowest follower, the
+ * polish included (of the failing group when one fails), *last_out the failing follower's
+ * last increment (after max_iter: the largest of those still iterating), 0 when none. */
+PIECE int follow(const hbvm_system *sys, const work_t *B, follow_t *f, const double *y,
+                  const double *cy, const double *minv, double *gw, double h, double h2,
+                  double h2_lo, const hbvm_options *opts, int *it_out, double *last_out)
+{
+    const int m = sys->m, k = B->k, kp = B->kp, sp = B->sp, P = f->P, nmax = f->nmax;
+    int itmax = 0;
+    for (int j0 = 0; j0 < P; j0 += nmax) {
+        const int pc = nmax < P - j0 ? nmax : P - j0;
+        for (int j = 0; j < pc; ++j) {
+            const int c0 = (int)f->first[j0 + j];
+            double ym = 0.0;
+            for (int c = 0; c < 3; ++c) {
+                const double q = fabs(y[c0 + c]), p = fabs(y[m + c0 + c]);
+                if (q > ym)
+                    ym = q;
+                if (p > ym)
+                    ym = p;
+                f->mv[3 * j + c] = minv[c0 + c];
+                memcpy(f->g + (3 * j + c) * sp, gw + (size_t)(c0 + c) * sp, sp * sizeof(double));
+            }
+            follower_base(B, f, j, c0, y, cy, minv, m);
+            double *hist = f->hist + 5 * j;
+            hist[0] = INFINITY;
+            hist[1] = 0.0;
+            hist[2] = INFINITY;
+            hist[3] = INFINITY;
+            hist[4] = 0.0;
+            f->lip[j] = 0.0;
+            f->xmax[j] = 0.0;
+            f->ymax[j] = ym;
+            f->active[j] = j;
+        }
+        int na = pc, it = 0;
+        double worst = 0.0;       /* the largest increment of those still iterating */
+        while (na > 0) {
+            if (it >= opts->max_iter) {
+                *it_out = it;
+                *last_out = worst;
+                return HBVM_DIVERGED;
+            }
+            it += 1;
+            worst = 0.0;
+            int nk = 0;
+            for (int q = 0; q < na; ++q) {
+                const int j = (int)f->active[q];
+                double *Xj = f->X + 3 * j * kp, *Fj = f->F + 3 * j * kp;
+                follower_stages(B, f, j, h2, h2_lo, 0);
+                if (sys->field(Xj, 1, B->X, kp, k, f->own, Fj) != 0) {
+                    *it_out = it;
+                    *last_out = 0.0;
+                    return HBVM_ABORTED;
+                }
+                if (it <= 3) {
+                    if (it > 1) {
+                        follower_lipschitz(f, j, kp);
+                    } else {
+                        memcpy(f->Xp + 3 * j * kp, Xj, 3 * (size_t)kp * sizeof(double));
+                        memcpy(f->Fp + 3 * j * kp, Fj, 3 * (size_t)kp * sizeof(double));
+                    }
+                }
+                double delta, scale;
+                follower_project(B, f, j, &delta, &scale);
+                const double ym = f->ymax[j];
+                const double hstate = ym > 0.0 ? fabs(h) * delta / (EPS * ym) : INFINITY;
+                const int action = stop_action(f->hist + 5 * j, Fj, 3 * kp, delta, scale,
+                                               LIPSCHITZ_ULPS * EPS * f->xmax[j] * f->lip[j],
+                                               hstate, fabs(h) * scale, ym, it, opts->tol);
+                if (action == ITERATE) {
+                    f->active[nk++] = j;
+                    worst = py_max(worst, delta);
+                } else if (action != POLISH) {
+                    *it_out = it;
+                    *last_out = delta;
+                    return -action;
+                }
+            }
+            na = nk;
+        }
+        if (it + 1 > itmax)
+            itmax = it + 1;
+        /* the polish, the group at once */
+        for (int j = 0; j < pc; ++j) {
+            const int c0 = (int)f->first[j0 + j];
+            follower_stages(B, f, j, h2, h2_lo, 1);
+            if (sys->field(f->X + 3 * j * kp, 1, B->X, kp, k, f->own, f->F + 3 * j * kp) != 0) {
+                *it_out = it;
+                *last_out = 0.0;
+                return HBVM_ABORTED;
+            }
+            follower_project_compensated(B, f, j);
+            memcpy(gw + (size_t)c0 * sp, f->g + 3 * j * sp, 3 * (size_t)sp * sizeof(double));
+        }
+    }
+    *it_out = itmax;
+    *last_out = 0.0;
+    return HBVM_OK;
+}
+
 int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, double h,
              const double *E, const hbvm_tableau *tab, const hbvm_options *opts,
              double *counters, hbvm_samples *smp, double *scratch, size_t nscratch)
@@ -677,10 +1040,28 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
     const double *minv = sys->minv;
     double *y = st->y, *cy = st->cy, *gamma = st->gamma, *eref = st->eref;
     double t = st->clock[0], ct = st->clock[1];
-    work_t w;
-    if (work_alloc(&w, tab, m, scratch, nscratch) != 0)
+    /* with followers (integrators.loop, "Followers"): the sources' stage equations are solved
+     * as if alone, on their own copies (the block B, with the sources' own kernel parameters),
+     * then each follower's in their field (follow); without, the block is the whole system */
+    const double *blk = sys->follow != NULL && sys->field != NULL ? sys->follow : NULL;
+    work_t w, wb;
+    follow_t fo;
+    if (work_alloc(&w, &wb, &fo, tab, m, blk, scratch, nscratch) != 0)
         return -1;
-    double *g = w.g;
+    work_t *B = blk ? &wb : &w;
+    hbvm_kernel kb = *kernel;
+    double *yb = y, *cyb = cy;
+    const double *mb = minv;
+    if (blk) {
+        kb.params = fo.own;
+        yb = fo.yb;
+        cyb = fo.cyb;
+        for (int c = 0; c < fo.us; ++c)
+            fo.mb[c] = minv[(int)fo.cols[c]];
+        mb = fo.mb;
+    }
+    const int mbk = B->m, sp = w.sp;
+    double *g = w.g, *gb = B->g;
     long isample = 0;
     if (smp->every > 0) {
         if (sample(kernel, sys, smp, 0, t, y) != 0) {
@@ -694,64 +1075,92 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         const double it0 = counters[C_ITER], nfev0 = counters[C_NFEV];
         const double newton0 = counters[C_NEWTON];
         double h2, h2_lo;
-        step_constants(&w, tab, h, &h2, &h2_lo);
-        stage_base(&w, y, cy, minv);
-        /* the first guess: the previous polynomial extrapolated, or the force at y0 */
+        step_constants(B, tab, h, &h2, &h2_lo);
+        if (blk)                 /* the sources' state (loop.gather_sources) */
+            for (int c = 0; c < mbk; ++c) {
+                const int col = (int)fo.cols[c];
+                yb[c] = y[col];
+                yb[mbk + c] = y[m + col];
+                cyb[c] = cy[col];
+                cyb[mbk + c] = cy[m + col];
+            }
+        stage_base(B, yb, cyb, mb);
+        /* the first guess (of the whole state): the previous polynomial extrapolated, or the
+         * force at y0 */
         if (all_zero(gamma, s * m)) {
             if (force_at_point(kernel, &w, y, w.dq) != 0) {
                 result = fail(counters, HBVM_ABORTED, it0, nfev0, newton0);
                 break;
             }
-            for (int i = 0; i < w.sp; ++i)
+            for (int i = 0; i < sp; ++i)
                 for (int j = 0; j < m; ++j)
-                    g[j * w.sp + i] = i == 0 ? w.dq[j] : 0.0;
+                    g[j * sp + i] = i == 0 ? w.dq[j] : 0.0;
             counters[C_NFEV] += 1;
         } else {
             guess(&w, E, gamma);
         }
-        w.hist[0] = INFINITY;
-        w.hist[1] = 0.0;
-        w.hist[2] = INFINITY;
-        w.hist[3] = INFINITY;
+        if (blk)                 /* ... and the sources' part of it into their block */
+            for (int c = 0; c < mbk; ++c)
+                memcpy(gb + c * sp, g + (size_t)fo.cols[c] * sp, sp * sizeof(double));
+        B->hist[0] = INFINITY;
+        B->hist[1] = 0.0;
+        B->hist[2] = INFINITY;
+        B->hist[3] = INFINITY;
         double ymax = 0.0;
-        for (int j = 0; j < d; ++j)
-            if (fabs(y[j]) > ymax)
-                ymax = fabs(y[j]);
+        for (int j = 0; j < 2 * mbk; ++j)
+            if (fabs(yb[j]) > ymax)
+                ymax = fabs(yb[j]);
         const double yscale = EPS * ymax;
         double lip = 0.0, xmax = 0.0;
         int polish = 0, status = HBVM_DIVERGED, it = 0;
         while (polish || it < opts->max_iter) {
             it += 1;
-            stage_positions(&w, minv, h2, h2_lo, polish);
-            if (kernel->force(kernel->ctx, w.X, m, w.kp, k, kernel->params, w.F) != 0) {
+            stage_positions(B, mb, h2, h2_lo, polish);
+            if (kb.force(kb.ctx, B->X, mbk, B->kp, k, kb.params, B->F) != 0) {
                 status = HBVM_ABORTED;
                 break;
             }
             counters[C_NFEV] += k;
             if (it <= 3) {
                 if (it > 1) {
-                    lip = lipschitz_probe(&w, lip, &xmax);
+                    lip = lipschitz_probe(B, lip, &xmax);
                 } else {
-                    memcpy(w.Xp, w.X, (size_t)m * w.kp * sizeof(double));
-                    memcpy(w.Fp, w.F, (size_t)m * w.kp * sizeof(double));
+                    memcpy(B->Xp, B->X, (size_t)mbk * B->kp * sizeof(double));
+                    memcpy(B->Fp, B->F, (size_t)mbk * B->kp * sizeof(double));
                 }
             }
             if (polish) {
-                project_compensated(&w);
+                project_compensated(B);
                 status = HBVM_OK;
                 break;
             }
             double delta, scale;
-            project(&w, &delta, &scale);
+            project(B, &delta, &scale);
             counters[C_LAST] = delta;
             const double hstate = yscale > 0.0 ? fabs(h) * delta / yscale : INFINITY;
-            const int action = stop_action(&w, delta, scale, LIPSCHITZ_ULPS * EPS * xmax * lip,
-                                           hstate, fabs(h) * scale, ymax, it, opts->tol);
+            const int action = stop_action(B->hist, B->F, mbk * B->kp, delta, scale,
+                                           LIPSCHITZ_ULPS * EPS * xmax * lip, hstate,
+                                           fabs(h) * scale, ymax, it, opts->tol);
             if (action == POLISH)
                 polish = 1;
             else if (action != ITERATE) {
                 status = -action;
                 break;
+            }
+        }
+        if (blk && status == HBVM_OK) {
+            /* the sources' coefficients back into the whole state's, then the followers
+             * (loop.solve_followers); the counts are the longest block's (the step's depth) */
+            for (int c = 0; c < mbk; ++c)
+                memcpy(g + (size_t)fo.cols[c] * sp, gb + c * sp, sp * sizeof(double));
+            int itf;
+            double dlast;
+            status = follow(sys, B, &fo, y, cy, minv, g, h, h2, h2_lo, opts, &itf, &dlast);
+            if (status != HBVM_OK)
+                counters[C_LAST] = dlast;
+            if (itf > it) {
+                counters[C_NFEV] += (double)k * (itf - it);
+                it = itf;
             }
         }
         counters[C_ITER] += it;
@@ -773,35 +1182,40 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         }
         double err = 0.0, share = 0.0, drift = 0.0;
         if (opts->ebound > 0.0) {
-            /* the first Legendre coefficient the step leaves out: from the stages (k > s), else
-             * from one evaluation at the step's end (core.omitted_coefficient, endpoint_defect) */
+            /* the first Legendre coefficient the step leaves out, of the block (the sources
+             * with followers): from the stages (k > s), else from one evaluation at the
+             * step's end (core.omitted_coefficient, endpoint_defect) */
             if (k > s) {
-                for (int j = 0; j < m; ++j)
-                    w.om[j] = 0.0;
+                for (int j = 0; j < mbk; ++j)
+                    B->om[j] = 0.0;
                 for (int i = 0; i < k; ++i) {
-                    const double wi = w.pw[i];
-                    for (int j = 0; j < m; ++j)
-                        w.om[j] += wi * w.F[j * w.kp + i];
+                    const double wi = B->pw[i];
+                    for (int j = 0; j < mbk; ++j)
+                        B->om[j] += wi * B->F[j * B->kp + i];
                 }
             } else {
-                for (int j = 0; j < m; ++j)
-                    w.dq[j] = w.yt[j] - w.cyt[j];
-                if (force_at_point(kernel, &w, w.dq, w.dq_lo) != 0) {
+                for (int j = 0; j < mbk; ++j) {
+                    const int col = blk ? (int)fo.cols[j] : j;
+                    B->dq[j] = w.yt[col] - w.cyt[col];
+                }
+                if (force_at_point(&kb, B, B->dq, B->dq_lo) != 0) {
                     result = fail(counters, HBVM_ABORTED, it0, nfev0, newton0);
                     break;
                 }
                 const double r = 1.0 / sqrt(2.0 * s + 1.0);
-                for (int j = 0; j < m; ++j) {
+                for (int j = 0; j < mbk; ++j) {
                     double acc = 0.0;
                     for (int l = 0; l < s; ++l)
-                        acc += sqrt(2.0 * l + 1.0) * g[j * w.sp + l];
-                    w.om[j] = (w.dq_lo[j] - acc) * r;
+                        acc += sqrt(2.0 * l + 1.0) * gb[j * sp + l];
+                    B->om[j] = (B->dq_lo[j] - acc) * r;
                 }
                 counters[C_NFEV] += 1;
             }
             int worst;
-            err = resolution_error(y, minv, g, w.sp, w.om, h, m, s, opts->group, &worst);
-            share = run_error_share(y, minv, g, w.sp, h, err, worst, m, s, opts->group);
+            err = resolution_error(yb, mb, gb, sp, B->om, h, mbk, s, opts->group, &worst);
+            share = run_error_share(yb, mb, gb, sp, h, err, worst, mbk, s, opts->group);
+            if (blk && worst >= 0 && opts->group > 0)     /* (the whole state's body) */
+                worst = (int)fo.cols[worst * opts->group] / opts->group;
             counters[C_ERR] = err;
             counters[C_WORST] = worst;
             if (!(err <= opts->ebound)) {
@@ -811,7 +1225,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         }
         if (opts->etol != 0.0) {
             double change = 0.0;
-            const int checked = energy_check(kernel, sys, y, w.yt, opts, eref, h, g, w.sp, tab,
+            const int checked = energy_check(kernel, sys, y, w.yt, opts, eref, h, g, sp, tab,
                                              &change);
             if (checked != HBVM_OK) {
                 counters[C_CHANGE] = change;
@@ -826,7 +1240,7 @@ int hbvm_run(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *st, 
         memcpy(cy, w.cyt, d * sizeof(double));
         for (int l = 0; l < s; ++l)
             for (int j = 0; j < m; ++j)
-                gamma[l * m + j] = g[j * w.sp + l];
+                gamma[l * m + j] = g[j * sp + l];
         counters[C_STEPS] += 1;
         const double yk = h - ct;
         const double tn = t + yk;
@@ -912,6 +1326,54 @@ const double *hbvm_select_extrapolation(double h, double h_prev, const hbvm_extr
     return ext->buf;
 }
 
+/* c_j = int_0^1 P_j(x) x^j dx (core.monomial_weight) */
+static double monomial_weight(int j)
+{
+    double c = 1.0;
+    for (int i = 1; i <= j; ++i)
+        c *= (double)(i * i) / ((2.0 * i) * (2.0 * i + 1.0));
+    return c * sqrt(2.0 * j + 1.0);
+}
+
+double hbvm_test_particle_control(const double *gamma, int s, int m, const double *w,
+                                  const double *kin_w, double err_sources)
+{
+    if (s < 2)
+        return err_sources;
+    const double cw = monomial_weight(s - 1);
+    const double *top_row = gamma + (size_t)(s - 1) * m;
+    double top = 0.0, low = 0.0;        /* core.sources_terms */
+    for (int j = 0; j < m; ++j)
+        if (kin_w[j] != 0.0) {
+            if (fabs(w[j] * top_row[j]) > top)
+                top = fabs(w[j] * top_row[j]);
+            if (fabs(w[j] * gamma[j]) > low)
+                low = fabs(w[j] * gamma[j]);
+        }
+    if (!(low > 0.0 && top > 0.0))
+        return err_sources;
+    const double r = top / (cw * low);
+    const double p = (2.0 * s + 1.0) / (s - 1.0);
+    double out = err_sources;
+    for (int i = 0; i < m / 3; ++i) {
+        if (kin_w[3 * i] != 0.0)
+            continue;
+        double tt = 0.0, lo = 0.0;      /* core.particle_terms */
+        for (int c = 3 * i; c < 3 * i + 3; ++c) {
+            if (fabs(top_row[c]) > tt)
+                tt = fabs(top_row[c]);
+            if (fabs(gamma[c]) > lo)
+                lo = fabs(gamma[c]);
+        }
+        if (lo > 0.0) {
+            const double e = err_sources * pow(tt / (cw * lo) / r, p);
+            if (e > out)
+                out = e;
+        }
+    }
+    return out;
+}
+
 /* core.next_step: h (epsilon / err)^(1 / (2s + 1)) x 0.7, within [0.2 h, 2 h] */
 static double next_step(double h, double err, double epsilon, int s)
 {
@@ -975,8 +1437,10 @@ int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *
         res[1] = h;
         if (epsilon <= 0.0 || status == HBVM_DRIFTED)   /* (no shorter step undoes the past) */
             return status;
-        const double err = (status == HBVM_OK || status == HBVM_NOT_RESOLVED) ? counters[C_ERR]
-                                                                              : NAN;
+        double err = (status == HBVM_OK || status == HBVM_NOT_RESOLVED) ? counters[C_ERR] : NAN;
+        if (sys->follow != NULL && sys->field != NULL && status == HBVM_OK)
+            /* (the test particles, solved apart: core.test_particle_control) */
+            err = hbvm_test_particle_control(trial->gamma, s, m, sys->minv, sys->kin_w, err);
         double h_new;
         int too_small;
         if (adapt_step(h, status, err, epsilon, s, t_start, min_dt, &h_new, &too_small)) {

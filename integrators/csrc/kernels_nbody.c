@@ -130,3 +130,142 @@ int hbvm_nbody_potential_k(void *ctx, const double *q, const double *params, dou
     *V = hbvm_nbody_potential(q, params);
     return 0;
 }
+
+/* The accelerations of nt test particles from the sources (systems.nbody.nbody_field): Xt
+ * (3 nt, kp) the particles' stages, Xs (3 Ns, kp) the sources', F (3 nt, kp), all
+ * stage-fastest; n stages, lanes n .. kp - 1 repeating stage n - 1; params the sources' own
+ * kernel parameters [G, Ns, w, g, f].  Each particle sums over its sources in their order,
+ * c = g_k (G / (d2 sqrt(d2))) on each stage, as nbody_field does on each row: the same numbers
+ * bit for bit.  (A particle's three sums start from zero where nbody_field starts from its
+ * stored zero: the same additions.)  The square roots and divisions are the kernel's cost: a
+ * last vector holding at most half a vector of stages (HBVM(9, 8)'s ninth stage in a second
+ * vector of 8) computes them in half a vector, or one stage at a time, and copies the last
+ * stage into the padded lanes (a packed square root or division of half the width, or a scalar
+ * one, takes half the time or less of a full one; the same operations on each stage). */
+#if HBVM_LANES == 8 && defined(__AVX512F__)
+typedef double vdh __attribute__((vector_size(4 * HBVM_LANES)));
+static inline vdh vhsqrt(vdh x) { return (vdh)_mm256_sqrt_pd((__m256d)x); }
+#define HAVE_HALF 1
+#elif HBVM_LANES == 4 && defined(__AVX__)
+typedef double vdh __attribute__((vector_size(4 * HBVM_LANES)));
+static inline vdh vhsqrt(vdh x) { return (vdh)_mm_sqrt_pd((__m128d)x); }
+#define HAVE_HALF 1
+#else
+#define HAVE_HALF 0
+#endif
+
+static inline void field_full(const double *xt, const double *Xs, int kp, int b, int Ns,
+                              const double *gm, double G, double *ft)
+{
+    const vd vG = vsplat(G), zero = vsplat(0.0);
+    const vd x0 = vload(xt + b), x1 = vload(xt + kp + b), x2 = vload(xt + 2 * kp + b);
+    vd fx = zero, fy = zero, fz = zero;
+    for (int k = 0; k < Ns; ++k) {
+        const double *xs = Xs + 3 * k * kp + b;
+        const vd dx = vload(xs) - x0;
+        const vd dy = vload(xs + kp) - x1;
+        const vd dz = vload(xs + 2 * kp) - x2;
+        const vd d2 = dx * dx + dy * dy + dz * dz;
+        const vd c = vsplat(gm[k]) * (vG / (d2 * vsqrt(d2)));
+        fx += c * dx;
+        fy += c * dy;
+        fz += c * dz;
+    }
+    vstore(ft + b, fx);
+    vstore(ft + kp + b, fy);
+    vstore(ft + 2 * kp + b, fz);
+}
+
+#if HAVE_HALF
+static inline vdh hload(const double *p)
+{
+    return *(const vdh *)__builtin_assume_aligned(p, 4 * L);
+}
+static inline void hstore(double *p, vdh v) { *(vdh *)__builtin_assume_aligned(p, 4 * L) = v; }
+static inline vdh hsplat(double x)
+{
+    vdh v;
+    for (int i = 0; i < L / 2; ++i)
+        v[i] = x;
+    return v;
+}
+
+static inline void field_half(const double *xt, const double *Xs, int kp, int b, int Ns,
+                              const double *gm, double G, double *ft)
+{
+    const vdh vG = hsplat(G), zero = hsplat(0.0);
+    const vdh x0 = hload(xt + b), x1 = hload(xt + kp + b), x2 = hload(xt + 2 * kp + b);
+    vdh fx = zero, fy = zero, fz = zero;
+    for (int k = 0; k < Ns; ++k) {
+        const double *xs = Xs + 3 * k * kp + b;
+        const vdh dx = hload(xs) - x0;
+        const vdh dy = hload(xs + kp) - x1;
+        const vdh dz = hload(xs + 2 * kp) - x2;
+        const vdh d2 = dx * dx + dy * dy + dz * dz;
+        const vdh c = hsplat(gm[k]) * (vG / (d2 * vhsqrt(d2)));
+        fx += c * dx;
+        fy += c * dy;
+        fz += c * dz;
+    }
+    hstore(ft + b, fx);
+    hstore(ft + kp + b, fy);
+    hstore(ft + 2 * kp + b, fz);
+}
+#endif
+
+static inline void field_scalar(const double *xt, const double *Xs, int kp, int i, int Ns,
+                                const double *gm, double G, double *ft)
+{
+    const double x0 = xt[i], x1 = xt[kp + i], x2 = xt[2 * kp + i];
+    double fx = 0.0, fy = 0.0, fz = 0.0;
+    for (int k = 0; k < Ns; ++k) {
+        const double *xs = Xs + 3 * k * kp + i;
+        const double dx = xs[0] - x0;
+        const double dy = xs[kp] - x1;
+        const double dz = xs[2 * kp] - x2;
+        const double d2 = dx * dx + dy * dy + dz * dz;
+        const double c = gm[k] * (G / (d2 * sqrt(d2)));
+        fx += c * dx;
+        fy += c * dy;
+        fz += c * dz;
+    }
+    ft[i] = fx;
+    ft[kp + i] = fy;
+    ft[2 * kp + i] = fz;
+}
+
+int hbvm_nbody_field(const double *restrict Xt, int nt, const double *restrict Xs, int kp,
+                     int n, const double *restrict params, double *restrict F)
+{
+    const double G = params[0];
+    const int Ns = (int)params[1];
+    const double *gm = params + 2 + Ns;
+    if (n < 1 || n > kp)
+        n = kp;
+    /* the last vector's stages, and the lanes computed of it (the rest copy stage n - 1) */
+    const int b_last = (n - 1) / L * L, r = n - b_last;
+    for (int t = 0; t < nt; ++t) {
+        const double *xt = Xt + 3 * t * kp;
+        double *ft = F + 3 * t * kp;
+        for (int b = 0; b < b_last; b += L)
+            field_full(xt, Xs, kp, b, Ns, gm, G, ft);
+        int done;
+        if (2 * r > L) {
+            field_full(xt, Xs, kp, b_last, Ns, gm, G, ft);
+            done = L;
+        } else if (HAVE_HALF && 4 * r > L) {
+#if HAVE_HALF
+            field_half(xt, Xs, kp, b_last, Ns, gm, G, ft);
+#endif
+            done = L / 2;
+        } else {
+            for (int i = b_last; i < n; ++i)
+                field_scalar(xt, Xs, kp, i, Ns, gm, G, ft);
+            done = r;
+        }
+        for (int c = 0; c < 3; ++c)
+            for (int i = b_last + done; i < b_last + L; ++i)
+                ft[c * kp + i] = ft[c * kp + n - 1];
+    }
+    return 0;
+}

@@ -1,11 +1,13 @@
 /* integrators._core: the compiled core's Python face.
  *
- * run(kernel, system, state, h, E, method, newton, opts, work, samples) takes the records of
- * integrators.records (named tuples of numpy arrays, read by position through the buffer
- * protocol: no numpy headers at build time) and returns the step's status, as
- * integrators.loop.run does. The arrays are checked for their dtype, shape and contiguity: a
- * record that does not fit is a TypeError or ValueError naming the field, never a wrong read.
- * The GIL is released while the steps run. */
+ * run(kernel, system, state, h, E, method, newton, opts, work, samples[, pyk, scratch,
+ * follow]) takes the records of integrators.records (named tuples of numpy arrays, read by
+ * position through the buffer protocol: no numpy headers at build time) and returns the step's
+ * status, as integrators.loop.run does (follow: the N-body kernel's test particles solved as
+ * followers); attempt(...) is integrators.loop.attempt's contract (hbvm_attempt). The arrays
+ * are checked for their dtype, shape and contiguity: a record that does not fit is a TypeError
+ * or ValueError naming the field, never a wrong read. The GIL is released while the steps
+ * run. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -197,125 +199,158 @@ static int check_params(long id, int m, Py_ssize_t np, const double *params)
     return 0;
 }
 
-static PyObject *py_run(PyObject *self, PyObject *args)
-{
-    long kid;
-    PyObject *system, *state, *Eo, *method, *newton, *opts, *wk, *samples, *pyk = Py_None;
-    PyObject *scr = Py_None;
-    double h;
-    if (!PyArg_ParseTuple(args, "lOOdOOOOOO|OO", &kid, &system, &state, &h, &Eo, &method,
-                          &newton, &opts, &wk, &samples, &pyk, &scr))
-        return NULL;
+/* a step's records, read and checked (py_run, py_attempt) */
+typedef struct {
     hbvm_kernel kern;
-    if (kernel_of(kid, &kern) != 0)
-        return NULL;
-    bufset bs = {.n = 0};
+    pyk_ctx pctx;
+    int mctx;
+    hbvm_system sys;
+    hbvm_tableau tab;
+    hbvm_state st;
+    hbvm_options op;
+    double *counters, *scratch;
+    Py_ssize_t nscratch;
+} step_args;
+
+/* a state record (y (2m), cy (2m), gamma (s, m), eref (>= 7), clock (>= 2)) named `what` */
+static int get_state(bufset *bs, PyObject *state, const char *what, int m, int s,
+                     hbvm_state *st)
+{
+    const char *fields[] = {"y", "cy", "gamma", "eref", "clock"};
+    const int sdims[] = {1, 1, 2, 1, 1};
+    double *sp[5];
+    Py_ssize_t sh[2];
+    char name[64];
+    for (int i = 0; i < 5; ++i) {
+        snprintf(name, sizeof name, "%s.%s", what, fields[i]);
+        PyObject *o = item(state, i, name);
+        if (!o)
+            return -1;
+        if (!(sp[i] = get(bs, o, name, sdims[i], 1, sh)))
+            return -1;
+        if ((i < 2 && sh[0] != 2 * m) || (i == 2 && (sh[0] != s || sh[1] != m))
+            || (i == 3 && sh[0] < HBVM_N_EREF) || (i == 4 && sh[0] < 2)) {
+            PyErr_Format(PyExc_ValueError, "hbvm-md core: `%s` has the wrong shape (want %s)",
+                         name, i < 2 ? "(2m,)" : i == 2 ? "(s, m)" : i == 3 ? "(7,)" : "(2,)");
+            return -1;
+        }
+    }
+    st->y = sp[0], st->cy = sp[1], st->gamma = sp[2], st->eref = sp[3], st->clock = sp[4];
+    return 0;
+}
+
+/* kernel id, system, state, method, newton, opts, work, the Python kernel, the scratch and the
+ * followers flag into a (0, or -1 with the exception set) */
+static int parse_step(bufset *bs, long kid, PyObject *system, PyObject *state, PyObject *method,
+                      PyObject *newton, PyObject *opts, PyObject *wk, PyObject *pyk,
+                      PyObject *scr, int follow, step_args *a)
+{
     Py_ssize_t sh[3];
     PyObject *o;
+    if (kernel_of(kid, &a->kern) != 0)
+        return -1;
     /* system: (full, minv, kin_w, params) */
     if (!(o = item(system, 0, "system.full")))
-        return NULL;
+        return -1;
     if (PyObject_IsTrue(o)) {
         PyErr_SetString(PyExc_ValueError, "hbvm-md core: the compiled core steps the separable "
                                           "form only (system.full is true)");
-        return NULL;
+        return -1;
     }
     if (!(o = item(system, 1, "system.minv")))
-        return NULL;
-    const double *minv = get(&bs, o, "system.minv", 1, 0, sh);
+        return -1;
+    const double *minv = get(bs, o, "system.minv", 1, 0, sh);
     if (!minv)
-        goto fail;
+        return -1;
     const int m = (int)sh[0];
     if (!(o = item(system, 2, "system.kin_w")))
-        goto fail;
-    const double *kin_w = get(&bs, o, "system.kin_w", 1, 0, sh);
+        return -1;
+    const double *kin_w = get(bs, o, "system.kin_w", 1, 0, sh);
     if (!kin_w)
-        goto fail;
+        return -1;
     if (sh[0] != m)
         SHAPE_ERR("system.kin_w", "(m,) as minv");
     if (!(o = item(system, 3, "system.params")))
-        goto fail;
-    const double *params = get(&bs, o, "system.params", 1, 0, sh);
+        return -1;
+    const double *params = get(bs, o, "system.params", 1, 0, sh);
     if (!params)
-        goto fail;
+        return -1;
     if (check_params(kid, m, sh[0], params) != 0)
-        goto fail;
-    kern.params = params;
-    pyk_ctx pctx;
-    int mctx = m;
+        return -1;
+    a->kern.params = params;
+    /* the followers (test particles) of the N-body kernel: its followers block after the
+     * kernel's own 3N + 3 parameters (systems.nbody.followers_block; none: nbody_followers
+     * says -1, and the step is the whole system's) */
+    const double *fblock = NULL;
+    const long at = 3 * (long)(m / 3) + 3;
+    if (follow && (kid != KERNEL_NBODY || sh[0] > at)) {
+        if (kid != KERNEL_NBODY || hbvm_followers_check(m, params + at, (long)sh[0] - at) != 0) {
+            PyErr_SetString(PyExc_ValueError,
+                            "hbvm-md core: the followers need the N-body kernel's parameters "
+                            "with their followers block (systems.nbody.followers_block: [P, 3, "
+                            "3 Ns, 3 Ns + 3, source columns, test particles' first columns, "
+                            "the sources' own parameters])");
+            return -1;
+        }
+        fblock = params + at;
+    }
+    a->mctx = m;
     if (kid >= KERNEL_BUILTIN)
-        kern.ctx = &mctx;
+        a->kern.ctx = &a->mctx;
     if (kid == KERNEL_PYTHON) {
-        if (python_kernel(&bs, pyk, m, &pctx) != 0)
-            goto fail;
-        kern.ctx = &pctx;
+        if (python_kernel(bs, pyk, m, &a->pctx) != 0)
+            return -1;
+        a->kern.ctx = &a->pctx;
     }
     /* method: (tn (2, k), ts (2, s), Wp (2, s, k), Cp (4, k, s)) */
     if (!(o = item(method, 0, "method.tn")))
-        goto fail;
-    const double *tn = get(&bs, o, "method.tn", 2, 0, sh);
+        return -1;
+    const double *tn = get(bs, o, "method.tn", 2, 0, sh);
     if (!tn)
-        goto fail;
+        return -1;
     if (sh[0] != 2)
         SHAPE_ERR("method.tn", "(2, k)");
     const int k = (int)sh[1];
     if (!(o = item(method, 1, "method.ts")))
-        goto fail;
-    const double *ts = get(&bs, o, "method.ts", 2, 0, sh);
+        return -1;
+    const double *ts = get(bs, o, "method.ts", 2, 0, sh);
     if (!ts)
-        goto fail;
+        return -1;
     if (sh[0] != 2)
         SHAPE_ERR("method.ts", "(2, s)");
     const int s = (int)sh[1];
     if (s < 1 || k < s)
         SHAPE_ERR("method", "1 <= s <= k");
     if (!(o = item(method, 2, "method.Wp")))
-        goto fail;
-    const double *Wp = get(&bs, o, "method.Wp", 3, 0, sh);
+        return -1;
+    const double *Wp = get(bs, o, "method.Wp", 3, 0, sh);
     if (!Wp)
-        goto fail;
+        return -1;
     if (sh[0] != 2 || sh[1] != s || sh[2] != k)
         SHAPE_ERR("method.Wp", "(2, s, k)");
     if (!(o = item(method, 3, "method.Cp")))
-        goto fail;
-    const double *Cp = get(&bs, o, "method.Cp", 3, 0, sh);
+        return -1;
+    const double *Cp = get(bs, o, "method.Cp", 3, 0, sh);
     if (!Cp)
-        goto fail;
+        return -1;
     if (sh[0] != 4 || sh[1] != k || sh[2] != s) {
         PyErr_SetString(PyExc_ValueError,
                         "hbvm-md core: method.Cp must have shape (4, k, s): the compiled core "
                         "steps HBVM (EQUIP's packed arrays have more planes)");
-        goto fail;
+        return -1;
     }
-    hbvm_tableau tab = {.k = k, .s = s, .tau = tn, .tau_lo = tn + k, .X0 = ts, .X0_lo = ts + s,
-                        .W = Wp, .W_lo = Wp + s * k, .C2 = Cp, .C2_lo = Cp + k * s,
-                        .I = Cp + 2 * k * s, .I_lo = Cp + 3 * k * s};
-    /* state: (y (2m), cy (2m), gamma (s, m), eref (>= 4), clock (>= 2)) */
-    const char *snames[] = {"state.y", "state.cy", "state.gamma", "state.eref", "state.clock"};
-    const int sdims[] = {1, 1, 2, 1, 1};
-    double *sp[5];
-    for (int i = 0; i < 5; ++i) {
-        if (!(o = item(state, i, snames[i])))
-            goto fail;
-        if (!(sp[i] = get(&bs, o, snames[i], sdims[i], 1, sh)))
-            goto fail;
-        if ((i < 2 && sh[0] != 2 * m) || (i == 2 && (sh[0] != s || sh[1] != m))
-            || (i == 3 && sh[0] < HBVM_N_EREF) || (i == 4 && sh[0] < 2))
-            SHAPE_ERR(snames[i], i < 2 ? "(2m,)" : i == 2 ? "(s, m)" : i == 3 ? "(7,)" : "(2,)");
-    }
-    hbvm_state st = {.y = sp[0], .cy = sp[1], .gamma = sp[2], .eref = sp[3], .clock = sp[4]};
-    const double *E = get(&bs, Eo, "E", 2, 0, sh);
-    if (!E)
-        goto fail;
-    if (sh[0] != s || sh[1] != s)
-        SHAPE_ERR("E", "(s, s)");
+    a->tab = (hbvm_tableau){.k = k, .s = s, .tau = tn, .tau_lo = tn + k, .X0 = ts,
+                            .X0_lo = ts + s, .W = Wp, .W_lo = Wp + s * k, .C2 = Cp,
+                            .C2_lo = Cp + k * s, .I = Cp + 2 * k * s, .I_lo = Cp + 3 * k * s};
+    if (get_state(bs, state, "state", m, s, &a->st) != 0)
+        return -1;
     /* newton: (NV, NVinv, NM): the core iterates to a fixed point only */
     if (!(o = item(newton, 2, "newton.NM")))
-        goto fail;
+        return -1;
     {
         PyObject *shape = PyObject_GetAttrString(o, "shape");
         if (!shape)
-            goto fail;
+            return -1;
         PyObject *n0 = PyTuple_Check(shape) && PyTuple_GET_SIZE(shape) > 0
                            ? PyTuple_GET_ITEM(shape, 0) : NULL;
         long nm = n0 ? PyLong_AsLong(n0) : -1;
@@ -323,32 +358,71 @@ static PyObject *py_run(PyObject *self, PyObject *args)
         if (nm != 0) {
             PyErr_SetString(PyExc_ValueError, "hbvm-md core: the compiled core iterates to a "
                                               "fixed point (newton.NM must be empty)");
-            goto fail;
+            return -1;
         }
     }
     /* opts: (max_iter, tol, etol, ebound, group) */
-    hbvm_options op;
     {
         PyObject *f[5];
         for (int i = 0; i < 5; ++i)
             if (!(f[i] = item(opts, i, "opts")))
-                goto fail;
-        op.max_iter = (int)PyLong_AsLong(f[0]);
-        op.tol = PyFloat_AsDouble(f[1]);
-        op.etol = PyFloat_AsDouble(f[2]);
-        op.ebound = PyFloat_AsDouble(f[3]);
-        op.group = (int)PyLong_AsLong(f[4]);
+                return -1;
+        a->op.max_iter = (int)PyLong_AsLong(f[0]);
+        a->op.tol = PyFloat_AsDouble(f[1]);
+        a->op.etol = PyFloat_AsDouble(f[2]);
+        a->op.ebound = PyFloat_AsDouble(f[3]);
+        a->op.group = (int)PyLong_AsLong(f[4]);
         if (PyErr_Occurred())
-            goto fail;
+            return -1;
     }
     /* work: (work, cwork, counters): the core keeps its own scratch */
     if (!(o = item(wk, 2, "work.counters")))
-        goto fail;
-    double *counters = get(&bs, o, "work.counters", 1, 1, sh);
-    if (!counters)
-        goto fail;
+        return -1;
+    a->counters = get(bs, o, "work.counters", 1, 1, sh);
+    if (!a->counters)
+        return -1;
     if (sh[0] < N_COUNTERS)
         SHAPE_ERR("work.counters", "(10,)");
+    a->sys = (hbvm_system){.m = m, .minv = minv, .kin_w = kin_w, .follow = fblock,
+                           .field = fblock ? hbvm_nbody_field : NULL};
+    a->scratch = NULL;
+    a->nscratch = 0;
+    if (scr != Py_None) {
+        if (!(a->scratch = get(bs, scr, "scratch", 1, 1, &a->nscratch)))
+            return -1;
+    }
+    if (kid == KERNEL_PYTHON && a->tab.k > a->pctx.kmax) {
+        PyErr_SetString(PyExc_ValueError, "hbvm-md core: the Python kernel's buffers are "
+                                          "shorter than the method's stages");
+        return -1;
+    }
+    return 0;
+fail:
+    return -1;
+}
+
+static PyObject *py_run(PyObject *self, PyObject *args)
+{
+    long kid;
+    PyObject *system, *state, *Eo, *method, *newton, *opts, *wk, *samples, *pyk = Py_None;
+    PyObject *scr = Py_None;
+    double h;
+    int follow = 0;
+    if (!PyArg_ParseTuple(args, "lOOdOOOOOO|OOp", &kid, &system, &state, &h, &Eo, &method,
+                          &newton, &opts, &wk, &samples, &pyk, &scr, &follow))
+        return NULL;
+    bufset bs = {.n = 0};
+    Py_ssize_t sh[3];
+    PyObject *o;
+    step_args a;
+    if (parse_step(&bs, kid, system, state, method, newton, opts, wk, pyk, scr, follow, &a) != 0)
+        goto fail;
+    const int m = a.sys.m, s = a.tab.s;
+    const double *E = get(&bs, Eo, "E", 2, 0, sh);
+    if (!E)
+        goto fail;
+    if (sh[0] != s || sh[1] != s)
+        SHAPE_ERR("E", "(s, s)");
     /* samples: (nsteps, every, t (n,), y (n, 2m), e (n,)) */
     hbvm_samples smp;
     {
@@ -373,26 +447,14 @@ static PyObject *py_run(PyObject *self, PyObject *args)
                 SHAPE_ERR("samples", "(nsteps / every + 1) rows of t, y (2m), e");
         }
     }
-    hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
-    double *scratch = NULL;
-    Py_ssize_t nscratch = 0;
-    if (scr != Py_None) {
-        if (!(scratch = get(&bs, scr, "scratch", 1, 1, &nscratch)))
-            goto fail;
-    }
-    if (kid == KERNEL_PYTHON && tab.k > pctx.kmax) {
-        PyErr_SetString(PyExc_ValueError, "hbvm-md core: the Python kernel's buffers are "
-                                          "shorter than the method's stages");
-        goto fail;
-    }
     int status;
     if (kid == KERNEL_PYTHON) {          /* (the kernel calls the interpreter: keep the GIL) */
-        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp, scratch,
-                          (size_t)nscratch);
+        status = hbvm_run(&a.kern, &a.sys, &a.st, h, E, &a.tab, &a.op, a.counters, &smp,
+                          a.scratch, (size_t)a.nscratch);
     } else {
         Py_BEGIN_ALLOW_THREADS
-        status = hbvm_run(&kern, &sys, &st, h, E, &tab, &op, counters, &smp, scratch,
-                          (size_t)nscratch);
+        status = hbvm_run(&a.kern, &a.sys, &a.st, h, E, &a.tab, &a.op, a.counters, &smp,
+                          a.scratch, (size_t)a.nscratch);
         Py_END_ALLOW_THREADS
     }
     release(&bs);
@@ -401,6 +463,76 @@ static PyObject *py_run(PyObject *self, PyObject *args)
     if (status == HBVM_ABORTED) {
         if (!PyErr_Occurred())
             PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: a kernel stopped the step");
+        return NULL;
+    }
+    return PyLong_FromLong(status);
+fail:
+    release(&bs);
+    return NULL;
+}
+
+/* attempt(kernel, system, state, trial, h, h_prev, t_start, ext, method, newton, opts, work,
+ * adaptive[, scratch, follow]) -> status: integrators.loop.attempt's contract in C
+ * (hbvm_attempt: the one retry loop and controller, with the followers' term of the adaptive
+ * control); trial shares state's clock; a compiled kernel only */
+static PyObject *py_attempt(PyObject *self, PyObject *args)
+{
+    long kid;
+    PyObject *system, *state, *trial, *exto, *method, *newton, *opts, *wk, *ado;
+    PyObject *scr = Py_None;
+    double h, h_prev, t_start;
+    int follow = 0;
+    if (!PyArg_ParseTuple(args, "lOOOdddOOOOOO|Op", &kid, &system, &state, &trial, &h, &h_prev,
+                          &t_start, &exto, &method, &newton, &opts, &wk, &ado, &scr, &follow))
+        return NULL;
+    if (kid == KERNEL_PYTHON) {
+        PyErr_SetString(PyExc_ValueError, "hbvm-md core: attempt() is for compiled kernels");
+        return NULL;
+    }
+    bufset bs = {.n = 0};
+    Py_ssize_t sh[2];
+    PyObject *o;
+    step_args a;
+    if (parse_step(&bs, kid, system, state, method, newton, opts, wk, Py_None, scr, follow,
+                   &a) != 0)
+        goto fail;
+    const int m = a.sys.m, s = a.tab.s;
+    hbvm_state tr;
+    if (get_state(&bs, trial, "trial", m, s, &tr) != 0)
+        goto fail;
+    /* ext: (E1, t, w, buf, zero) */
+    const char *enames[] = {"ext.E1", "ext.t", "ext.w", "ext.buf", "ext.zero"};
+    double *ep[5];
+    for (int i = 0; i < 5; ++i) {
+        const int nd = (i == 1 || i == 2) ? 1 : 2;
+        if (!(o = item(exto, i, enames[i])) || !(ep[i] = get(&bs, o, enames[i], nd, i == 3, sh)))
+            goto fail;
+        if (sh[0] != s || (nd == 2 && sh[1] != s))
+            SHAPE_ERR(enames[i], "(s, s), or (s,) for the rule");
+    }
+    hbvm_extrapolation ext = {.E1 = ep[0], .t = ep[1], .w = ep[2], .buf = ep[3], .zero = ep[4]};
+    /* adaptive: (epsilon, min_dt, res (5,)) */
+    PyObject *e0 = item(ado, 0, "adaptive.epsilon"), *e1 = item(ado, 1, "adaptive.min_dt");
+    if (!e0 || !e1)
+        goto fail;
+    const double epsilon = PyFloat_AsDouble(e0), min_dt = PyFloat_AsDouble(e1);
+    if (PyErr_Occurred())
+        goto fail;
+    double *res;
+    if (!(o = item(ado, 2, "adaptive.res")) || !(res = get(&bs, o, "adaptive.res", 1, 1, sh)))
+        goto fail;
+    if (sh[0] < 5)
+        SHAPE_ERR("adaptive.res", "(5,)");
+    int status;
+    Py_BEGIN_ALLOW_THREADS
+    status = hbvm_attempt(&a.kern, &a.sys, &a.st, &tr, h, h_prev, t_start, &ext, &a.tab, &a.op,
+                          a.counters, epsilon, min_dt, res, a.scratch, (size_t)a.nscratch);
+    Py_END_ALLOW_THREADS
+    release(&bs);
+    if (status < 0)
+        return PyErr_NoMemory();
+    if (status == HBVM_ABORTED) {
+        PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: a kernel stopped the step");
         return NULL;
     }
     return PyLong_FromLong(status);
@@ -578,23 +710,61 @@ fail:
 
 static PyObject *py_work_size(PyObject *self, PyObject *args)
 {
-    int k, s, m;
-    if (!PyArg_ParseTuple(args, "iii", &k, &s, &m))
+    int k, s, m, us = 0, P = 0;
+    if (!PyArg_ParseTuple(args, "iii|ii", &k, &s, &m, &us, &P))
         return NULL;
+    if (P > 0)
+        return PyLong_FromSize_t(hbvm_work_size_followers(k, s, m, us, P));
     return PyLong_FromSize_t(hbvm_work_size(k, s, m));
+}
+
+/* test_particle_control(gamma (s, m), w (m,), kin_w (m,), err) -> core.test_particle_control */
+static PyObject *py_test_particle_control(PyObject *self, PyObject *args)
+{
+    PyObject *go, *wo, *ko;
+    double err;
+    if (!PyArg_ParseTuple(args, "OOOd", &go, &wo, &ko, &err))
+        return NULL;
+    bufset bs = {.n = 0};
+    Py_ssize_t sg[2], sw[1], sk[1];
+    const double *g = get(&bs, go, "gamma", 2, 0, sg);
+    if (!g)
+        goto fail;
+    const double *w = get(&bs, wo, "w", 1, 0, sw);
+    if (!w)
+        goto fail;
+    const double *kw = get(&bs, ko, "kin_w", 1, 0, sk);
+    if (!kw)
+        goto fail;
+    if (sw[0] != sg[1] || sk[0] != sg[1] || sg[0] < 1)
+        SHAPE_ERR("w, kin_w", "(m,) for gamma of shape (s, m)");
+    const double out = hbvm_test_particle_control(g, (int)sg[0], (int)sg[1], w, kw, err);
+    release(&bs);
+    return PyFloat_FromDouble(out);
+fail:
+    release(&bs);
+    return NULL;
 }
 
 static PyMethodDef methods[] = {
     {"work_size", py_work_size, METH_VARARGS,
-     "work_size(k, s, m) -> the doubles of scratch run() works in (zeroed, kept between calls)"},
+     "work_size(k, s, m[, us, P]) -> the doubles of scratch run() works in (zeroed, kept "
+     "between calls); with P followers besides sources of us coordinates"},
+    {"test_particle_control", py_test_particle_control, METH_VARARGS,
+     "test_particle_control(gamma, w, kin_w, err) -> core.test_particle_control's estimate"},
     {"select_extrapolation", py_select_extrapolation, METH_VARARGS,
      "select_extrapolation(h, h_prev, E1, t, w, buf, zero) -> the initial guess's matrix "
      "(core.select_extrapolation's rule)"},
     {"kinetic", py_kinetic, METH_VARARGS,
      "kinetic(p, kin_w) -> sum_i kin_w_i p_i^2 / 2, summed in order (core.weighted_kinetic)"},
     {"run", py_run, METH_VARARGS,
-     "run(kernel, system, state, h, E, method, newton, opts, work, samples) -> status: "
-     "integrators.loop.run's steps for the separable HBVM form, compiled."},
+     "run(kernel, system, state, h, E, method, newton, opts, work, samples[, pyk, scratch, "
+     "follow]) -> status: integrators.loop.run's steps for the separable HBVM form, compiled; "
+     "follow: the N-body kernel's test particles solved after the sources (followers)."},
+    {"attempt", py_attempt, METH_VARARGS,
+     "attempt(kernel, system, state, trial, h, h_prev, t_start, ext, method, newton, opts, "
+     "work, adaptive[, scratch, follow]) -> status: integrators.loop.attempt's contract, "
+     "compiled (hbvm_attempt)"},
     {"energy_parts", py_energy_parts, METH_VARARGS,
      "energy_parts(kernel, y, kin_w, params) -> (T, V)"},
     {"force", py_force, METH_VARARGS,
