@@ -103,9 +103,14 @@ def available() -> bool:
     return os.environ.get("HBVM_MD_CORE", "").lower() != "numba"
 
 
-def work_size(k: int, s: int, m: int) -> int:
+def work_size(k: int, s: int, m: int, params=None) -> int:
     """The doubles of scratch the core's step works in for k stages, s coefficients and m
-    coordinates (handed over zeroed, kept between calls)."""
+    coordinates (handed over zeroed, kept between calls); with the N-body kernel's params
+    holding a followers block (test particles), for them too."""
+    at = m + 3              # (systems.nbody.nbody_followers: after [G, N, w, g, f])
+    if params is not None and params.shape[0] > at + 3:
+        return int(_core.work_size(int(k), int(s), int(m), int(params[at + 2]),
+                                   int(params[at])))
     return int(_core.work_size(int(k), int(s), int(m)))
 
 

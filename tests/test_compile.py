@@ -110,9 +110,12 @@ def test_a_step_compiles_only_the_parts_its_scene_uses():
 
 
 @pytest.mark.skipif(JIT_OFF, reason="the stand-ins are bound in compiled steps only")
-def test_rebound_binds_the_tangent_map_only_with_variational_particles():
+def test_rebound_binds_the_tangent_map_only_with_variational_particles(monkeypatch):
     import rebound
     import hbvm_md  # noqa: F401  (registers "hbvm")
+    from hbvm_md.rebound import cglue
+    # (the plain scene's numba step: point masses run the C step of hbvm_md.rebound.csrc)
+    monkeypatch.setattr(cglue, "plain_step", lambda *a: False)
 
     def glue_steps(variational):
         sim = rebound.Simulation()

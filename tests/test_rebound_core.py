@@ -43,6 +43,22 @@ def _eccentric():
     return sim
 
 
+def _asteroids():
+    """A star, two giant planets and 40 test particles in the asteroid belt (N_active = 3)."""
+    sim = rebound.Simulation()
+    sim.add(m=1.0)
+    sim.add(m=1e-3, a=5.2, e=0.05)
+    sim.add(m=3e-4, a=9.5, e=0.05, inc=0.02)
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        sim.add(a=rng.uniform(2.2, 3.3), e=rng.uniform(0, 0.2), inc=rng.uniform(0, 0.1),
+                f=rng.uniform(0, 2 * np.pi))
+    sim.N_active = 3
+    sim.move_to_com()
+    sim.dt = 0.3
+    return sim
+
+
 def _core_of(sim) -> int:
     return int(_slots(sim.integrator.state)[0][L.SL_CORE])
 
@@ -87,7 +103,7 @@ def _run(make, how, c: bool, monkeypatch):
 @pytest.mark.parametrize("make, how", [
     (_oss, "adaptive"), (_oss, "fixed"), (_eccentric, "adaptive"), (_eccentric, "fixed"),
     (_eccentric, "adaptive backwards"), (_oss, "adaptive copied"), (_eccentric, "fixed moved"),
-    (_eccentric, "adaptive moved")])
+    (_eccentric, "adaptive moved"), (_asteroids, "adaptive"), (_asteroids, "fixed")])
 def test_the_c_step_is_the_numba_step_bit_for_bit(make, how, monkeypatch):
     a, b = _run(make, how, True, monkeypatch), _run(make, how, False, monkeypatch)
     assert np.array_equal(a["x"], b["x"])
@@ -137,11 +153,16 @@ def test_what_the_c_step_does_not_cover_goes_to_numba():
     sim.integrate(0.2)
     assert _core_of(sim) not in (0, cglue.addresses()[2])
     tp = _eccentric()
-    tp.add(a=2.5, e=0.1)                        # (a test particle: the followers' numba step)
+    tp.add(a=2.5, e=0.1)                        # (a test particle: on the C step too)
     tp.N_active = 3
     tp.integrator = "hbvm"
     tp.integrate(0.1)
-    assert _core_of(tp) not in (0, cglue.addresses()[2])
+    assert _core_of(tp) == cglue.addresses()[2]
+    var = _eccentric()
+    var.add_variation()                         # (variational particles: the numba step)
+    var.integrator = "hbvm"
+    var.integrate(0.1)
+    assert _core_of(var) not in (0, cglue.addresses()[2])
 
 
 def test_a_glue_built_for_another_rebound_is_refused_by_name(monkeypatch):
@@ -221,3 +242,29 @@ def test_the_host_s_record_of_a_simulation_lives_as_long_as_its_state():
     del sim
     gc.collect()
     assert p not in host._RECORDS
+
+
+def _comet(c: bool, monkeypatch):
+    with monkeypatch.context() as mp:
+        if not c:
+            mp.setattr(cglue, "plain_step", lambda *a: False)
+        sim = rebound.Simulation()
+        sim.add(m=1.0)
+        sim.add(m=1e-3, a=5.2, e=0.05)
+        sim.add(a=3.0, e=0.97, f=-0.5)          # (a comet falling to its perihelion)
+        sim.N_active = 2
+        sim.move_to_com()
+        HBVMIntegrator(sim, adaptive=False, dt=0.5)
+        with pytest.raises(Exception) as err:
+            sim.integrate(20.0)
+        assert _core_of(sim) == cglue.addresses()[2] if c else True
+        return type(err.value).__name__, str(err.value), sim.t, [(p.x, p.vx) for p in sim.particles]
+
+
+def test_a_test_particle_refused_by_the_c_step_is_refused_as_by_numba(monkeypatch):
+    """A fixed step that resolves the planets but not a comet at its perihelion: refused by the
+    test particles' own check (glue.TP_FLOOR, TP_FACTOR), naming the comet, with the same
+    message, time and particles as the numba step's."""
+    a, b = _comet(True, monkeypatch), _comet(False, monkeypatch)
+    assert a == b
+    assert "particle 2" in a[1]

@@ -36,7 +36,7 @@ from hbvm_md.rebound.layout import (OK, RESYNC, N_SLOTS, SL_CORE, SL_CTX, SL_COU
 #: segfaulted after a layout change).  When the layout is not the one named here, the two
 #: functions are compiled in memory instead of loaded from the cache;
 #: ``tests/test_rebound_host.py`` keeps the digest current, so edit it with the layout.
-LAYOUT_DIGEST = "4b78f0591b554ae0"
+LAYOUT_DIGEST = "e1008eefe6ce66b8"
 _CACHE = _layout.DIGEST == LAYOUT_DIGEST
 
 

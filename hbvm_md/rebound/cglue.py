@@ -21,9 +21,9 @@ import os
 import warnings
 
 #: what the compiled REBOUND step covers; the rest is numba's (hbvm_md.rebound.glue)
-COVERS = ("HBVM (not EQUIP), the fixed-point iteration, Newtonian gravity among bodies that all "
-          "gravitate (no test particles, no N_active below N), no variational particles, no "
-          "REBOUND or REBOUNDx forces and no attached ODEs, kepler = 0")
+COVERS = ("HBVM (not EQUIP), the fixed-point iteration, Newtonian gravity among point masses, "
+          "test particles among them (N_active below N, massless bodies), no variational "
+          "particles, no REBOUND or REBOUNDx forces and no attached ODEs, kepler = 0")
 
 try:
     from hbvm_md.rebound import _glue
@@ -47,8 +47,6 @@ def _why_not() -> str | None:
     if digest is not None and digest != _glue.SOURCE_DIGEST:
         return ("the compiled REBOUND glue (hbvm_md/rebound/_glue) was built from other sources "
                 "than hbvm_md/rebound/csrc and layout.py hold now: run `pip install -e .` again")
-    if not ccore.available():
-        return "the compiled core is not in use (integrators.ccore.available() is False)"
     import rebound
     S, P = rebound.Simulation, rebound.Particle
     lay = _glue.LAYOUT
@@ -68,11 +66,10 @@ def _why_not() -> str | None:
     return None
 
 
-def available() -> bool:
-    """True when the compiled glue serves REBOUND's step in this process (module docstring);
-    ``HBVM_MD_CORE=numba`` turns it off with the core."""
-    if os.environ.get("HBVM_MD_CORE", "").lower() == "numba":
-        return False
+def built() -> bool:
+    """True when the compiled glue can serve this process (module docstring): then REBOUND's
+    step and free are its C ``dispatch`` and ``release`` (which call whatever step a state was
+    prepared with: the C step, a numba step, or the Python one under ``NUMBA_DISABLE_JIT``)."""
     if not _checked:
         why = _why_not()
         _checked.append(why)
@@ -80,6 +77,16 @@ def available() -> bool:
             warnings.warn(f"hbvm-md: {why}; REBOUND's step is compiled by numba instead",
                           RuntimeWarning, stacklevel=3)
     return _checked[0] is None
+
+
+def available() -> bool:
+    """True when the compiled glue's C step serves REBOUND's plain scenes in this process: it is
+    :func:`built` and the compiled core is in use (``HBVM_MD_CORE=numba`` and
+    ``NUMBA_DISABLE_JIT=1`` turn both off: integrators.ccore.available)."""
+    if not built():
+        return False
+    from integrators import ccore
+    return ccore.available()
 
 
 def addresses() -> tuple[int, int, int]:
@@ -92,4 +99,4 @@ def plain_step(method, nb, host_forces: bool, n_var: int) -> bool:
     EQUIP; nb: the N-body model (None on REBOUND's own accelerations)."""
     from integrators.tableau import HBVM
     return (available() and type(method) is HBVM and nb is not None and not host_forces
-            and n_var == 0 and bool(nb.is_source.all()))
+            and n_var == 0)

@@ -98,7 +98,7 @@ def register() -> None:
     from rebound.binarydata_field_descriptor import BinarydataFieldDescriptor, EnumDescriptor
     from rebound.integrator import Integrator
     from hbvm_md.rebound import cglue
-    if cglue.available():       # (REBOUND's step and free in C: nothing compiled at run time)
+    if cglue.built():           # (REBOUND's step and free in C: nothing compiled at run time)
         dispatch, release, _ = cglue.addresses()
     else:                       # (numba's, compiled once and cached on disk)
         from hbvm_md.rebound import cabi
@@ -1278,7 +1278,9 @@ def _prepare(sim, p: int) -> None:
                       RuntimeWarning, stacklevel=_user_stacklevel())
     st[L.SL_ECHECK] = 1 if check else -1
     _context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=nb is None,
-             work=np.zeros(ccore.work_size(method.k, s, binding.minv.shape[0])) if c_step else None)
+             work=np.zeros(ccore.work_size(method.k, s, binding.minv.shape[0],
+                                           binding.params if binding.follow else None))
+             if c_step else None, follow=c_step and binding.follow is not None)
     code = binding.step_code
     if code.kind != "compiled" and sim.N_var > 0 and sim._calculate_megno:
         raise ValueError("HBVM hands MEGNO to REBOUND from its compiled step only; unset "

@@ -38,7 +38,7 @@ from systems.nbody import nbody_set_masses
 #: with layout's slot numbers compiled in, keyed on this file alone, so a layout change must
 #: change this file too (tests/test_rebound_host.py keeps it current); else a ``git pull`` of a
 #: new layout over an old cache loads code that indexes the state with the old slots
-LAYOUT_DIGEST = "4b78f0591b554ae0"
+LAYOUT_DIGEST = "e1008eefe6ce66b8"
 
 _METHOD_SLOTS = ((L.SL_S, L.D_S), (L.SL_K, L.D_K), (L.SL_NODES, L.D_NODES),
                  (L.SL_METHOD, L.D_METHOD))

@@ -31,7 +31,7 @@ from hbvm_md.rebound.layout import (A_CLOCK, A_CP, A_CWORK, A_CYT, A_E1, A_EBUF,
 #: with layout's slot numbers compiled in, keyed on this file alone, so a layout change must
 #: change this file too (tests/test_rebound_host.py keeps it current); else a ``git pull`` of a
 #: new layout over an old cache loads code that indexes the state with the old slots
-LAYOUT_DIGEST = "4b78f0591b554ae0"
+LAYOUT_DIGEST = "e1008eefe6ce66b8"
 
 
 @jit

@@ -135,7 +135,7 @@ def array(st: np.ndarray, slot: int, slot_n: int, n: int) -> np.ndarray:
 
 
 def context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=False,
-             kepler=False, work=None) -> None:
+             kepler=False, work=None, follow=False) -> None:
     """The context block (:mod:`hbvm_md.rebound.layout`): the header, then the step's arrays,
     allocated with the C library (the state's ``free`` releases it with the state).  work: the
     compiled core's scratch (the C step, :mod:`hbvm_md.rebound.cglue`) in place of the numba
@@ -197,6 +197,7 @@ def context(st, binding, method, nb, view, ptr, sim, ix, ivx, im, host_forces=Fa
     header[L.D_METHOD] = L.METHODS.index("equip" if isinstance(method, EQUIP) else "hbvm")
     header[L.D_HOST] = int(host_forces)
     header[L.D_KEPLER] = int(kepler)
+    header[L.D_FOLLOW] = int(follow)          # (the C step's test particles)
     # the packed arrays' shapes (HBVM's and EQUIP's differ: integrators.engine.method_arrays)
     header[[L.D_TNC, L.D_TSR, L.D_WPP, L.D_CPP, L.D_KK]] = (
         tn.shape[1], ts.shape[0], Wp.shape[0], Cp.shape[0], Cp.shape[1])

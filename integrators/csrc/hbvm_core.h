@@ -180,7 +180,7 @@ int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *
 
 /* the core's functions for the hosts' compiled glue (hbvm_md/rebound/csrc), handed over in
  * the capsule integrators._core.API: one binary of the step */
-#define HBVM_API_VERSION 3
+#define HBVM_API_VERSION 4
 typedef struct {
     int version, lanes, n_counters, n_eref;
     int (*attempt)(const hbvm_kernel *, const hbvm_system *, hbvm_state *, hbvm_state *,
@@ -192,6 +192,7 @@ typedef struct {
     hbvm_force_fn nbody_force;
     hbvm_potential_fn nbody_potential;
     int (*nbody_check)(int, const double *, long);
+    hbvm_field_fn nbody_field;          /* the test particles' field (followers) */
 } hbvm_api;
 
 /* the padded stage count for k stages */

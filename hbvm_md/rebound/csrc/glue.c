@@ -7,8 +7,8 @@
  *                   host's fail (a Python callback) when it failed;
  *   release(p)      REBOUND's free: the arrays of the state and the state;
  *   step(r, p)      the plain N-body step (hbvm_md.rebound.glue.step_arrays' contract for its
- *                   default case: HBVM, the fixed-point iteration, gravity among bodies that
- *                   are all sources, no test particles, no variational particles, no REBOUND
+ *                   default case: HBVM, the fixed-point iteration, Newtonian gravity, test
+ *                   particles solved after the sources, no variational particles, no REBOUND
  *                   forces or attached ODEs, no Kepler composition), calling the compiled
  *                   core's one retry loop (integrators._core's API capsule: one binary of the
  *                   step) with the N-body kernel.  Every other case keeps the numba step of
@@ -251,7 +251,11 @@ static int step(struct reb_simulation *r, void *p)
     const double *params = ARR(ctx, a_params);
     hbvm_kernel kern = {.force = core->nbody_force, .potential = core->nbody_potential,
                         .params = params, .ctx = NULL};
-    hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w};
+    /* test particles: solved after the sources in their field (the followers block of the
+     * N-body kernel's parameters, systems.nbody.followers_block) */
+    const double *follow = ctx->d_follow ? params + m + 3 : NULL;
+    hbvm_system sys = {.m = m, .minv = minv, .kin_w = kin_w, .follow = follow,
+                       .field = follow ? core->nbody_field : NULL};
     if (!settings_ok(st))
         return RB_BAD_SETTINGS;
     if (!particles_match(r->particles, N, written)) {

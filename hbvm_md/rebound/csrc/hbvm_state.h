@@ -166,6 +166,8 @@ struct hbvm_rb_context {
     int64_t a_to;
     int64_t d_kepler;             /* 1: the composed step's context */
     int64_t r_status;             /* REBOUND's status (its offset in bytes) */
+    int64_t d_follow;             /* 1: test particles solved after the sources (the C step:
+                                   * the followers block at params[d_m + 3]) */
 };
 
 #endif
