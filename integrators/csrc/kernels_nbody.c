@@ -154,27 +154,33 @@ static inline vdh vhsqrt(vdh x) { return (vdh)_mm_sqrt_pd((__m128d)x); }
 #define HAVE_HALF 0
 #endif
 
-static inline void field_full(const double *xt, const double *Xs, int kp, int b, int Ns,
-                              const double *gm, double G, double *ft)
-{
-    const vd vG = vsplat(G), zero = vsplat(0.0);
-    const vd x0 = vload(xt + b), x1 = vload(xt + kp + b), x2 = vload(xt + 2 * kp + b);
-    vd fx = zero, fy = zero, fz = zero;
-    for (int k = 0; k < Ns; ++k) {
-        const double *xs = Xs + 3 * k * kp + b;
-        const vd dx = vload(xs) - x0;
-        const vd dy = vload(xs + kp) - x1;
-        const vd dz = vload(xs + 2 * kp) - x2;
-        const vd d2 = dx * dx + dy * dy + dz * dz;
-        const vd c = vsplat(gm[k]) * (vG / (d2 * vsqrt(d2)));
-        fx += c * dx;
-        fy += c * dy;
-        fz += c * dz;
+/* the followers' field for the stages b .. b + width of the test particle at xt (3 rows of
+ * kp), from Ns sources at Xs, in vectors of type V (the full lanes, or half of them for a last
+ * vector at most half full): the same operations at every width */
+#define FIELD(NAME, V, LOAD, STORE, SPLAT, SQRT)                                                \
+    static inline void NAME(const double *xt, const double *Xs, int kp, int b, int Ns,         \
+                            const double *gm, double G, double *ft)                            \
+    {                                                                                          \
+        const V vG = SPLAT(G), zero = SPLAT(0.0);                                              \
+        const V x0 = LOAD(xt + b), x1 = LOAD(xt + kp + b), x2 = LOAD(xt + 2 * kp + b);         \
+        V fx = zero, fy = zero, fz = zero;                                                     \
+        for (int k = 0; k < Ns; ++k) {                                                         \
+            const double *xs = Xs + 3 * k * kp + b;                                            \
+            const V dx = LOAD(xs) - x0;                                                        \
+            const V dy = LOAD(xs + kp) - x1;                                                   \
+            const V dz = LOAD(xs + 2 * kp) - x2;                                               \
+            const V d2 = dx * dx + dy * dy + dz * dz;                                          \
+            const V c = SPLAT(gm[k]) * (vG / (d2 * SQRT(d2)));                                 \
+            fx += c * dx;                                                                      \
+            fy += c * dy;                                                                      \
+            fz += c * dz;                                                                      \
+        }                                                                                      \
+        STORE(ft + b, fx);                                                                     \
+        STORE(ft + kp + b, fy);                                                                \
+        STORE(ft + 2 * kp + b, fz);                                                            \
     }
-    vstore(ft + b, fx);
-    vstore(ft + kp + b, fy);
-    vstore(ft + 2 * kp + b, fz);
-}
+
+FIELD(field_full, vd, vload, vstore, vsplat, vsqrt)
 
 #if HAVE_HALF
 static inline vdh hload(const double *p)
@@ -190,27 +196,7 @@ static inline vdh hsplat(double x)
     return v;
 }
 
-static inline void field_half(const double *xt, const double *Xs, int kp, int b, int Ns,
-                              const double *gm, double G, double *ft)
-{
-    const vdh vG = hsplat(G), zero = hsplat(0.0);
-    const vdh x0 = hload(xt + b), x1 = hload(xt + kp + b), x2 = hload(xt + 2 * kp + b);
-    vdh fx = zero, fy = zero, fz = zero;
-    for (int k = 0; k < Ns; ++k) {
-        const double *xs = Xs + 3 * k * kp + b;
-        const vdh dx = hload(xs) - x0;
-        const vdh dy = hload(xs + kp) - x1;
-        const vdh dz = hload(xs + 2 * kp) - x2;
-        const vdh d2 = dx * dx + dy * dy + dz * dz;
-        const vdh c = hsplat(gm[k]) * (vG / (d2 * vhsqrt(d2)));
-        fx += c * dx;
-        fy += c * dy;
-        fz += c * dz;
-    }
-    hstore(ft + b, fx);
-    hstore(ft + kp + b, fy);
-    hstore(ft + 2 * kp + b, fz);
-}
+FIELD(field_half, vdh, hload, hstore, hsplat, vhsqrt)
 #endif
 
 static inline void field_scalar(const double *xt, const double *Xs, int kp, int i, int Ns,

@@ -401,6 +401,20 @@ fail:
     return -1;
 }
 
+/* a step's status for Python: the status, or the exception of a step that could not run (out
+ * of memory; a kernel that stopped it, whose own exception is kept when it set one) */
+static PyObject *status_result(int status)
+{
+    if (status < 0)
+        return PyErr_NoMemory();
+    if (status == HBVM_ABORTED) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: a kernel stopped the step");
+        return NULL;
+    }
+    return PyLong_FromLong(status);
+}
+
 static PyObject *py_run(PyObject *self, PyObject *args)
 {
     long kid;
@@ -458,14 +472,7 @@ static PyObject *py_run(PyObject *self, PyObject *args)
         Py_END_ALLOW_THREADS
     }
     release(&bs);
-    if (status < 0)
-        return PyErr_NoMemory();
-    if (status == HBVM_ABORTED) {
-        if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: a kernel stopped the step");
-        return NULL;
-    }
-    return PyLong_FromLong(status);
+    return status_result(status);
 fail:
     release(&bs);
     return NULL;
@@ -529,13 +536,7 @@ static PyObject *py_attempt(PyObject *self, PyObject *args)
                           a.counters, epsilon, min_dt, res, a.scratch, (size_t)a.nscratch);
     Py_END_ALLOW_THREADS
     release(&bs);
-    if (status < 0)
-        return PyErr_NoMemory();
-    if (status == HBVM_ABORTED) {
-        PyErr_SetString(PyExc_RuntimeError, "hbvm-md core: a kernel stopped the step");
-        return NULL;
-    }
-    return PyLong_FromLong(status);
+    return status_result(status);
 fail:
     release(&bs);
     return NULL;
