@@ -8,16 +8,19 @@ import hashlib
 from pathlib import Path
 
 
-def source_digest(root) -> str | None:
-    """The first 16 hex digits of the SHA-256 of ``root/integrators/csrc/*.[ch]`` (names and
-    contents, in name order), or None when there are none (an installed, not editable, package)."""
-    files = sorted(Path(root, "integrators", "csrc").glob("*.[ch]"))
-    if not files:
-        return None
+def _digest(files) -> str:
+    """The first 16 hex digits of the SHA-256 of the files' names and contents, in their order."""
     h = hashlib.sha256()
     for f in files:
         h.update(f.name.encode() + b"\0" + f.read_bytes())
     return h.hexdigest()[:16]
+
+
+def source_digest(root) -> str | None:
+    """The digest of ``root/integrators/csrc/*.[ch]`` (in name order), or None when there are
+    none (a package installed without its C sources)."""
+    files = sorted(Path(root, "integrators", "csrc").glob("*.[ch]"))
+    return _digest(files) if files else None
 
 
 #: the glue's sources besides its own folder (hbvm_md/rebound/csrc): the layout it is built with
@@ -27,12 +30,9 @@ GLUE_INPUTS = ("hbvm_md/rebound/layout.py", "integrators/csrc/hbvm_core.h")
 
 def glue_digest(root) -> str | None:
     """The same digest of REBOUND's compiled glue's sources: ``root/hbvm_md/rebound/csrc/*.[ch]``
-    and :data:`GLUE_INPUTS`; None when they are not there."""
+    (in name order) and :data:`GLUE_INPUTS`; None when they are not there."""
     files = sorted(Path(root, "hbvm_md", "rebound", "csrc").glob("*.[ch]"))
     files += [Path(root, f) for f in GLUE_INPUTS]
     if not all(f.exists() for f in files) or len(files) == len(GLUE_INPUTS):
         return None
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
+    return _digest(files)

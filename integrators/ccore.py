@@ -140,12 +140,8 @@ class CoreStep:
         kernel's params, with followers), kept between calls (a call that allocated and zeroed
         its own paid for it at every step of a host that calls one step at a time: 10 MB for
         4096 atoms)."""
-        k, s = method.tn.shape[1], method.ts.shape[1]
-        at = m + 3              # (systems.nbody.nbody_followers: after [G, N, w, g, f])
-        if self.follow and params is not None and params.shape[0] > at + 3:
-            n = _core.work_size(k, s, m, int(params[at + 2]), int(params[at]))
-        else:
-            n = _core.work_size(k, s, m)
+        n = work_size(method.tn.shape[1], method.ts.shape[1], m,
+                      params if self.follow else None)
         if self._scratch.shape[0] != n:
             self._scratch = np.zeros(n)
         return self._scratch

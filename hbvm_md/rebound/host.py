@@ -62,8 +62,6 @@ _PENDING: dict = {}               # simulation address -> the exception of its f
 _REG = None                       # what registration keeps alive (see register)
 
 
-
-
 def _rebound():
     import rebound
     return rebound
@@ -203,8 +201,6 @@ def _self_check_states(rebound) -> None:
     if not ok or int(copy.integrator.k) != DEFAULTS["k"]:
         raise RuntimeError(f"REBOUND {rebound.__version__} does not keep HBVM's state where its "
                            f"own layout says; HBVM's REBOUND host supports {L.SUPPORTED}")
-
-
 
 
 def _create() -> int:
@@ -524,14 +520,12 @@ def _recheck_forces(sim, addr: int) -> None:
     rec.forces = None
 
 
-
 def _kepler_terms_unchanged(sim, terms) -> bool:
     from hbvm_md.rebound.composed import force_terms
     try:
         return force_terms(sim) == terms
     except ValueError:
         return False            # (the preparation names what is wrong)
-
 
 
 def _host_params(addr: int):
@@ -1045,7 +1039,6 @@ def _python_core(r: int, p: int) -> int:
     except BaseException as exc:  # noqa: BLE001
         _PENDING[r] = exc
         return L.PREPARE_FAILED
-
 
 
 # -- prepare: the model, the compiled step and the context block from the particles ----------------

@@ -80,7 +80,6 @@ def slots(p: int) -> tuple[np.ndarray, np.ndarray]:
     return np.frombuffer(buf, np.int64), np.frombuffer(buf, np.float64)
 
 
-
 def model_changed(st: np.ndarray, sim, host: bool) -> bool:
     """Has the model changed since the step was last prepared for this state (G, N_active, a
     setting HBVM checks, the choice of REBOUND's own accelerations, or on them a mass)?  Then the previous

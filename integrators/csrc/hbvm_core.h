@@ -143,6 +143,13 @@ int hbvm_followers_check(int m, const double *follow, long nblock);
 double hbvm_test_particle_control(const double *gamma, int s, int m, const double *w,
                                   const double *kin_w, double err_sources);
 
+/* a fixed step's check of its test particles (core.test_particle_error without the sources'
+ * floor): the worst test particle (kin_w 0) whose own estimate exceeds max(floor, factor x the
+ * sources'), or -1; its estimate in *worst_err */
+int hbvm_test_particle_error(const double *gamma, int s, int m, const double *w,
+                             const double *kin_w, double floor, double factor,
+                             double *worst_err);
+
 /* the kinetic and potential energies at y (2m,) */
 int hbvm_energy_parts(const hbvm_kernel *kernel, const hbvm_system *sys, const double *y,
                       double *T, double *V);
@@ -180,7 +187,7 @@ int hbvm_attempt(const hbvm_kernel *kernel, const hbvm_system *sys, hbvm_state *
 
 /* the core's functions for the hosts' compiled glue (hbvm_md/rebound/csrc), handed over in
  * the capsule integrators._core.API: one binary of the step */
-#define HBVM_API_VERSION 4
+#define HBVM_API_VERSION 5
 typedef struct {
     int version, lanes, n_counters, n_eref;
     int (*attempt)(const hbvm_kernel *, const hbvm_system *, hbvm_state *, hbvm_state *,
@@ -193,6 +200,8 @@ typedef struct {
     hbvm_potential_fn nbody_potential;
     int (*nbody_check)(int, const double *, long);
     hbvm_field_fn nbody_field;          /* the test particles' field (followers) */
+    int (*test_particle_error)(const double *, int, int, const double *, const double *,
+                               double, double, double *);
 } hbvm_api;
 
 /* the padded stage count for k stages */

@@ -1335,21 +1335,45 @@ static double monomial_weight(int j)
     return c * sqrt(2.0 * j + 1.0);
 }
 
+/* core.sources_terms: (max |w gamma_{s-1}|, max |w gamma_0|) over the gravitating
+ * coordinates (kin_w != 0) of gamma (s, m) row-major */
+static void sources_terms(const double *gamma, int s, int m, const double *w,
+                          const double *kin_w, double *top, double *low)
+{
+    const double *top_row = gamma + (size_t)(s - 1) * m;
+    *top = 0.0;
+    *low = 0.0;
+    for (int j = 0; j < m; ++j)
+        if (kin_w[j] != 0.0) {
+            if (fabs(w[j] * top_row[j]) > *top)
+                *top = fabs(w[j] * top_row[j]);
+            if (fabs(w[j] * gamma[j]) > *low)
+                *low = fabs(w[j] * gamma[j]);
+        }
+}
+
+/* core.particle_terms: (max |gamma_{s-1}|, max |gamma_0|) over particle i's coordinates */
+static void particle_terms(const double *gamma, int s, int m, int i, double *t, double *lo)
+{
+    const double *top_row = gamma + (size_t)(s - 1) * m;
+    *t = 0.0;
+    *lo = 0.0;
+    for (int c = 3 * i; c < 3 * i + 3; ++c) {
+        if (fabs(top_row[c]) > *t)
+            *t = fabs(top_row[c]);
+        if (fabs(gamma[c]) > *lo)
+            *lo = fabs(gamma[c]);
+    }
+}
+
 double hbvm_test_particle_control(const double *gamma, int s, int m, const double *w,
                                   const double *kin_w, double err_sources)
 {
     if (s < 2)
         return err_sources;
     const double cw = monomial_weight(s - 1);
-    const double *top_row = gamma + (size_t)(s - 1) * m;
-    double top = 0.0, low = 0.0;        /* core.sources_terms */
-    for (int j = 0; j < m; ++j)
-        if (kin_w[j] != 0.0) {
-            if (fabs(w[j] * top_row[j]) > top)
-                top = fabs(w[j] * top_row[j]);
-            if (fabs(w[j] * gamma[j]) > low)
-                low = fabs(w[j] * gamma[j]);
-        }
+    double top, low;
+    sources_terms(gamma, s, m, w, kin_w, &top, &low);
     if (!(low > 0.0 && top > 0.0))
         return err_sources;
     const double r = top / (cw * low);
@@ -1358,13 +1382,8 @@ double hbvm_test_particle_control(const double *gamma, int s, int m, const doubl
     for (int i = 0; i < m / 3; ++i) {
         if (kin_w[3 * i] != 0.0)
             continue;
-        double tt = 0.0, lo = 0.0;      /* core.particle_terms */
-        for (int c = 3 * i; c < 3 * i + 3; ++c) {
-            if (fabs(top_row[c]) > tt)
-                tt = fabs(top_row[c]);
-            if (fabs(gamma[c]) > lo)
-                lo = fabs(gamma[c]);
-        }
+        double tt, lo;
+        particle_terms(gamma, s, m, i, &tt, &lo);
         if (lo > 0.0) {
             const double e = err_sources * pow(tt / (cw * lo) / r, p);
             if (e > out)
@@ -1372,6 +1391,32 @@ double hbvm_test_particle_control(const double *gamma, int s, int m, const doubl
         }
     }
     return out;
+}
+
+int hbvm_test_particle_error(const double *gamma, int s, int m, const double *w,
+                             const double *kin_w, double floor, double factor,
+                             double *worst_err)
+{
+    const double cw = monomial_weight(s - 1);
+    double top, low;
+    sources_terms(gamma, s, m, w, kin_w, &top, &low);
+    double bound = floor;
+    if (low > 0.0 && factor * top / (cw * low) > bound)
+        bound = factor * top / (cw * low);
+    int worst = -1;
+    *worst_err = 0.0;
+    for (int i = 0; i < m / 3; ++i) {
+        if (kin_w[3 * i] != 0.0)
+            continue;
+        double t, lo;
+        particle_terms(gamma, s, m, i, &t, &lo);
+        const double err = lo > 0.0 ? t / (cw * lo) : (t > 0.0 ? INFINITY : 0.0);
+        if (err > bound && err > *worst_err) {
+            worst = i;
+            *worst_err = err;
+        }
+    }
+    return worst;
 }
 
 /* core.next_step: h (epsilon / err)^(1 / (2s + 1)) x 0.7, within [0.2 h, 2 h] */

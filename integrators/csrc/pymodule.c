@@ -789,7 +789,8 @@ PyMODINIT_FUNC PyInit__core(void)
                                  .nbody_force = hbvm_nbody_force_k,
                                  .nbody_potential = hbvm_nbody_potential_k,
                                  .nbody_check = hbvm_nbody_check,
-                                 .nbody_field = hbvm_nbody_field};
+                                 .nbody_field = hbvm_nbody_field,
+                                 .test_particle_error = hbvm_test_particle_error};
     PyObject *cap = PyCapsule_New((void *)&api, "integrators._core.API", NULL);
     if (!cap || PyModule_AddObject(mod, "API", cap) != 0)
         return NULL;

@@ -179,55 +179,6 @@ static double landing_step(const struct reb_simulation *r, const state_t *st, do
  * exceeds max(TP_FLOOR, TP_FACTOR x the sources') */
 static const double TP_FLOOR = 1e-2, TP_FACTOR = 10.0;
 
-/* core.monomial_weight */
-static double monomial_weight(int j)
-{
-    double c = 1.0;
-    for (int i = 1; i <= j; ++i)
-        c *= (double)(i * i) / ((2.0 * i) * (2.0 * i + 1.0));
-    return c * sqrt(2.0 * j + 1.0);
-}
-
-/* core.test_particle_error with source_floor 0: a fixed step's check of its test particles
- * (kin_w 0) from its own coefficients gamma (s, u) row-major, weights w; the worst offending
- * particle's index or -1, its estimate in *worst_err */
-static int test_particle_error(const double *gamma, int s, int u, const double *w,
-                               const double *kin_w, double floor, double factor,
-                               double *worst_err)
-{
-    const double cw = monomial_weight(s - 1);
-    double top = 0.0, low = 0.0;
-    for (int j = 0; j < u; ++j)
-        if (kin_w[j] != 0.0) {
-            if (fabs(w[j] * gamma[(s - 1) * u + j]) > top)
-                top = fabs(w[j] * gamma[(s - 1) * u + j]);
-            if (fabs(w[j] * gamma[j]) > low)
-                low = fabs(w[j] * gamma[j]);
-        }
-    double bound = floor;
-    if (low > 0.0 && factor * top / (cw * low) > bound)
-        bound = factor * top / (cw * low);
-    int worst = -1;
-    *worst_err = 0.0;
-    for (int i = 0; i < u / 3; ++i) {
-        if (kin_w[3 * i] != 0.0)
-            continue;
-        double t = 0.0, lo = 0.0;
-        for (int c = 3 * i; c < 3 * i + 3; ++c) {
-            if (fabs(gamma[(s - 1) * u + c]) > t)
-                t = fabs(gamma[(s - 1) * u + c]);
-            if (fabs(gamma[c]) > lo)
-                lo = fabs(gamma[c]);
-        }
-        const double err = lo > 0.0 ? t / (cw * lo) : (t > 0.0 ? INFINITY : 0.0);
-        if (err > bound && err > *worst_err) {
-            worst = i;
-            *worst_err = err;
-        }
-    }
-    return worst;
-}
-
 /* the plain N-body step (the module's docstring) */
 static int step(struct reb_simulation *r, void *p)
 {
@@ -320,8 +271,8 @@ static int step(struct reb_simulation *r, void *p)
     if (status == RB_OK && !adaptive && st->etol != 0.0) {
         /* the test particles against the bodies they move among (glue.step_arrays) */
         double err;
-        const int worst = test_particle_error(gammat, s, m, minv, kin_w, TP_FLOOR, TP_FACTOR,
-                                              &err);
+        const int worst = core->test_particle_error(gammat, s, m, minv, kin_w, TP_FLOOR,
+                                                    TP_FACTOR, &err);
         if (worst >= 0) {
             counters[C_ITER] = c_iter;
             counters[C_NFEV] = c_nfev;
