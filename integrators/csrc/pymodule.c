@@ -461,16 +461,12 @@ static PyObject *py_run(PyObject *self, PyObject *args)
                 SHAPE_ERR("samples", "(nsteps / every + 1) rows of t, y (2m), e");
         }
     }
-    int status;
-    if (kid == KERNEL_PYTHON) {          /* (the kernel calls the interpreter: keep the GIL) */
-        status = hbvm_run(&a.kern, &a.sys, &a.st, h, E, &a.tab, &a.op, a.counters, &smp,
-                          a.scratch, (size_t)a.nscratch);
-    } else {
-        Py_BEGIN_ALLOW_THREADS
-        status = hbvm_run(&a.kern, &a.sys, &a.st, h, E, &a.tab, &a.op, a.counters, &smp,
-                          a.scratch, (size_t)a.nscratch);
-        Py_END_ALLOW_THREADS
-    }
+    /* the GIL released for compiled kernels (a Python kernel calls the interpreter: kept) */
+    PyThreadState *ts = kid == KERNEL_PYTHON ? NULL : PyEval_SaveThread();
+    const int status = hbvm_run(&a.kern, &a.sys, &a.st, h, E, &a.tab, &a.op, a.counters, &smp,
+                                a.scratch, (size_t)a.nscratch);
+    if (ts)
+        PyEval_RestoreThread(ts);
     release(&bs);
     return status_result(status);
 fail:
